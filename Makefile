@@ -1,0 +1,22 @@
+# Each target sets itself up on a fresh machine; the stamp makes a second run start in seconds.
+VENV  := .venv
+PY    := $(VENV)/bin/python
+STAMP := $(VENV)/.rgbd-gt-installed
+DATA  := ../shared/data
+
+.PHONY: setup demo test bench clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml scripts/setup.sh
+	@bash scripts/setup.sh
+	@touch $@
+
+demo: $(STAMP)
+	@bash scripts/demo.sh
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache demo_out

@@ -1,0 +1,127 @@
+"""Pinhole camera with OpenCV lens distortion: project, back-project, undistort, rescale.
+
+Pixel convention (OpenCV): pixel (u, v) = (column, row), the centre of the top-left pixel is
+(0, 0). The camera frame is OpenCV's: x right, y down, z forward; units are metres.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Intrinsics of one camera at one resolution.
+
+    distortion: OpenCV coefficients (k1, k2, p1, p2[, k3[, k4, k5, k6[, ...]]]); () for none.
+    """
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    distortion: tuple[float, ...] = ()
+
+    @property
+    def K(self) -> np.ndarray:
+        """(3, 3) float64 intrinsic matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def has_distortion(self) -> bool:
+        return any(abs(d) > 0 for d in self.distortion)
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height) in pixels."""
+        return self.width, self.height
+
+
+def without_distortion(camera: Camera) -> Camera:
+    """The same intrinsics with no lens distortion (the model of an undistorted image)."""
+    return dataclasses.replace(camera, distortion=())
+
+
+def project(camera: Camera, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Project camera-frame points to pixels, applying the lens distortion.
+
+    Args:
+        points: (N, 3) float, metres, camera frame.
+    Returns:
+        uv: (N, 2) float64 pixel coordinates; z: (N,) depth along the optical axis (metres).
+        Points with z <= 0 get uv = nan.
+    """
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    z = pts[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xn = np.where(z[:, None] > 0, pts[:, :2] / z[:, None], np.nan)
+    if camera.has_distortion:
+        import cv2
+
+        ok = np.isfinite(xn).all(axis=1)
+        uv = np.full_like(xn, np.nan)
+        if ok.any():
+            obj = np.concatenate([xn[ok], np.ones((ok.sum(), 1))], axis=1)
+            img, _ = cv2.projectPoints(obj, np.zeros(3), np.zeros(3), camera.K, np.asarray(camera.distortion, float))
+            uv[ok] = img.reshape(-1, 2)
+    else:
+        uv = np.stack([camera.fx * xn[:, 0] + camera.cx, camera.fy * xn[:, 1] + camera.cy], axis=1)
+    return uv, z
+
+
+def undistort_points(camera: Camera, uv: np.ndarray) -> np.ndarray:
+    """Distorted pixels (N, 2) -> normalised image coordinates (N, 2) (x/z, y/z)."""
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    if not camera.has_distortion:
+        return np.stack([(uv[:, 0] - camera.cx) / camera.fx, (uv[:, 1] - camera.cy) / camera.fy], axis=1)
+    import cv2
+
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+    out = cv2.undistortPointsIter(uv.reshape(-1, 1, 2), camera.K, np.asarray(camera.distortion, float), None, None, crit)
+    return out.reshape(-1, 2)
+
+
+def backproject(camera: Camera, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """Pixels (N, 2) with z-depth (N,) in metres -> camera-frame points (N, 3)."""
+    xn = undistort_points(camera, uv)
+    d = np.asarray(depth, np.float64).reshape(-1, 1)
+    return np.concatenate([xn * d, d], axis=1)
+
+
+def undistort_image(camera: Camera, image: np.ndarray, interpolation: int | None = None) -> np.ndarray:
+    """Remove lens distortion; the result follows `without_distortion(camera)` (same K).
+
+    image: (H, W[, C]) array of the camera's size. Returns an array of the same shape/dtype.
+    """
+    if not camera.has_distortion:
+        return image
+    import cv2
+
+    interp = cv2.INTER_LINEAR if interpolation is None else interpolation
+    map1, map2 = cv2.initUndistortRectifyMap(
+        camera.K, np.asarray(camera.distortion, float), None, camera.K, camera.size, cv2.CV_32FC1
+    )
+    return cv2.remap(image, map1, map2, interp, borderMode=cv2.BORDER_REPLICATE)
+
+
+def rescale(camera: Camera, width: int, height: int) -> Camera:
+    """The camera for the same optics at another resolution (e.g. an image pyramid level).
+
+    Scales about pixel corners, so pixel centres keep the OpenCV convention:
+    c' = (c + 0.5) * s - 0.5. Distortion acts on normalised coordinates and is unchanged.
+    """
+    sx, sy = width / camera.width, height / camera.height
+    return dataclasses.replace(
+        camera,
+        width=int(width),
+        height=int(height),
+        fx=camera.fx * sx,
+        fy=camera.fy * sy,
+        cx=(camera.cx + 0.5) * sx - 0.5,
+        cy=(camera.cy + 0.5) * sy - 0.5,
+    )

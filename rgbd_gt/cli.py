@@ -1,0 +1,150 @@
+"""Command-line interface. Thin: parse options, call the library, report.
+
+Every command turns bad input (InputError) into one line `error: ...` on stderr and exit
+code 2; `--debug` shows the traceback instead.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import List, Optional
+
+import click
+import numpy as np
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from rgbd_gt import __version__
+from rgbd_gt.errors import InputError
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    help="Ground-truth RGB-D data from a terrestrial laser scan and photos.",
+)
+out = Console()
+err = Console(stderr=True)
+
+
+def _version(value: bool) -> None:
+    if value:
+        out.print(f"rgbd-gt {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version and exit."),
+    debug: bool = typer.Option(False, "--debug", help="Show full tracebacks and library diagnostics on errors."),
+) -> None:
+    """Ground-truth RGB-D data from a terrestrial laser scan and photos."""
+
+
+def _parse_floats(text: str, n: int, what: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != n or not all(np.isfinite(values)):
+        raise InputError(f"{what} must be {n} comma-separated numbers, got '{text}'")
+    return values
+
+
+def _progress(*extra_columns) -> Progress:
+    """A progress bar on stderr that leaves nothing behind (and prints nothing when not a terminal)."""
+    return Progress(
+        TextColumn("{task.description}"), BarColumn(), *extra_columns, TimeElapsedColumn(),
+        console=err, transient=True, disable=not err.is_terminal,
+    )
+
+
+def _fmt_bounds(b: np.ndarray) -> str:
+    if not np.isfinite(b).all():
+        return "-"
+    return " .. ".join("(" + ", ".join(f"{v:.2f}" for v in row) + ")" for row in b)
+
+
+@app.command()
+def ingest(
+    scans: List[Path] = typer.Argument(..., help="Scan files (.e57 or .ply); several are merged in one world frame."),
+    output: Path = typer.Option(..., "-o", "--output", help="Output PLY (binary little-endian)."),
+    scan_index: Optional[int] = typer.Option(None, "--scan-index", help="Read only this scan (0-based) of each E57 file."),
+    voxel: Optional[float] = typer.Option(None, "--voxel", help="Voxel size in metres for downsampling (averages colors and intensity)."),
+    crop: Optional[str] = typer.Option(None, "--crop", help="Keep points in the box xmin,ymin,zmin,xmax,ymax,zmax (metres)."),
+    extract_images: Optional[Path] = typer.Option(None, "--extract-images", help="Folder for the images embedded in E57 files."),
+) -> None:
+    """Merge scans, optionally crop and downsample, write a PLY and extract embedded images."""
+    from rgbd_gt.ingest import ingest as run_ingest
+    from rgbd_gt.io.atomic import check_not_input
+
+    if output.suffix.lower() != ".ply":
+        raise InputError("output must be a .ply file", output)
+    check_not_input(output, list(scans))
+    box = None
+    if crop is not None:
+        v = _parse_floats(crop, 6, "--crop")
+        box = (np.array(v[:3]), np.array(v[3:]))
+        if np.any(box[0] > box[1]):
+            raise InputError(f"--crop minimum exceeds maximum: {crop}")
+    if voxel is not None and not voxel > 0:
+        raise InputError(f"--voxel must be positive, got {voxel}")
+
+    with _progress(TextColumn("{task.completed:,.0f}/{task.total:,.0f} points")) as bar:
+        tasks: dict[Path, int] = {}
+
+        def progress(path: Path, done: int, total: int) -> None:
+            if path not in tasks:
+                tasks[path] = bar.add_task(f"reading {path.name}", total=total)
+            bar.update(tasks[path], completed=done)
+
+        result = run_ingest(list(scans), output, scan_index, voxel, box, extract_images, progress)
+
+    table = Table(title="Scans")
+    for col in ("scan", "points", "fields", "bounds min .. max (m)", "spacing (mm)"):
+        table.add_column(col, justify="right" if col in ("points", "spacing (mm)") else "left")
+    for s in result.inputs + [result.output]:
+        style = "bold" if s is result.output else None
+        table.add_row(s.label, f"{s.points:,}", " ".join(s.fields), _fmt_bounds(s.bounds), f"{s.spacing_m * 1e3:.2f}", style=style)
+    out.print(table)
+    if result.images:
+        it = Table(title="Embedded images")
+        for col in ("file", "name", "kind", "size", "format", "pose", "saved to"):
+            it.add_column(col)
+        for im in result.images:
+            saved = im.saved_to or "(use --extract-images)"
+            if im.problem:
+                saved += f" [yellow]({im.problem})[/]"
+            it.add_row(im.source, im.name, im.kind, f"{im.width}x{im.height}", im.format, "yes" if im.has_pose else "no", saved)
+        out.print(it)
+    else:
+        out.print("Embedded images: none")
+    out.print(f"wrote {output} ({result.output.points:,} points)")
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = sys.argv[1:] if argv is None else argv
+    debug = "--debug" in args
+    command = typer.main.get_command(app)
+    try:
+        code = command.main(args=args, prog_name="rgbd-gt", standalone_mode=False)
+        sys.exit(code if isinstance(code, int) else 0)
+    except InputError as exc:
+        if debug:
+            raise
+        err.print(f"error: {exc}", markup=False, highlight=False, soft_wrap=True)
+        sys.exit(2)
+    except click.ClickException as exc:
+        exc.show()
+        sys.exit(exc.exit_code)
+    except click.exceptions.Exit as exc:
+        sys.exit(exc.exit_code)
+    except (click.Abort, KeyboardInterrupt):
+        err.print("aborted", markup=False)
+        sys.exit(130)
+    except MemoryError:
+        err.print("error: out of memory (try --voxel or --crop to reduce the scan)", markup=False)
+        sys.exit(1)

@@ -1,0 +1,98 @@
+"""Camera files: the project's YAML, and OpenCV calibration files (cv2.FileStorage)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from rgbd_gt.camera import Camera
+from rgbd_gt.errors import InputError
+from rgbd_gt.io.atomic import atomic_output
+
+VALID_DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
+
+
+def _camera_from_values(path: Path, width, height, K: np.ndarray, dist) -> Camera:
+    dist = tuple(float(d) for d in np.asarray(dist if dist is not None else [], float).ravel())
+    if len(dist) not in VALID_DISTORTION_LENGTHS:
+        raise InputError(f"distortion must have 4, 5, 8, 12 or 14 coefficients, got {len(dist)}", path)
+    try:
+        w, h = int(width), int(height)
+    except (TypeError, ValueError):
+        raise InputError("width and height must be integers", path) from None
+    K = np.asarray(K, float)
+    cam = Camera(w, h, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), dist)
+    if w <= 0 or h <= 0 or not (cam.fx > 0 and cam.fy > 0) or not np.isfinite(K).all():
+        raise InputError("camera needs positive width, height, fx, fy and finite values", path)
+    return cam
+
+
+def _read_opencv(path: Path) -> Camera:
+    import cv2
+
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except cv2.error as exc:
+        raise InputError(f"not a readable OpenCV calibration file ({str(exc).strip().splitlines()[-1]})", path) from None
+    try:
+        K = fs.getNode("camera_matrix").mat()
+        dist = fs.getNode("distortion_coefficients").mat()
+        w, h = fs.getNode("image_width"), fs.getNode("image_height")
+        if K is None or K.shape != (3, 3):
+            raise InputError("OpenCV calibration file has no 3x3 'camera_matrix'", path)
+        if w.empty() or h.empty():
+            raise InputError("OpenCV calibration file has no 'image_width'/'image_height'", path)
+        return _camera_from_values(path, w.real(), h.real(), K, dist)
+    finally:
+        fs.release()
+
+
+def read_camera(path: str | os.PathLike) -> Camera:
+    """Read a camera file: the project's YAML (width, height, fx, fy, cx, cy[, distortion])
+    or an OpenCV calibration file (camera_matrix, distortion_coefficients, image_width, image_height).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("file not found", path)
+    text = path.read_text(errors="replace")
+    if text.lstrip().startswith("%YAML:1.0") or "opencv-matrix" in text or path.suffix.lower() == ".xml":
+        return _read_opencv(path)
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise InputError(f"invalid YAML ({str(exc).splitlines()[0]})", path) from None
+    if not isinstance(data, dict):
+        raise InputError("camera file must be a YAML mapping", path)
+    missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy") if k not in data]
+    if missing:
+        raise InputError(f"camera file lacks {', '.join(missing)}", path)
+    try:
+        K = np.array([[data["fx"], 0, data["cx"]], [0, data["fy"], data["cy"]], [0, 0, 1]], float)
+    except (TypeError, ValueError):
+        raise InputError("fx, fy, cx, cy must be numbers", path) from None
+    return _camera_from_values(path, data["width"], data["height"], K, data.get("distortion"))
+
+
+def camera_to_dict(camera: Camera) -> dict:
+    d = {"width": camera.width, "height": camera.height, "fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy}
+    if camera.distortion:
+        d["distortion"] = [float(x) for x in camera.distortion]
+    return d
+
+
+def write_camera(path: str | os.PathLike, camera: Camera) -> None:
+    """Write the project's camera YAML (atomically)."""
+    with atomic_output(path) as tmp:
+        tmp.write_text(yaml.safe_dump(camera_to_dict(camera), sort_keys=False))
+
+
+def check_image_matches(camera: Camera, image_shape: tuple[int, ...], image_path, camera_path) -> None:
+    """Raise InputError when an image's size is not the camera file's size."""
+    h, w = image_shape[:2]
+    if (w, h) != (camera.width, camera.height):
+        raise InputError(
+            f"image is {w}x{h} but camera file {camera_path} is for {camera.width}x{camera.height}", image_path
+        )

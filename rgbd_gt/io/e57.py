@@ -1,0 +1,549 @@
+"""E57 (ASTM E2807) scans and embedded images, through pye57's libE57 bindings.
+
+Points are read in chunks straight into preallocated output arrays, so a 40-million-point
+scan is loaded without a Python loop per point and with about one copy of the data in
+memory (plus one chunk).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import tempfile
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterator
+
+import numpy as np
+
+from rgbd_gt.errors import InputError
+from rgbd_gt.io.atomic import atomic_output
+from rgbd_gt.io.scan import Scan
+
+CHUNK = 1 << 20  # points per read: bounds the extra memory to a few tens of MB
+CARTESIAN = ("cartesianX", "cartesianY", "cartesianZ")
+SPHERICAL = ("sphericalRange", "sphericalAzimuth", "sphericalElevation")
+COLORS = ("colorRed", "colorGreen", "colorBlue")
+IMAGE_KINDS = ("pinhole", "spherical", "cylindrical", "visualReference")
+
+
+@contextlib.contextmanager
+def _quiet_native() -> Iterator[None]:
+    """Silence C++-level stdout/stderr (libE57 prints its own diagnostics on failure)."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), 1)
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            os.close(saved[0])
+            os.close(saved[1])
+
+
+def _libe57():
+    from pye57 import libe57
+
+    return libe57
+
+
+def _first_line(exc: Exception) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0] if text else type(exc).__name__
+
+
+def _open(path: Path):
+    libe57 = _libe57()
+    if path.stat().st_size == 0:
+        raise InputError("not an E57 file (empty)", path)
+    try:
+        with _quiet_native():
+            imf = libe57.ImageFile(str(path), "r")
+            imf.root()
+    except Exception as exc:  # libE57 raises its own exception type for every failure
+        raise InputError(f"cannot read E57: {_first_line(exc)}", path) from None
+    return imf
+
+
+def _child(node, name):
+    """The typed child `name` of a structure node, or None when it is absent."""
+    from pye57.utils import get_node
+
+    if not node.isDefined(name):
+        return None
+    return get_node(node, name)
+
+
+def _number(node) -> float:
+    libe57 = _libe57()
+    if isinstance(node, libe57.ScaledIntegerNode):
+        return float(node.scaledValue())
+    return float(node.value())
+
+
+def _struct_numbers(node, names) -> list[float] | None:
+    if node is None or not all(node.isDefined(n) for n in names):
+        return None
+    return [_number(_child(node, n)) for n in names]
+
+
+def _quat_to_matrix(q: list[float]) -> np.ndarray:
+    """(w, x, y, z), normalised (some writers store non-unit quaternions) -> (3, 3)."""
+    w, x, y, z = np.asarray(q, float) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _matrix_to_quat(R: np.ndarray) -> list[float]:
+    """(3, 3) rotation -> (w, x, y, z), numerically stable for any rotation."""
+    m = np.asarray(R, float)
+    tr = np.trace(m)
+    cands = [
+        (tr, [1 + tr, m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]]),
+        (m[0, 0], [m[2, 1] - m[1, 2], 1 + m[0, 0] - m[1, 1] - m[2, 2], m[0, 1] + m[1, 0], m[0, 2] + m[2, 0]]),
+        (m[1, 1], [m[0, 2] - m[2, 0], m[0, 1] + m[1, 0], 1 - m[0, 0] + m[1, 1] - m[2, 2], m[1, 2] + m[2, 1]]),
+        (m[2, 2], [m[1, 0] - m[0, 1], m[0, 2] + m[2, 0], m[1, 2] + m[2, 1], 1 - m[0, 0] - m[1, 1] + m[2, 2]]),
+    ]
+    q = np.array(max(cands, key=lambda c: c[0])[1])
+    q /= np.linalg.norm(q)
+    return list(q * np.sign(q[0] if q[0] != 0 else 1))
+
+
+def _pose(node) -> np.ndarray:
+    """4x4 local-to-world transform of a data3D or images2D entry (identity when absent)."""
+    T = np.eye(4)
+    pose = _child(node, "pose")
+    if pose is None:
+        return T
+    q = _struct_numbers(_child(pose, "rotation"), ("w", "x", "y", "z"))
+    t = _struct_numbers(_child(pose, "translation"), ("x", "y", "z"))
+    if q is not None:
+        T[:3, :3] = _quat_to_matrix(q)
+    if t is not None:
+        T[:3, 3] = t
+    return T
+
+
+def _limits(scan_node, group: str, lo: str, hi: str, proto_node) -> tuple[float, float] | None:
+    """Declared value limits: the scan's `group` structure first, else the prototype's bounds."""
+    declared = _struct_numbers(_child(scan_node, group), (lo, hi))
+    if declared is not None and declared[1] > declared[0]:
+        return declared[0], declared[1]
+    libe57 = _libe57()
+    if isinstance(proto_node, libe57.IntegerNode):
+        return float(proto_node.minimum()), float(proto_node.maximum())
+    if isinstance(proto_node, libe57.ScaledIntegerNode):
+        return float(proto_node.scaledMinimum()), float(proto_node.scaledMaximum())
+    if isinstance(proto_node, libe57.FloatNode) and max(abs(proto_node.minimum()), abs(proto_node.maximum())) < 1e30:
+        return float(proto_node.minimum()), float(proto_node.maximum())
+    return None  # float field with the default +-FLT_MAX bounds: nothing declared
+
+
+@dataclass
+class _ScanLayout:
+    node: object
+    count: int
+    spherical: bool
+    names: list[str]
+    pose: np.ndarray
+
+
+def _layout(path: Path, node) -> _ScanLayout:
+    libe57 = _libe57()
+    points = _child(node, "points")
+    if points is None:
+        raise InputError("a data3D entry has no points", path)
+    proto = libe57.StructureNode(points.prototype())
+    names = [proto.get(i).elementName() for i in range(proto.childCount())]
+    if all(n in names for n in CARTESIAN):
+        spherical = False
+    elif all(n in names for n in SPHERICAL):
+        spherical = True
+    else:
+        raise InputError(f"scan has neither cartesian nor spherical coordinates (fields: {names})", path)
+    return _ScanLayout(node, int(points.childCount()), spherical, names, _pose(node))
+
+
+def e57_scan_count(path: str | os.PathLike) -> int:
+    imf = _open(Path(path))
+    try:
+        return int(imf.root()["data3D"].childCount())
+    finally:
+        imf.close()
+
+
+def read_e57(
+    path: str | os.PathLike,
+    scan_index: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> Scan:
+    """Read every scan of an E57 file (or only `scan_index`) into one world-frame `Scan`.
+
+    Each scan is moved by its pose (quaternion + translation). Points whose cartesian or
+    spherical invalid-state is non-zero are dropped. Colors and intensity are scaled by their
+    declared limits (colorLimits / intensityLimits, else the field's own bounds; intensity
+    with no declared bounds uses the data's range). Raises InputError on any unreadable file.
+    """
+    path = Path(path)
+    imf = _open(path)
+    try:
+        data3d = imf.root()["data3D"]
+        n_scans = int(data3d.childCount())
+        if n_scans == 0:
+            raise InputError("the file holds no scans (data3D is empty)", path)
+        if scan_index is not None and not 0 <= scan_index < n_scans:
+            raise InputError(f"scan index {scan_index} out of range: the file has {n_scans} scan(s)", path)
+        picked = range(n_scans) if scan_index is None else [scan_index]
+        layouts = [_layout(path, data3d[i]) for i in picked]
+        with _quiet_native():
+            try:
+                return _read_points(imf, layouts, progress)
+            except InputError:
+                raise
+            except Exception as exc:
+                raise InputError(f"cannot read E57 points: {_first_line(exc)}", path) from None
+    finally:
+        imf.close()
+
+
+def _read_points(imf, layouts: list[_ScanLayout], progress) -> Scan:
+    libe57 = _libe57()
+    total = sum(s.count for s in layouts)
+    has = {
+        "rgb": all(all(c in s.names for c in COLORS) for s in layouts),
+        "intensity": all("intensity" in s.names for s in layouts),
+        "grid": all("rowIndex" in s.names and "columnIndex" in s.names for s in layouts),
+    }
+    xyz = np.empty((total, 3), np.float64)
+    rgb = np.empty((total, 3), np.uint8) if has["rgb"] else None
+    inten = np.empty(total, np.float32) if has["intensity"] else None
+    row = np.empty(total, np.int32) if has["grid"] else None
+    col = np.empty(total, np.int32) if has["grid"] else None
+    scan_id = np.empty(total, np.int32)
+    origins = np.array([s.pose[:3, 3] for s in layouts])
+    inten_limits: list[tuple[float, float] | None] = []
+    inten_ranges: list[slice] = []
+
+    k = 0  # number of valid points written so far
+    done = 0
+    for sid, s in enumerate(layouts):
+        points = _child(s.node, "points")
+        proto = libe57.StructureNode(points.prototype())
+        coords = SPHERICAL if s.spherical else CARTESIAN
+        state_name = "sphericalInvalidState" if s.spherical else "cartesianInvalidState"
+        wanted = list(coords)
+        if has["rgb"]:
+            wanted += COLORS
+        if has["intensity"]:
+            wanted.append("intensity")
+        if has["grid"]:
+            wanted += ["rowIndex", "columnIndex"]
+        if state_name in s.names:
+            wanted.append(state_name)
+        cap = max(1, min(CHUNK, s.count))
+        bufs = {}
+        vec = libe57.VectorSourceDestBuffer()
+        for name in wanted:
+            # int8 for the state and float64 (exact for integers) for the rest: the bindings
+            # take numpy int64 as a 32-bit C long and would garble it.
+            dtype = np.int8 if name == state_name else np.float64
+            bufs[name] = np.empty(cap, dtype)
+            vec.append(libe57.SourceDestBuffer(imf, name, bufs[name], cap, True, True))
+        color_lims = (
+            [_limits(s.node, "colorLimits", f"{c}Minimum", f"{c}Maximum", _child(proto, c)) or (0.0, 255.0) for c in COLORS]
+            if has["rgb"]
+            else []
+        )
+        if has["intensity"]:
+            inten_limits.append(_limits(s.node, "intensityLimits", "intensityMinimum", "intensityMaximum", _child(proto, "intensity")))
+        start = k
+        R, t = s.pose[:3, :3], s.pose[:3, 3]
+        reader = points.reader(vec)
+        try:
+            while (n := int(reader.read())) > 0:
+                keep = bufs[state_name][:n] == 0 if state_name in bufs else slice(0, n)
+                a, b, c = (bufs[name][:n][keep] for name in coords)
+                if s.spherical:  # E57 convention: azimuth from +x towards +y, elevation from the xy-plane
+                    a, b, c = a * np.cos(c) * np.cos(b), a * np.cos(c) * np.sin(b), a * np.sin(c)
+                m = a.shape[0]
+                local = np.stack([a, b, c], axis=1)
+                xyz[k : k + m] = local @ R.T + t
+                if rgb is not None:
+                    for j, (name, (lo, hi)) in enumerate(zip(COLORS, color_lims)):
+                        v = (bufs[name][:n][keep] - lo) * (255.0 / (hi - lo))
+                        rgb[k : k + m, j] = np.clip(np.rint(v), 0, 255)
+                if inten is not None:
+                    inten[k : k + m] = bufs["intensity"][:n][keep]
+                if row is not None:
+                    row[k : k + m] = bufs["rowIndex"][:n][keep]
+                    col[k : k + m] = bufs["columnIndex"][:n][keep]
+                k += m
+                done += n
+                if progress is not None:
+                    progress(done, total)
+        finally:
+            reader.close()
+        scan_id[start:k] = sid
+        inten_ranges.append(slice(start, k))
+
+    if inten is not None:
+        for lims, sl in zip(inten_limits, inten_ranges):
+            part = inten[sl]
+            if lims is None:  # nothing declared: the data's own range
+                lims = (float(part.min()), float(part.max())) if part.size else (0.0, 1.0)
+            lo, hi = lims
+            part -= lo
+            part *= 1.0 / (hi - lo) if hi > lo else 0.0
+            np.clip(part, 0.0, 1.0, out=part)
+
+    def trim(a):
+        if a is None or k == total:
+            return a
+        return a[:k].copy()
+
+    return Scan(
+        xyz=trim(xyz), rgb=trim(rgb), intensity=trim(inten), row=trim(row), col=trim(col),
+        scan_id=trim(scan_id), origins=origins,
+    )
+
+
+@dataclass
+class E57Image:
+    """One Image2D entry of an E57 file.
+
+    kind: 'pinhole' | 'spherical' | 'cylindrical' | 'visualReference'.
+    format: 'jpeg' | 'png'. pose: 4x4 image-to-world transform, or None when the file has none.
+    params: the representation's numbers (focalLength, pixelWidth, ... as the file names them).
+    """
+
+    index: int
+    name: str
+    kind: str
+    format: str
+    width: int
+    height: int
+    nbytes: int
+    pose: np.ndarray | None = None
+    params: dict = field(default_factory=dict)
+
+    @property
+    def suffix(self) -> str:
+        return ".jpg" if self.format == "jpeg" else ".png"
+
+
+def _image_entry(index: int, node) -> tuple[E57Image, object] | None:
+    libe57 = _libe57()
+    for kind in IMAGE_KINDS:
+        rep = _child(node, f"{kind}Representation")
+        if rep is None:
+            continue
+        blob, fmt = None, None
+        for fmt_name, blob_name in (("jpeg", "jpegImage"), ("png", "pngImage")):
+            blob = _child(rep, blob_name)
+            if blob is not None:
+                fmt = fmt_name
+                break
+        if blob is None:
+            return None
+        params = {}
+        for i in range(rep.childCount()):
+            name = rep.get(i).elementName()
+            child = _child(rep, name)
+            if isinstance(child, (libe57.FloatNode, libe57.IntegerNode, libe57.ScaledIntegerNode)):
+                params[name] = _number(child)
+        name_node = _child(node, "name")
+        return (
+            E57Image(
+                index=index,
+                name=name_node.value() if name_node is not None else f"image{index}",
+                kind=kind,
+                format=fmt,
+                width=int(params.pop("imageWidth", 0)),
+                height=int(params.pop("imageHeight", 0)),
+                nbytes=int(blob.byteCount()),
+                pose=_pose(node) if node.isDefined("pose") else None,
+                params=params,
+            ),
+            blob,
+        )
+    return None
+
+
+def list_e57_images(path: str | os.PathLike) -> list[E57Image]:
+    """The Image2D entries of an E57 file (entries without image data are skipped)."""
+    return [img for img, _ in _images(Path(path), with_data=False)]
+
+
+def read_e57_images(path: str | os.PathLike) -> list[tuple[E57Image, bytes]]:
+    """Every Image2D entry with its encoded image bytes (JPEG or PNG, as stored)."""
+    return list(_images(Path(path), with_data=True))
+
+
+def _images(path: Path, with_data: bool):
+    imf = _open(path)
+    try:
+        root = imf.root()
+        if not root.isDefined("images2D"):
+            return []
+        images2d = root["images2D"]
+        out = []
+        for i in range(int(images2d.childCount())):
+            entry = _image_entry(i, images2d[i])
+            if entry is None:
+                continue
+            img, blob = entry
+            if with_data:
+                buf = np.empty(img.nbytes, np.uint8)
+                with _quiet_native():
+                    blob.read(buf, 0, img.nbytes)
+                out.append((img, buf.tobytes()))
+            else:
+                out.append((img, None))
+        return out
+    except InputError:
+        raise
+    except Exception as exc:
+        raise InputError(f"cannot read E57 images: {_first_line(exc)}", path) from None
+    finally:
+        imf.close()
+
+
+def pinhole_intrinsics(image: E57Image) -> dict | None:
+    """Camera-file values (width, height, fx, fy, cx, cy) of a pinhole Image2D, else None.
+
+    E57 stores the focal length and pixel pitch in metres and the principal point in pixels.
+    """
+    p = image.params
+    if image.kind != "pinhole" or not all(k in p for k in ("focalLength", "pixelWidth", "pixelHeight")):
+        return None
+    return {
+        "width": image.width,
+        "height": image.height,
+        "fx": p["focalLength"] / p["pixelWidth"],
+        "fy": p["focalLength"] / p["pixelHeight"],
+        "cx": p.get("principalPointX", (image.width - 1) / 2),
+        "cy": p.get("principalPointY", (image.height - 1) / 2),
+    }
+
+
+def write_e57(
+    path: str | os.PathLike,
+    scans: list[Scan],
+    poses: list[np.ndarray] | None = None,
+    spherical: bool = False,
+    names: list[str] | None = None,
+) -> None:
+    """Write scans to an E57 file (atomically), one data3D entry per scan.
+
+    Each scan's `xyz` is in its own sensor frame; `poses[i]` (4x4) maps it to the world frame.
+    Coordinates are stored as doubles, cartesian or (spherical=True) range/azimuth/elevation.
+    Colors (0..255), intensity (0..1) and row/column indices are written when present.
+    """
+    libe57 = _libe57()
+    poses = poses if poses is not None else [np.eye(4)] * len(scans)
+    with atomic_output(path) as tmp:
+        imf = libe57.ImageFile(str(tmp), "w")
+        try:
+            root = imf.root()
+            imf.extensionsAdd("", libe57.E57_V1_0_URI)
+            root.set("formatName", libe57.StringNode(imf, "ASTM E57 3D Imaging Data File"))
+            root.set("guid", libe57.StringNode(imf, f"{{{uuid.uuid4()}}}"))
+            root.set("versionMajor", libe57.IntegerNode(imf, libe57.E57_FORMAT_MAJOR))
+            root.set("versionMinor", libe57.IntegerNode(imf, libe57.E57_FORMAT_MINOR))
+            root.set("e57LibraryVersion", libe57.StringNode(imf, libe57.E57_LIBRARY_ID))
+            root.set("coordinateMetadata", libe57.StringNode(imf, ""))
+            data3d = libe57.VectorNode(imf, True)
+            root.set("data3D", data3d)
+            root.set("images2D", libe57.VectorNode(imf, True))
+            for i, (scan, T) in enumerate(zip(scans, poses)):
+                name = names[i] if names else f"scan{i}"
+                _write_scan(imf, data3d, scan, np.asarray(T, float), spherical, name)
+        finally:
+            imf.close()
+
+
+def _write_scan(imf, data3d, scan: Scan, T: np.ndarray, spherical: bool, name: str) -> None:
+    libe57 = _libe57()
+    node = libe57.StructureNode(imf)
+    node.set("guid", libe57.StringNode(imf, f"{{{uuid.uuid4()}}}"))
+    node.set("name", libe57.StringNode(imf, name))
+    node.set("description", libe57.StringNode(imf, "written by rgbd-gt"))
+
+    pose = libe57.StructureNode(imf)
+    rot, trans = libe57.StructureNode(imf), libe57.StructureNode(imf)
+    for key, v in zip("wxyz", _matrix_to_quat(T[:3, :3])):
+        rot.set(key, libe57.FloatNode(imf, float(v)))
+    for key, v in zip("xyz", T[:3, 3]):
+        trans.set(key, libe57.FloatNode(imf, float(v)))
+    pose.set("rotation", rot)
+    pose.set("translation", trans)
+    node.set("pose", pose)
+
+    xyz = scan.xyz
+    columns: dict[str, np.ndarray] = {}
+    if spherical:
+        rng = np.linalg.norm(xyz, axis=1)
+        columns["sphericalRange"] = rng
+        columns["sphericalAzimuth"] = np.arctan2(xyz[:, 1], xyz[:, 0])
+        columns["sphericalElevation"] = np.arcsin(np.divide(xyz[:, 2], rng, out=np.zeros_like(rng), where=rng > 0))
+    else:
+        columns.update(zip(CARTESIAN, xyz.T))
+    proto = libe57.StructureNode(imf)
+    for key, v in columns.items():
+        lo, hi = (float(v.min()), float(v.max())) if v.size else (0.0, 0.0)
+        proto.set(key, libe57.FloatNode(imf, 0.0, libe57.E57_DOUBLE, min(lo, 0.0), max(hi, 0.0)))
+    if scan.rgb is not None:
+        limits = libe57.StructureNode(imf)
+        for j, c in enumerate(COLORS):
+            columns[c] = scan.rgb[:, j]
+            proto.set(c, libe57.IntegerNode(imf, 0, 0, 255))
+            limits.set(f"{c}Minimum", libe57.IntegerNode(imf, 0))
+            limits.set(f"{c}Maximum", libe57.IntegerNode(imf, 255))
+        node.set("colorLimits", limits)
+    if scan.intensity is not None:
+        columns["intensity"] = scan.intensity
+        proto.set("intensity", libe57.FloatNode(imf, 0.0, libe57.E57_SINGLE, 0.0, 1.0))
+        limits = libe57.StructureNode(imf)
+        limits.set("intensityMinimum", libe57.FloatNode(imf, 0.0))
+        limits.set("intensityMaximum", libe57.FloatNode(imf, 1.0))
+        node.set("intensityLimits", limits)
+    if scan.has_grid:
+        bounds = libe57.StructureNode(imf)
+        for key, v in (("row", scan.row), ("column", scan.col)):
+            lo, hi = (int(v.min()), int(v.max())) if v.size else (0, 0)
+            columns[f"{key}Index"] = v
+            proto.set(f"{key}Index", libe57.IntegerNode(imf, lo, lo, hi))
+            bounds.set(f"{key}Minimum", libe57.IntegerNode(imf, lo))
+            bounds.set(f"{key}Maximum", libe57.IntegerNode(imf, hi))
+        node.set("indexBounds", bounds)
+
+    points = libe57.CompressedVectorNode(imf, proto, libe57.VectorNode(imf, True))
+    node.set("points", points)
+    data3d.append(node)
+
+    n = len(scan)
+    cap = max(1, min(CHUNK, n))
+    bufs = {key: np.empty(cap, np.float64) for key in columns}
+    vec = libe57.VectorSourceDestBuffer()
+    for key, buf in bufs.items():
+        vec.append(libe57.SourceDestBuffer(imf, key, buf, cap, True, True))
+    writer = points.writer(vec)
+    try:
+        for start in range(0, n, cap):
+            m = min(cap, n - start)
+            for key, buf in bufs.items():
+                buf[:m] = columns[key][start : start + m]
+            writer.write(m)
+    finally:
+        writer.close()

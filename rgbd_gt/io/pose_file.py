@@ -1,0 +1,73 @@
+"""Pose files: YAML with `T_cam_from_scan`, a 4x4 rigid transform (rows) that maps scan/world
+points in metres into the OpenCV camera frame. Other keys are metadata and are kept."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from rgbd_gt.errors import InputError
+from rgbd_gt.io.atomic import atomic_output
+
+POSE_KEY = "T_cam_from_scan"
+
+
+def check_rigid(T: np.ndarray, path: object = None, tol: float = 1e-6) -> np.ndarray:
+    """Validate a 4x4 rigid transform; returns it as float64 or raises InputError."""
+    try:
+        T = np.asarray(T, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{POSE_KEY} must be a 4x4 list of numbers", path) from None
+    if T.shape != (4, 4):
+        raise InputError(f"{POSE_KEY} must be 4x4, got shape {T.shape}", path)
+    if not np.isfinite(T).all():
+        raise InputError(f"{POSE_KEY} has non-finite values", path)
+    if not np.allclose(T[3], [0, 0, 0, 1], atol=tol, rtol=0):
+        raise InputError(f"{POSE_KEY} last row must be 0 0 0 1, got {T[3].tolist()}", path)
+    R = T[:3, :3]
+    err = np.abs(R @ R.T - np.eye(3)).max()
+    if err > tol:
+        raise InputError(f"{POSE_KEY} is not rigid: rotation is not orthonormal (|R Rt - I| = {err:.2e})", path)
+    if np.linalg.det(R) < 0:
+        raise InputError(f"{POSE_KEY} is not rigid: rotation is a reflection (det < 0)", path)
+    return T
+
+
+def read_pose(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
+    """Read a pose file. Returns (T_cam_from_scan (4, 4) float64, the other keys as a dict)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("file not found", path)
+    try:
+        data = yaml.safe_load(path.read_text(errors="replace"))
+    except yaml.YAMLError as exc:
+        raise InputError(f"invalid YAML ({str(exc).splitlines()[0]})", path) from None
+    if not isinstance(data, dict) or POSE_KEY not in data:
+        raise InputError(f"pose file has no '{POSE_KEY}' key", path)
+    T = check_rigid(data.pop(POSE_KEY), path)
+    return T, data
+
+
+def _plain(value):
+    """numpy scalars/arrays -> plain Python so that yaml.safe_dump accepts them."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
+
+
+def write_pose(path: str | os.PathLike, T: np.ndarray, **meta) -> None:
+    """Write a pose file (atomically): `T_cam_from_scan` first, then `meta` keys in order."""
+    T = check_rigid(T, path)
+    doc = {POSE_KEY: [[float(x) for x in row] for row in T]}
+    doc.update(_plain(meta))
+    with atomic_output(path) as tmp:
+        tmp.write_text(yaml.safe_dump(doc, sort_keys=False, default_flow_style=None))

@@ -1,0 +1,110 @@
+"""The `Scan` container and the one entry point that loads or saves any scan file."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from rgbd_gt.errors import InputError
+
+SCAN_SUFFIXES = (".e57", ".ply")
+
+
+@dataclass
+class Scan:
+    """A colored point cloud from one or more laser scans, in one world frame.
+
+    Attributes:
+        xyz: (N, 3) float64, metres, in the file's world frame.
+        rgb: (N, 3) uint8 or None.
+        intensity: (N,) float32 in [0, 1] (scaled by the file's declared limits) or None.
+        row, col: (N,) int32 structured-grid indices (row = elevation, col = azimuth) or None.
+        scan_id: (N,) int32 index of the scan each point came from, or None.
+        origins: (S, 3) float64 sensor position of each scan in the world frame.
+    """
+
+    xyz: np.ndarray
+    rgb: np.ndarray | None = None
+    intensity: np.ndarray | None = None
+    row: np.ndarray | None = None
+    col: np.ndarray | None = None
+    scan_id: np.ndarray | None = None
+    origins: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+    PER_POINT = ("xyz", "rgb", "intensity", "row", "col", "scan_id")
+
+    def __len__(self) -> int:
+        return int(self.xyz.shape[0])
+
+    @property
+    def fields(self) -> list[str]:
+        """Names of the per-point fields present, e.g. ['xyz', 'rgb', 'intensity']."""
+        return [name for name in self.PER_POINT if getattr(self, name) is not None]
+
+    @property
+    def has_grid(self) -> bool:
+        return self.row is not None and self.col is not None
+
+    def subset(self, index: np.ndarray) -> "Scan":
+        """A new Scan with the points selected by a boolean mask or an index array."""
+        picked = {name: getattr(self, name)[index] for name in self.fields}
+        return dataclasses.replace(self, **picked)
+
+
+def merge_scans(scans: list[Scan]) -> Scan:
+    """Concatenate scans into one, renumbering scan_id so each input scan keeps its origins.
+
+    A field is kept only when every input has it.
+    """
+    if len(scans) == 1:
+        return scans[0]
+    out: dict[str, np.ndarray | None] = {}
+    for name in ("xyz", "rgb", "intensity", "row", "col"):
+        parts = [getattr(s, name) for s in scans]
+        out[name] = np.concatenate(parts) if all(p is not None for p in parts) else None
+    ids, offset = [], 0
+    for s in scans:
+        local = s.scan_id if s.scan_id is not None else np.zeros(len(s), np.int32)
+        ids.append(local + offset)
+        offset += max(len(s.origins), 1)
+    origins = [s.origins if len(s.origins) else np.zeros((1, 3)) for s in scans]
+    return Scan(**out, scan_id=np.concatenate(ids).astype(np.int32), origins=np.concatenate(origins))
+
+
+def load_scan(path: str | os.PathLike, scan_index: int | None = None, progress=None) -> Scan:
+    """Load an `.e57` or `.ply` scan file.
+
+    Args:
+        path: the file.
+        scan_index: for E57, load only this scan (0-based); None loads and merges all.
+        progress: optional callable(done_points, total_points) for progress reporting.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("file not found", path)
+    suffix = path.suffix.lower()
+    if suffix == ".e57":
+        from rgbd_gt.io.e57 import read_e57
+
+        return read_e57(path, scan_index=scan_index, progress=progress)
+    if suffix == ".ply":
+        from rgbd_gt.io.ply import read_ply
+
+        if scan_index is not None:
+            raise InputError("--scan-index applies to E57 files only", path)
+        return read_ply(path)
+    raise InputError(f"unknown scan format '{path.suffix}' (expected one of {', '.join(SCAN_SUFFIXES)})", path)
+
+
+def save_scan(path: str | os.PathLike, scan: Scan) -> None:
+    """Write a scan as binary little-endian PLY (atomically)."""
+    path = Path(path)
+    if path.suffix.lower() != ".ply":
+        raise InputError("scans are written as .ply", path)
+    from rgbd_gt.io.ply import write_ply
+
+    write_ply(path, scan)
