@@ -81,8 +81,9 @@ def undistort_points(camera: Camera, uv: np.ndarray) -> np.ndarray:
         return np.stack([(uv[:, 0] - camera.cx) / camera.fx, (uv[:, 1] - camera.cy) / camera.fy], axis=1)
     import cv2
 
+    # the default 5 iterations leave ~0.1 px errors near the image corners
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
-    out = cv2.undistortPointsIter(uv.reshape(-1, 1, 2), camera.K, np.asarray(camera.distortion, float), None, None, crit)
+    out = cv2.undistortPoints(uv.reshape(-1, 1, 2), camera.K, np.asarray(camera.distortion, float), None, None, None, crit)
     return out.reshape(-1, 2)
 
 

@@ -22,7 +22,7 @@ from rgbd_gt.errors import InputError
 from rgbd_gt.io.atomic import atomic_output
 from rgbd_gt.io.scan import Scan
 
-CHUNK = 1 << 20  # points per read: bounds the extra memory to a few tens of MB
+CHUNK = 1 << 18  # points per read: bounds the extra memory to a few tens of MB
 CARTESIAN = ("cartesianX", "cartesianY", "cartesianZ")
 SPHERICAL = ("sphericalRange", "sphericalAzimuth", "sphericalElevation")
 COLORS = ("colorRed", "colorGreen", "colorBlue")

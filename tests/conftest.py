@@ -1,0 +1,49 @@
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = Path(os.environ.get("RGBD_GT_DATA", ROOT.parent / "shared" / "data"))
+
+
+def _need(sub: str) -> Path:
+    path = DATA / sub
+    if not path.exists():
+        pytest.skip(f"real test data not found at {path} (the shared data folder beside the repo)")
+    return path
+
+
+@pytest.fixture
+def e57_dir() -> Path:
+    return _need("e57")
+
+
+@pytest.fixture
+def icl_dir() -> Path:
+    return _need("icl_nuim_livingroom1")
+
+
+@pytest.fixture
+def checkerboard_dir() -> Path:
+    return _need("checkerboard")
+
+
+def run_cli(*args, cwd=None) -> subprocess.CompletedProcess:
+    """Run the real `rgbd-gt` entry point in a subprocess (exit codes and stderr as a user sees them)."""
+    return subprocess.run(
+        [sys.executable, "-c", "from rgbd_gt.cli import main; main()", *map(str, args)],
+        capture_output=True, text=True, cwd=cwd, timeout=600,
+    )
+
+
+def assert_one_line_error(proc: subprocess.CompletedProcess, *needles: str) -> None:
+    assert proc.returncode == 2, (proc.returncode, proc.stdout, proc.stderr)
+    lines = [l for l in proc.stderr.splitlines() if l.strip()]
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith("error: "), proc.stderr
+    assert "Traceback" not in proc.stderr + proc.stdout
+    for n in needles:
+        assert n in lines[0], (n, lines[0])

@@ -1,0 +1,95 @@
+import numpy as np
+import pytest
+
+from rgbd_gt.camera import Camera, backproject, project, rescale, undistort_image, without_distortion
+from rgbd_gt.errors import InputError
+from rgbd_gt.io import read_camera, write_camera
+from rgbd_gt.io.camera_file import check_image_matches
+
+CAM = Camera(640, 480, 520.0, 515.0, 321.3, 238.7, (-0.21, 0.08, 0.0012, -0.0007, -0.015))
+
+
+def test_yaml_round_trip(tmp_path):
+    write_camera(tmp_path / "c.yaml", CAM)
+    assert read_camera(tmp_path / "c.yaml") == CAM
+
+
+@pytest.mark.parametrize("n", [4, 5, 8])
+def test_distortion_lengths(tmp_path, n):
+    (tmp_path / "c.yaml").write_text(
+        f"width: 640\nheight: 480\nfx: 500\nfy: 500\ncx: 320\ncy: 240\ndistortion: {[0.01] * n}\n"
+    )
+    assert len(read_camera(tmp_path / "c.yaml").distortion) == n
+
+
+def test_opencv_calibration_file(tmp_path):
+    import cv2
+
+    path = str(tmp_path / "calib.yml")
+    fs = cv2.FileStorage(path, cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", 640)
+    fs.write("image_height", 480)
+    fs.write("camera_matrix", CAM.K)
+    fs.write("distortion_coefficients", np.array(CAM.distortion).reshape(1, 5))
+    fs.release()
+    cam = read_camera(path)
+    assert cam.size == (640, 480)
+    np.testing.assert_allclose(cam.K, CAM.K)
+    np.testing.assert_allclose(cam.distortion, CAM.distortion)
+
+
+@pytest.mark.parametrize(
+    "text,needle",
+    [
+        ("width: 640\nheight: 480\nfx: 500\n", "lacks fy, cx, cy"),
+        ("width: 640\nheight: 480\nfx: 500\nfy: 500\ncx: 320\ncy: 240\ndistortion: [1, 2, 3]\n", "coefficients"),
+        ("width: 640\nheight: 480\nfx: -5\nfy: 500\ncx: 320\ncy: 240\n", "positive"),
+        ("width: [640\n", "invalid YAML"),
+        ("- 1\n- 2\n", "mapping"),
+    ],
+)
+def test_bad_camera_files(tmp_path, text, needle):
+    (tmp_path / "c.yaml").write_text(text)
+    with pytest.raises(InputError, match=needle):
+        read_camera(tmp_path / "c.yaml")
+
+
+def test_image_size_must_match():
+    check_image_matches(CAM, (480, 640, 3), "p.png", "c.yaml")
+    with pytest.raises(InputError, match="image is 800x600 but camera file c.yaml is for 640x480"):
+        check_image_matches(CAM, (600, 800, 3), "p.png", "c.yaml")
+
+
+def test_project_backproject_round_trip():
+    rng = np.random.default_rng(0)
+    pts = np.stack([rng.uniform(-1, 1, 200), rng.uniform(-0.7, 0.7, 200), rng.uniform(1.5, 4, 200)], 1)
+    uv, z = project(CAM, pts)
+    np.testing.assert_allclose(z, pts[:, 2])
+    np.testing.assert_allclose(backproject(CAM, uv, z), pts, atol=1e-9)
+    # distortion moves points compared with the pure pinhole
+    uv0, _ = project(without_distortion(CAM), pts)
+    assert np.abs(uv - uv0).max() > 5
+    assert np.isnan(project(CAM, np.array([[0.0, 0.0, -1.0]]))[0]).all()
+
+
+def test_undistorted_image_follows_the_pinhole_model():
+    """A dot at the distorted projection of a point lands at the pinhole projection after undistortion."""
+    import cv2
+
+    pt = np.array([[0.42, -0.3, 1.0]])
+    (ud, vd), = project(CAM, pt)[0]
+    img = np.zeros((480, 640), np.float32)
+    cv2.circle(img, (int(round(ud * 16)), int(round(vd * 16))), 4 * 16, 1.0, -1, shift=4)
+    und = undistort_image(CAM, img)
+    ys, xs = np.nonzero(und > 0.5)
+    (u0, v0), = project(without_distortion(CAM), pt)[0]
+    assert abs(xs.mean() - u0) < 0.3 and abs(ys.mean() - v0) < 0.3
+
+
+def test_rescale_keeps_pixel_centres():
+    half = rescale(CAM, 320, 240)
+    assert (half.fx, half.fy) == (CAM.fx / 2, CAM.fy / 2)
+    pt = np.array([[0.3, 0.2, 2.0]])
+    uv_full = project(without_distortion(CAM), pt)[0]
+    uv_half = project(without_distortion(half), pt)[0]
+    np.testing.assert_allclose((uv_full + 0.5) / 2 - 0.5, uv_half)
