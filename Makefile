@@ -20,3 +20,6 @@ test: $(STAMP)
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache demo_out
+
+bench: $(STAMP)
+	$(PY) benchmarks/load_large_scan.py
