@@ -449,6 +449,7 @@ def write_e57(
     Each scan's `xyz` is in its own sensor frame; `poses[i]` (4x4) maps it to the world frame.
     Coordinates are stored as doubles, cartesian or (spherical=True) range/azimuth/elevation.
     Colors (0..255), intensity (0..1) and row/column indices are written when present.
+    GUIDs are derived from the data, so the same scans give a byte-identical file.
     """
     libe57 = _libe57()
     poses = poses if poses is not None else [np.eye(4)] * len(scans)
@@ -458,7 +459,7 @@ def write_e57(
             root = imf.root()
             imf.extensionsAdd("", libe57.E57_V1_0_URI)
             root.set("formatName", libe57.StringNode(imf, "ASTM E57 3D Imaging Data File"))
-            root.set("guid", libe57.StringNode(imf, f"{{{uuid.uuid4()}}}"))
+            root.set("guid", libe57.StringNode(imf, _guid("file", *[_digest(s) for s in scans])))
             root.set("versionMajor", libe57.IntegerNode(imf, libe57.E57_FORMAT_MAJOR))
             root.set("versionMinor", libe57.IntegerNode(imf, libe57.E57_FORMAT_MINOR))
             root.set("e57LibraryVersion", libe57.StringNode(imf, libe57.E57_LIBRARY_ID))
@@ -473,10 +474,23 @@ def write_e57(
             imf.close()
 
 
+def _digest(scan: Scan) -> str:
+    import hashlib
+
+    h = hashlib.sha1()
+    for name in scan.fields:
+        h.update(np.ascontiguousarray(getattr(scan, name)).tobytes())
+    return h.hexdigest()
+
+
+def _guid(*parts: str) -> str:
+    return f"{{{uuid.uuid5(uuid.NAMESPACE_URL, 'rgbd-gt/' + '/'.join(parts))}}}"
+
+
 def _write_scan(imf, data3d, scan: Scan, T: np.ndarray, spherical: bool, name: str) -> None:
     libe57 = _libe57()
     node = libe57.StructureNode(imf)
-    node.set("guid", libe57.StringNode(imf, f"{{{uuid.uuid4()}}}"))
+    node.set("guid", libe57.StringNode(imf, _guid("scan", name, _digest(scan), T.tobytes().hex())))
     node.set("name", libe57.StringNode(imf, name))
     node.set("description", libe57.StringNode(imf, "written by rgbd-gt"))
 

@@ -1,0 +1,1 @@
+"""Synthetic scanner-and-camera scenes with exact ground truth (`rgbd-gt synth`)."""

@@ -1,0 +1,193 @@
+"""`rgbd-gt synth`: build a scene, take the photo and the scan, write every file with the truth."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from rgbd_gt.camera import Camera, project
+from rgbd_gt.errors import InputError
+from rgbd_gt.io import Scan, atomic_output, save_scan, write_camera, write_pose
+from rgbd_gt.io.e57 import write_e57
+from rgbd_gt.synth import color
+from rgbd_gt.synth.scene import Scene, make_layout, rigid
+from rgbd_gt.synth.sensors import build_raycaster, cast, grid_covering, laser_scan, render_photo_radiance
+from rgbd_gt.synth.textures import make_texture
+
+FILES = ("scan.e57", "scan.ply", "photo.png", "camera.yaml", "gt_pose.yaml", "init_pose.yaml", "board_corners.csv", "scene.json")
+
+
+@dataclass
+class SizePreset:
+    width: int = 1280
+    height: int = 960
+    scan_step_deg: float = 0.1
+    texture_px: int = 1024
+    supersample: int = 3
+
+
+@dataclass
+class SynthConfig:
+    """Scene generation settings (configs/synth.yaml)."""
+
+    sizes: dict[str, SizePreset] = field(
+        default_factory=lambda: {"default": SizePreset(), "small": SizePreset(640, 480, 0.15, 512, 3)}
+    )
+    board_cols: int = 9
+    board_rows: int = 6
+    square_m: float = 0.05
+    hfov_deg: list[float] = field(default_factory=lambda: [55.0, 70.0])
+    board_distance_m: list[float] = field(default_factory=lambda: [1.8, 2.6])
+    scanner_distance_m: list[float] = field(default_factory=lambda: [1.0, 2.0])
+    range_noise_m: float = 0.001
+    texel_m: float = 0.0015
+    scan_margin_deg: float = 3.0
+    init_translation_m: list[float] = field(default_factory=lambda: [0.02, 0.04])
+    init_rotation_deg: list[float] = field(default_factory=lambda: [0.7, 1.2])
+    max_layout_tries: int = 40
+
+
+def random_camera(rng: np.random.Generator, preset: SizePreset, hfov_deg: list[float]) -> Camera:
+    w, h = preset.width, preset.height
+    f = w / 2 / np.tan(np.deg2rad(rng.uniform(*hfov_deg)) / 2)
+    dist = (rng.uniform(-0.15, -0.03), rng.uniform(-0.02, 0.06), rng.uniform(-8e-4, 8e-4), rng.uniform(-8e-4, 8e-4), 0.0)
+    return Camera(w, h, float(f), float(f * rng.uniform(0.998, 1.002)), float((w - 1) / 2 + rng.normal(0, 0.01 * w)),
+                  float((h - 1) / 2 + rng.normal(0, 0.01 * h)), tuple(float(d) for d in dist))
+
+
+def _board_visible(scene: Scene, rc, camera: Camera) -> bool:
+    """Every board corner is in the photo (with a margin) and seen, unoccluded, by both sensors."""
+    corners = scene.board.corners()
+    lo, hi = scene.board.outline_local()
+    lo, hi = lo + 0.003, hi - 0.003  # a hair inside, so that rays aimed at the edge hit it
+    outline = np.array([[lo[0], lo[1], 0], [hi[0], lo[1], 0], [lo[0], hi[1], 0], [hi[0], hi[1], 0]])
+    pts = np.concatenate([corners, outline @ scene.board.pose[:3, :3].T + scene.board.pose[:3, 3]])
+    cam_T = np.linalg.inv(scene.camera_pose)
+    uv, z = project(camera, pts @ cam_T[:3, :3].T + cam_T[:3, 3])
+    m = 0.04 * camera.width
+    if not (np.all(z > 0) and np.all(uv > m) and np.all(uv < [camera.width - m, camera.height - m])):
+        return False
+    if np.ptp(uv[:, 0]) < 0.15 * camera.width:
+        return False
+    board_id = next(k for k, s in enumerate(scene.surfaces) if s.name == "board")
+    for eye in (scene.camera_pose[:3, 3], scene.scanner_pose[:3, 3]):
+        d = pts - eye
+        dist = np.linalg.norm(d, axis=1)
+        t, gid, _ = cast(rc, eye, d / dist[:, None])
+        if np.any(gid != board_id) or np.any(np.abs(t - dist) > 0.01):
+            return False
+    return True
+
+
+def perturb_pose(T: np.ndarray, rng: np.random.Generator, trans_m: list[float], rot_deg: list[float]) -> np.ndarray:
+    """T (4x4) moved by a random translation and rotation of the given magnitude ranges
+    (applied in the camera frame)."""
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    R, _ = cv2.Rodrigues(axis * np.deg2rad(rng.uniform(*rot_deg)))
+    tdir = rng.normal(size=3)
+    tdir /= np.linalg.norm(tdir)
+    return rigid(R, tdir * rng.uniform(*trans_m)) @ T
+
+
+def generate(out_dir: Path, seed: int, size: str, cfg: SynthConfig,
+             progress: Callable[[str], None] | None = None) -> dict:
+    """Generate one scene into `out_dir` (the FILES). Returns the scene's numbers (also in
+    scene.json). Deterministic: the same seed, size and config give byte-identical files."""
+    if size not in cfg.sizes:
+        raise InputError(f"unknown size '{size}' (choose from {', '.join(cfg.sizes)})")
+    preset = cfg.sizes[size]
+    say = progress or (lambda _msg: None)
+    rng = np.random.default_rng(seed)
+
+    say("layout")
+    for attempt in range(cfg.max_layout_tries):
+        surfaces, board, room, cam_pose, scan_pose, light = make_layout(
+            rng, (cfg.board_cols, cfg.board_rows), cfg.square_m, cfg.board_distance_m, cfg.scanner_distance_m,
+            float(np.mean(cfg.hfov_deg)),
+        )
+        camera = random_camera(rng, preset, cfg.hfov_deg)
+        scene = Scene(room, surfaces, [], [], cfg.texel_m, light, board, cam_pose, scan_pose)
+        rc = build_raycaster(scene)
+        if _board_visible(scene, rc, camera):
+            break
+    else:
+        raise InputError(f"seed {seed}: no valid layout in {cfg.max_layout_tries} tries")
+
+    say("textures")
+    n_tex = 1 + max(s.texture for s in surfaces)
+    scene.textures = [make_texture(rng, preset.texture_px) for _ in range(n_tex)]
+    scene.textures_blurred = [cv2.GaussianBlur(t, (0, 0), 1.5) for t in scene.textures]
+    cam_resp = color.random_camera_response(rng)
+    scan_resp = color.random_scanner_response(rng)
+
+    say("photo")
+    rad = render_photo_radiance(scene, rc, camera, cam_pose, preset.supersample)
+    photo = color.camera_forward(cam_resp, rad, rng)
+
+    say("scan")
+    # the scanner covers what the camera sees, with a margin
+    v, u = np.mgrid[0 : camera.height : complex(0, 31), 0 : camera.width : complex(0, 41)]
+    from rgbd_gt.camera import undistort_points
+
+    xn = undistort_points(camera, np.stack([u.ravel(), v.ravel()], 1))
+    d = np.concatenate([xn, np.ones((xn.shape[0], 1))], 1) @ cam_pose[:3, :3].T
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    t, _, _ = cast(rc, cam_pose[:3, 3], d)
+    seen = cam_pose[:3, 3] + t[:, None] * d
+    Rws, s = scan_pose[:3, :3], scan_pose[:3, 3]
+    grid = grid_covering((seen - s) @ Rws, np.deg2rad(preset.scan_step_deg), np.deg2rad(cfg.scan_margin_deg))
+    local, _world, srad, cos_inc, row, col = laser_scan(scene, rc, grid, cfg.range_noise_m, rng)
+    rgb = color.scanner_forward(scan_resp, srad)
+    reflect = np.clip(srad @ np.array([0.5, 0.3, 0.2]), 0, 1)
+    intensity = np.clip(0.08 + 0.85 * reflect**0.8 * (0.5 + 0.5 * cos_inc) + rng.normal(0, 0.01, reflect.size), 0, 1)
+    scan_local = Scan(xyz=local, rgb=rgb, intensity=intensity.astype(np.float32), row=row.astype(np.int32), col=col.astype(np.int32))
+
+    say("writing")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_e57(out_dir / "scan.e57", [scan_local], [scan_pose], names=["synthetic scan"])
+    world = Scan(xyz=local @ Rws.T + s, rgb=rgb, intensity=scan_local.intensity, row=scan_local.row,
+                 col=scan_local.col, scan_id=np.zeros(len(local), np.int32), origins=s[None])
+    save_scan(out_dir / "scan.ply", world)
+    with atomic_output(out_dir / "photo.png") as tmp:
+        if not cv2.imwrite(str(tmp), cv2.cvtColor(photo, cv2.COLOR_RGB2BGR)):
+            raise InputError("could not write the photo", out_dir / "photo.png")
+    write_camera(out_dir / "camera.yaml", camera)
+    T_gt = np.linalg.inv(cam_pose)
+    write_pose(out_dir / "gt_pose.yaml", T_gt, method="synthetic ground truth", seed=seed)
+    T_init = perturb_pose(T_gt, rng, cfg.init_translation_m, cfg.init_rotation_deg)
+    write_pose(out_dir / "init_pose.yaml", T_init, method="ground truth perturbed (synthetic)", seed=seed)
+    corners = board.corners()
+    with atomic_output(out_dir / "board_corners.csv") as tmp:
+        np.savetxt(tmp, corners, delimiter=",", header="x,y,z", comments="", fmt="%.9f")
+
+    info = {
+        "seed": seed,
+        "size": size,
+        "image": {"width": camera.width, "height": camera.height, "supersample": preset.supersample},
+        "room_m": room.tolist(),
+        "scanner": {
+            "T_world_from_scanner": scan_pose.tolist(),
+            "step_deg": preset.scan_step_deg,
+            "grid": {"rows": grid.rows, "cols": grid.cols, "azimuth0_rad": grid.az0, "elevation0_rad": grid.el0},
+            "points": int(len(local)),
+            "range_noise_m": cfg.range_noise_m,
+        },
+        "camera": {"T_world_from_camera": cam_pose.tolist(), "distance_to_scanner_m": float(np.linalg.norm(cam_pose[:3, 3] - s)),
+                   "distance_to_board_m": float(np.linalg.norm(cam_pose[:3, 3] - corners.mean(0)))},
+        "board": {"cols": board.cols, "rows": board.rows, "square_m": board.square, "T_world_from_board": board.pose.tolist()},
+        "color_response": {"camera": cam_resp.as_dict(), "scanner": scan_resp.as_dict()},
+        "light": light.tolist(),
+        "texel_m": cfg.texel_m,
+        "objects": [{"name": s_.name, "shape": s_.shape, "T_world_from_local": s_.pose.tolist(),
+                     "lo": s_.lo.tolist(), "hi": s_.hi.tolist()} for s_ in surfaces],
+        "layout_attempts": attempt + 1,
+    }
+    with atomic_output(out_dir / "scene.json") as tmp:
+        tmp.write_text(json.dumps(info, indent=1))
+    return info
