@@ -94,10 +94,12 @@ def backproject(camera: Camera, uv: np.ndarray, depth: np.ndarray) -> np.ndarray
     return np.concatenate([xn * d, d], axis=1)
 
 
-def undistort_image(camera: Camera, image: np.ndarray, interpolation: int | None = None) -> np.ndarray:
+def undistort_image(camera: Camera, image: np.ndarray, interpolation: int | None = None,
+                    constant_border: bool = False) -> np.ndarray:
     """Remove lens distortion; the result follows `without_distortion(camera)` (same K).
 
     image: (H, W[, C]) array of the camera's size. Returns an array of the same shape/dtype.
+    constant_border: fill pixels that come from outside the photo with 0 (else replicate).
     """
     if not camera.has_distortion:
         return image
@@ -107,7 +109,8 @@ def undistort_image(camera: Camera, image: np.ndarray, interpolation: int | None
     map1, map2 = cv2.initUndistortRectifyMap(
         camera.K, np.asarray(camera.distortion, float), None, camera.K, camera.size, cv2.CV_32FC1
     )
-    return cv2.remap(image, map1, map2, interp, borderMode=cv2.BORDER_REPLICATE)
+    border = cv2.BORDER_CONSTANT if constant_border else cv2.BORDER_REPLICATE
+    return cv2.remap(image, map1, map2, interp, borderMode=border, borderValue=0)
 
 
 def rescale(camera: Camera, width: int, height: int) -> Camera:

@@ -47,3 +47,22 @@ def invert(T: np.ndarray) -> np.ndarray:
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply a 4x4 transform to (N, 3) points."""
     return points @ T[:3, :3].T + T[:3, 3]
+
+
+def so3_exp(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the rotation vector w (3,) (Rodrigues), radians."""
+    w = np.asarray(w, np.float64)
+    theta = np.linalg.norm(w)
+    K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    if theta < 1e-12:
+        return np.eye(3) + K
+    return np.eye(3) + np.sin(theta) / theta * K + (1 - np.cos(theta)) / theta**2 * (K @ K)
+
+
+def apply_update(T: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """Left-multiply T (4x4) by the update delta = (rotation vector (3,), translation (3,)):
+    p' = exp(w) p + v, in the camera frame."""
+    U = np.eye(4)
+    U[:3, :3] = so3_exp(delta[:3])
+    U[:3, 3] = delta[3:]
+    return U @ T

@@ -1,0 +1,352 @@
+"""The aligner: refine T_cam_from_scan by direct photometric alignment of a colored scan to a
+photo, following Rotstein, Bracha, Kimmel, "Multimodal Colored Point Cloud to Image
+Alignment" (CVPR 2022).
+
+Each evaluation at a pose: move the points, drop occluded ones (coarse Z-buffer), project,
+sample the photo bilinearly with its gradient (strategy A or B), lift the colors with the
+color model's kernel, fit the color transform D on inliers, clip the prediction to [0, 1]
+(keeping the unclipped gradient), and weight the residuals with a Student-t. The pose is
+optimised by Levenberg-Marquardt on the 6 pose parameters (or by Adam, as in the paper), on an
+image pyramid, coarse to fine.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import torch
+
+from rgbd_gt.align.color_models import ColorModel, fit_with_inliers
+from rgbd_gt.align.config import RefineConfig
+from rgbd_gt.align.pyramid import PhotoLevel
+from rgbd_gt.align.robust import student_t_loss, student_t_weights
+from rgbd_gt.align.sampling import bilinear_with_gradient, central_gradients
+from rgbd_gt.errors import InputError
+from rgbd_gt.pose import apply_update
+from rgbd_gt.render.project import project_pinhole
+from rgbd_gt.render.zbuffer import cell_size_for, visible_points
+
+
+@dataclass
+class RefineResult:
+    T_cam_from_scan: np.ndarray  # (4, 4) float64
+    color_transform: np.ndarray  # (m, k) D
+    iterations: int
+    loss: float
+    inlier_fraction: float
+    visible_points: int
+    seconds: float
+    history: list[dict] = field(default_factory=list)
+    start_residuals: tuple[np.ndarray, np.ndarray] | None = None  # (uv (N, 2), |r| (N,)) at full resolution
+    end_residuals: tuple[np.ndarray, np.ndarray] | None = None
+
+
+@dataclass
+class _LevelData:
+    photo: PhotoLevel
+    grads: tuple[torch.Tensor, torch.Tensor] | None
+    points: torch.Tensor  # (n, 3) float32, local frame
+    target: torch.Tensor  # (n, m)
+    cell: int
+
+
+@dataclass
+class _State:
+    """One evaluation at a pose."""
+
+    own_loss: float  # robust loss at this pose with this state's D and sigma
+    D: torch.Tensor
+    sigma2: torch.Tensor
+    visible: int
+    inlier_fraction: float
+    idx: torch.Tensor  # the visible points (indices into the level's points)
+    uv: torch.Tensor
+    err: torch.Tensor  # |r| per visible point
+    H: np.ndarray | None = None  # (6, 6) Gauss-Newton matrix J^T W J
+    g: np.ndarray | None = None  # (6,) gradient J^T W r
+
+
+def estimate_spacing(points: torch.Tensor) -> float:
+    """Typical distance between neighbouring points (metres) of a surface sampling, from voxel
+    occupancy: a voxel of side v holding n/M points on a surface has spacing v / sqrt(n/M)."""
+    n = points.shape[0]
+    extent = float((points.max(0).values - points.min(0).values).max().clamp_min(1e-6))
+    v = extent / 64
+    for _ in range(8):
+        keys = torch.floor((points - points.min(0).values) / v).long()
+        m = torch.unique(keys[:, 0] * 4_000_000_000 + keys[:, 1] * 63_000 + keys[:, 2]).numel()
+        if n / m >= 4:  # several points per voxel: the estimate is meaningful
+            break
+        v *= 2
+    return v / math.sqrt(n / m)
+
+
+def texture_score(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cell: int,
+                  colors: torch.Tensor) -> torch.Tensor:
+    """Per point (N,), the local contrast of the scan's own colors as seen from a pose: the
+    visible points' mean gray per Z-buffer cell, then the central-difference gradient magnitude
+    of that cell image, widened by a 3x3 maximum. 0 for points outside the image."""
+    w, h = size
+    vis = visible_points(uv, z, size, cell)
+    cw, ch = (w + cell - 1) // cell, (h + cell - 1) // cell
+    key = (uv[:, 1].clamp(0, h - 1) / cell).long() * cw + (uv[:, 0].clamp(0, w - 1) / cell).long()
+    gray = colors.mean(dim=1)
+    total = torch.zeros(ch * cw, dtype=gray.dtype, device=gray.device).index_add_(0, key[vis], gray[vis])
+    count = torch.zeros_like(total).index_add_(0, key[vis], torch.ones_like(gray[vis]))
+    img = (total / count.clamp_min(1)).reshape(ch, cw)
+    have = (count > 0).reshape(ch, cw)
+    g = torch.zeros_like(img)
+    ok = have[:, 2:] & have[:, :-2]
+    g[:, 1:-1] += torch.where(ok, (img[:, 2:] - img[:, :-2]).abs(), torch.zeros_like(img[:, 1:-1]))
+    ok = have[2:] & have[:-2]
+    g[1:-1] += torch.where(ok, (img[2:] - img[:-2]).abs(), torch.zeros_like(img[1:-1]))
+    g = torch.nn.functional.max_pool2d(g[None, None], 3, stride=1, padding=1)[0, 0]
+    return torch.where(vis, g.reshape(-1)[key], torch.zeros_like(gray))
+
+
+def _valid_at(valid: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """All four bilinear neighbours of uv (N, 2) are usable pixels."""
+    h, w = valid.shape
+    u0 = uv[:, 0].floor().clamp(0, w - 2).long()
+    v0 = uv[:, 1].floor().clamp(0, h - 2).long()
+    return valid[v0, u0] & valid[v0, u0 + 1] & valid[v0 + 1, u0] & valid[v0 + 1, u0 + 1]
+
+
+class Aligner:
+    """Refines one photo's pose against one colored scan.
+
+    Args:
+        points: (N, 3) float64 scan points (metres, scan frame).
+        colors: (N, 3) uint8 colors, or (N, 1) intensity in [0, 1] for scans without color.
+        pyramid: the photo's pyramid (`photo_pyramid`), finest first.
+        cfg: settings.
+    """
+
+    def __init__(self, points: np.ndarray, colors: np.ndarray, pyramid: list[PhotoLevel], cfg: RefineConfig):
+        self.cfg = cfg.check()
+        self.pyramid = pyramid
+        self.device = pyramid[0].image.device
+        self.dtype = torch.float32
+        self.model = ColorModel(cfg.color_model)
+        # a local frame keeps float32 exact for georeferenced coordinates
+        self.centre = points.mean(axis=0)
+        self.points = torch.as_tensor(points - self.centre, dtype=self.dtype, device=self.device)
+        c = torch.as_tensor(colors, device=self.device)
+        c = c.to(self.dtype) / 255.0 if colors.dtype == np.uint8 else c.to(self.dtype)
+        self.target = self.model.target(c.reshape(len(points), -1))
+
+    # -- pose conversion between the scan frame and the local frame ---------------------------
+    def _to_local(self, T: np.ndarray) -> np.ndarray:
+        L = T.copy()
+        L[:3, 3] = T[:3, :3] @ self.centre + T[:3, 3]
+        return L
+
+    def _to_scan(self, L: np.ndarray) -> np.ndarray:
+        T = L.copy()
+        T[:3, 3] = L[:3, 3] - L[:3, :3] @ self.centre
+        return T
+
+    # -- set-up of each level ----------------------------------------------------------------
+    def _levels(self, T_local: np.ndarray) -> list[_LevelData]:
+        """Per level: a random subset of the points near the initial view (nested subsets,
+        `max_points` at full resolution and a quarter per coarser level) and its Z-buffer cell."""
+        finest = self.pyramid[0]
+        R = torch.as_tensor(T_local[:3, :3], dtype=self.dtype, device=self.device)
+        t = torch.as_tensor(T_local[:3, 3], dtype=self.dtype, device=self.device)
+        uv, z = project_pinhole(self.points @ R.T + t, finest.K)
+        w, h = finest.camera.size
+        m = 0.15 * w  # margin: the pose will move
+        near = (z > 1e-3) & (uv[:, 0] > -m) & (uv[:, 1] > -m) & (uv[:, 0] < w + m) & (uv[:, 1] < h + m)
+        idx = torch.nonzero(near).squeeze(1)
+        visible = visible_points(uv[idx], z[idx], (w, h), 1)
+        if int(visible.sum()) < self.cfg.min_visible:
+            raise InputError(f"only {int(visible.sum())} scan points in view of the initial pose "
+                             f"(need {self.cfg.min_visible}): check the pose, the camera file and the scan")
+        spacing = estimate_spacing(self.points[idx])
+        depth = float(z[idx].median())
+        # order the points so that every prefix favours textured ones (they carry the pose)
+        score = texture_score(uv[idx], z[idx], (w, h), cell_size_for(spacing, finest.camera.fx, depth),
+                              self.target[idx])
+        gen = torch.Generator(device="cpu").manual_seed(self.cfg.seed)
+        gumbel = -torch.log(-torch.log(torch.rand(idx.numel(), generator=gen).clamp_min(1e-12))).to(self.device)
+        weight = score + self.cfg.texture_floor * score.mean().clamp_min(1e-6)
+        idx = idx[torch.argsort(torch.log(weight) + gumbel, descending=True)]
+        out = []
+        for level, photo in enumerate(self.pyramid):
+            n = min(idx.numel(), max(self.cfg.min_points, self.cfg.max_points // 4**level))
+            sub = idx[:n]
+            cell = cell_size_for(spacing * math.sqrt(idx.numel() / n), photo.camera.fx, depth)
+            grads = central_gradients(photo.image) if self.cfg.gradient == "central" else None
+            out.append(_LevelData(photo, grads, self.points[sub], self.target[sub], min(cell, 16)))
+        return out
+
+    # -- one evaluation ------------------------------------------------------------------------
+    def _pose_tensors(self, T_local: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        R = torch.as_tensor(T_local[:3, :3], dtype=self.dtype, device=self.device)
+        t = torch.as_tensor(T_local[:3, 3], dtype=self.dtype, device=self.device)
+        return R, t
+
+    def _visible(self, lv: _LevelData, T_local: np.ndarray) -> torch.Tensor:
+        """Indices (into lv.points) of the points visible at this pose on usable pixels."""
+        R, t = self._pose_tensors(T_local)
+        uv, z = project_pinhole(lv.points @ R.T + t, lv.photo.K)
+        vis = visible_points(uv, z, lv.photo.camera.size, lv.cell, self.cfg.zbuffer_rel_tol, self.cfg.zbuffer_abs_tol)
+        if lv.photo.valid is not None:
+            vis &= _valid_at(lv.photo.valid, uv)
+        idx = torch.nonzero(vis).squeeze(1)
+        if idx.numel() < 10:
+            raise InputError("the pose left the scan: fewer than 10 points in view")
+        return idx
+
+    def _sample(self, lv: _LevelData, T_local: np.ndarray, idx: torch.Tensor):
+        """Points idx at this pose: camera-frame p (n, 3), uv (n, 2), kernel K (n, k),
+        dK/dI (n, k, 3), image gradients dI/du, dI/dv (n, 3) and the targets (n, m)."""
+        R, t = self._pose_tensors(T_local)
+        p = lv.points[idx] @ R.T + t
+        uv, _ = project_pinhole(p, lv.photo.K)
+        w, h = lv.photo.camera.size
+        uv = torch.stack([uv[:, 0].clamp(0, w - 1), uv[:, 1].clamp(0, h - 1)], 1)  # a point may drift out
+        I, Iu, Iv = bilinear_with_gradient(lv.photo.image, uv, self.cfg.gradient, lv.grads)
+        Kk, dK = self.model.kernel(I)
+        return p, uv, Kk, dK, Iu, Iv, lv.target[idx]
+
+    def _loss_at(self, lv: _LevelData, T_local: np.ndarray, state: _State) -> float:
+        """Robust loss at a candidate pose on the state's points with the state's D and sigma,
+        so that it compares with state.own_loss as a smooth function of the pose."""
+        _, _, Kk, _, _, _, target = self._sample(lv, T_local, state.idx)
+        r = (Kk @ state.D.T).clamp(0, 1) - target
+        return float(student_t_loss(r, self.cfg.nu, state.sigma2))
+
+    def _evaluate(self, lv: _LevelData, T_local: np.ndarray, prev: _State | None, jacobian: bool) -> _State:
+        """Visibility, color fit, robust weights and (optionally) the Gauss-Newton system at a
+        pose. `prev` (the last accepted state) seeds the inliers and sigma."""
+        cfg = self.cfg
+        idx = self._visible(lv, T_local)
+        p, uv, Kk, dK, Iu, Iv, target = self._sample(lv, T_local, idx)
+        m = target.shape[1]
+        if self.model.fitted:
+            D, inliers = fit_with_inliers(Kk, target, cfg.beta_max, D0=prev.D if prev is not None else None)
+        else:
+            D = self.model.identity(Kk.shape[1], m, Kk)
+            inliers = (Kk @ D.T - target).norm(dim=1) < cfg.beta_max
+        inlier_fraction = float(inliers.float().mean())
+        r = (Kk @ D.T).clamp(0, 1) - target  # clipped values; the Jacobian below is the unclipped one
+        w, sigma2 = student_t_weights(r, cfg.nu, prev.sigma2 if prev is not None else None)
+        own = float(student_t_loss(r, cfg.nu, sigma2))
+        state = _State(own, D, sigma2, int(idx.numel()), inlier_fraction, idx=idx, uv=uv, err=r.norm(dim=1))
+        if not jacobian:
+            return state
+
+        # dr/du = D (dK/dI dI/du), likewise for v: (n, m)
+        dr_du = (dK * Iu.unsqueeze(1)).sum(2) @ D.T
+        dr_dv = (dK * Iv.unsqueeze(1)).sum(2) @ D.T
+        x, y, zz = p.unbind(1)
+        iz = 1.0 / zz
+        K = lv.photo.K
+        fx, fy = K[0, 0], K[1, 1]
+        # d(u, v)/d(rotation vector, translation) for p' = exp(w) p + v at w = v = 0
+        du = torch.stack([-fx * x * y * iz**2, fx * (1 + x * x * iz**2), -fx * y * iz,
+                          fx * iz, torch.zeros_like(x), -fx * x * iz**2], 1)
+        dv = torch.stack([-fy * (1 + y * y * iz**2), fy * x * y * iz**2, fy * x * iz,
+                          torch.zeros_like(x), fy * iz, -fy * y * iz**2], 1)
+        J = (dr_du.unsqueeze(2) * du.unsqueeze(1) + dr_dv.unsqueeze(2) * dv.unsqueeze(1)).reshape(-1, 6).double()
+        wd = w.reshape(-1, 1).double()
+        state.H = ((J * wd).T @ J).cpu().numpy()
+        state.g = (J.T @ (wd * r.reshape(-1, 1).double())).squeeze(1).cpu().numpy()
+        return state
+
+    # -- optimisation ----------------------------------------------------------------------------
+    def refine(self, T_init: np.ndarray, progress: Callable[[dict], None] | None = None,
+               keep_residuals: bool = False) -> RefineResult:
+        """Refine T_init (4x4 T_cam_from_scan). progress(record) is called after each iteration."""
+        start = time.perf_counter()
+        cfg = self.cfg
+        T = self._to_local(np.asarray(T_init, np.float64))
+        levels = self._levels(T)
+        history: list[dict] = []
+        start_res = None
+        if keep_residuals:
+            s0 = self._evaluate(levels[0], T, None, jacobian=False)
+            start_res = (s0.uv.cpu().numpy(), s0.err.cpu().numpy())
+        total_iterations = 0
+        state = None
+        for level in reversed(range(len(levels))):
+            lv = levels[level]
+            step = self._lm_level if cfg.optimizer == "lm" else self._adam_level
+            T, state, n_it = step(lv, level, T, history, progress)
+            total_iterations += n_it
+        final = self._evaluate(levels[0], T, None, jacobian=False)
+        end_res = (final.uv.cpu().numpy(), final.err.cpu().numpy()) if keep_residuals else None
+        return RefineResult(
+            T_cam_from_scan=self._to_scan(T),
+            color_transform=final.D.double().cpu().numpy(),
+            iterations=total_iterations,
+            loss=final.own_loss,
+            inlier_fraction=final.inlier_fraction,
+            visible_points=final.visible,
+            seconds=time.perf_counter() - start,
+            history=history,
+            start_residuals=start_res,
+            end_residuals=end_res,
+        )
+
+    def _record(self, history, progress, level, iteration, state: _State, delta: np.ndarray, accepted: bool):
+        rec = {
+            "level": level, "iteration": iteration, "loss": state.own_loss,
+            "rotation_update_deg": float(np.degrees(np.linalg.norm(delta[:3]))),
+            "translation_update_m": float(np.linalg.norm(delta[3:])),
+            "visible": state.visible, "inlier_fraction": state.inlier_fraction, "accepted": accepted,
+        }
+        history.append(rec)
+        if progress is not None:
+            progress(rec)
+
+    def _converged(self, delta: np.ndarray) -> bool:
+        return (np.degrees(np.linalg.norm(delta[:3])) < self.cfg.stop_rotation_deg
+                and np.linalg.norm(delta[3:]) < self.cfg.stop_translation_m)
+
+    def _lm_level(self, lv, level, T, history, progress):
+        """Levenberg-Marquardt on the 6 pose parameters. Visibility, D and sigma are re-fitted at
+        every accepted pose; a step is accepted when the robust loss on the same points with the
+        same D and sigma decreases."""
+        state = self._evaluate(lv, T, None, jacobian=True)
+        lam = 1e-4
+        it = 0
+        for it in range(1, self.cfg.iterations + 1):
+            A = state.H + lam * np.diag(np.diag(state.H) + 1e-12)
+            delta = -np.linalg.solve(A, state.g)
+            T_new = apply_update(T, delta)
+            accepted = self._loss_at(lv, T_new, state) <= state.own_loss
+            if accepted:
+                T = T_new
+                state = self._evaluate(lv, T, state, jacobian=True)
+                lam = max(lam / 4, 1e-7)
+            else:
+                lam *= 8
+            self._record(history, progress, level, it, state, delta, accepted)
+            if (accepted and self._converged(delta)) or lam > 1e6:
+                break
+        return T, state, it
+
+    def _adam_level(self, lv, level, T, history, progress):
+        """Adam on the 6 pose parameters (the paper's optimiser), separate step sizes for
+        rotation and translation."""
+        cfg = self.cfg
+        lr = np.array([cfg.adam_lr_rotation] * 3 + [cfg.adam_lr_translation] * 3)
+        m1, m2 = np.zeros(6), np.zeros(6)
+        b1, b2, eps = 0.9, 0.999, 1e-12
+        state = None
+        it = 0
+        for it in range(1, cfg.adam_iterations + 1):
+            state = self._evaluate(lv, T, state, jacobian=True)
+            g = state.g / max(state.visible, 1)
+            m1 = b1 * m1 + (1 - b1) * g
+            m2 = b2 * m2 + (1 - b2) * g * g
+            delta = -lr * (m1 / (1 - b1**it)) / (np.sqrt(m2 / (1 - b2**it)) + eps)
+            T = apply_update(T, delta)
+            self._record(history, progress, level, it, state, delta, True)
+        return T, state, it

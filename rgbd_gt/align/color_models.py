@@ -1,0 +1,121 @@
+"""Color models: how photo colors map to scan colors (or intensity).
+
+A model lifts photo colors I (N, 3) with a kernel K(I) (N, k) and predicts the scan's
+target t (N, m) as K(I) D^T, D (m, k) fitted by least squares on inliers at every iteration
+(scanner and camera see color differently). Models:
+
+| name          | kernel K(I)                                  | target        | D      |
+| quadratic     | [1, R, G, B, RG, GB, RB, R², G², B²]         | scan RGB      | fitted |
+| quadratic_rgb | quadratic + [RGB]                            | scan RGB      | fitted |
+| linear        | [1, R, G, B]                                 | scan RGB      | fitted |
+| none          | [R, G, B]                                    | scan RGB      | I      |
+| gray          | [Y]                                          | scan gray     | 1      |
+| gray_affine   | [1, Y] (Engel et al.'s affine brightness)    | scan gray     | fitted |
+
+For a scan with intensity and no color, the target is the intensity (m = 1).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+MODELS = ("quadratic", "quadratic_rgb", "linear", "none", "gray", "gray_affine")
+LUMA = (0.299, 0.587, 0.114)
+
+
+@dataclass(frozen=True)
+class ColorModel:
+    name: str
+
+    def __post_init__(self):
+        if self.name not in MODELS:
+            raise ValueError(f"unknown color model {self.name!r} (choose from {', '.join(MODELS)})")
+
+    @property
+    def fitted(self) -> bool:
+        return self.name not in ("none", "gray")
+
+    @property
+    def gray_target(self) -> bool:
+        return self.name in ("gray", "gray_affine")
+
+    def target(self, colors: torch.Tensor) -> torch.Tensor:
+        """Scan colors (N, 3) in [0, 1], or intensity (N, 1) -> the target (N, m)."""
+        if colors.shape[1] == 3 and self.gray_target:
+            return colors @ colors.new_tensor(LUMA).unsqueeze(1)
+        return colors
+
+    def kernel(self, I: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Photo colors I (N, 3) -> K (N, k) and its derivative dK/dI (N, k, 3)."""
+        n = I.shape[0]
+        R, G, B = I[:, 0:1], I[:, 1:2], I[:, 2:3]
+        one, zero = torch.ones_like(R), torch.zeros_like(R)
+        eye = torch.eye(3, dtype=I.dtype, device=I.device).expand(n, 3, 3)
+        if self.name in ("gray", "gray_affine"):
+            w = I.new_tensor(LUMA)
+            Y = I @ w.unsqueeze(1)
+            dY = w.expand(n, 1, 3)
+            if self.name == "gray":
+                return Y, dY
+            return torch.cat([one, Y], 1), torch.cat([zero.new_zeros(n, 1, 3), dY], 1)
+        if self.name == "none":
+            return I, eye
+        if self.name == "linear":
+            return torch.cat([one, I], 1), torch.cat([I.new_zeros(n, 1, 3), eye], 1)
+        K = [one, R, G, B, R * G, G * B, R * B, R * R, G * G, B * B]
+        dK = [
+            torch.cat([zero, zero, zero], 1), *eye.unbind(1),
+            torch.cat([G, R, zero], 1), torch.cat([zero, B, G], 1), torch.cat([B, zero, R], 1),
+            torch.cat([2 * R, zero, zero], 1), torch.cat([zero, 2 * G, zero], 1), torch.cat([zero, zero, 2 * B], 1),
+        ]
+        if self.name == "quadratic_rgb":
+            K.append(R * G * B)
+            dK.append(torch.cat([G * B, R * B, R * G], 1))
+        return torch.cat(K, 1), torch.stack(dK, 1)
+
+    def identity(self, k: int, m: int, like: torch.Tensor) -> torch.Tensor:
+        """D of the models that fit nothing: 'none' (I) and 'gray' (1)."""
+        return torch.eye(m, k, dtype=like.dtype, device=like.device)
+
+
+def fit_transform(K: torch.Tensor, target: torch.Tensor, weights: torch.Tensor | None = None,
+                  ridge: float = 1e-6) -> torch.Tensor:
+    """Least-squares D (m, k) minimising sum_i w_i |D K_i - t_i|^2.
+
+    A tiny ridge keeps the solve well posed when a kernel column is constant (a gray photo).
+    Solved in float64: the quadratic kernel's normal matrix is badly conditioned.
+    """
+    Kd, td = K.double(), target.double()
+    if weights is not None:
+        w = weights.double().unsqueeze(1)
+        A, b = Kd.T @ (Kd * w), Kd.T @ (td * w)
+    else:
+        A, b = Kd.T @ Kd, Kd.T @ td
+    scale = A.diagonal().mean().clamp_min(1e-12)
+    A = A + ridge * scale * torch.eye(A.shape[0], dtype=A.dtype, device=A.device)
+    return torch.linalg.solve(A, b).T.to(K.dtype)
+
+
+def fit_with_inliers(K: torch.Tensor, target: torch.Tensor, beta_max: float, rounds: int = 3,
+                     min_fraction: float = 0.2, D0: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Alternate D and inliers (|D K - t| < beta_max), starting from all points, or from the
+    inliers of a previous D0 (then one round: the aligner re-fits at every iteration anyway).
+
+    When fewer than `min_fraction` of the points would be inliers (far from alignment), the
+    best `min_fraction` by residual are used, so the fit never collapses. Returns (D, inlier mask).
+    """
+    n = K.shape[0]
+    inliers = torch.ones(n, dtype=torch.bool, device=K.device)
+    D = fit_transform(K, target) if D0 is None else D0
+    for _ in range(rounds if D0 is None else 1):
+        err = (K @ D.T - target).norm(dim=1)
+        new = err < beta_max
+        if new.sum() < min_fraction * n:
+            new = err <= err.kthvalue(max(1, int(min_fraction * n))).values
+        if torch.equal(new, inliers):
+            break
+        inliers = new
+        D = fit_transform(K[inliers], target[inliers])
+    return D, inliers

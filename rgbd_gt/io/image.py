@@ -1,0 +1,60 @@
+"""Photos and masks."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from rgbd_gt.errors import InputError
+from rgbd_gt.io.atomic import atomic_output
+
+
+def read_image(path: str | os.PathLike) -> np.ndarray:
+    """Read a photo as (H, W, 3) uint8 RGB (grayscale and 16-bit images are converted)."""
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("file not found", path)
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None or img.size == 0:
+        raise InputError("not a readable image", path)
+    if img.dtype == np.uint16:
+        img = (img / 257.0 + 0.5).astype(np.uint8)
+    elif img.dtype != np.uint8:
+        raise InputError(f"unsupported image type {img.dtype}", path)
+    if img.ndim == 2:
+        return np.repeat(img[:, :, None], 3, axis=2)
+    if img.shape[2] == 4:
+        img = img[:, :, :3]
+    return np.ascontiguousarray(img[:, :, ::-1])
+
+
+def read_mask(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarray:
+    """Read a mask image: (H, W) bool, True where pixels are to be IGNORED (non-zero pixels).
+
+    shape: (H, W) the mask must have (the photo's).
+    """
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("file not found", path)
+    m = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if m is None:
+        raise InputError("not a readable image", path)
+    if m.shape != tuple(shape):
+        raise InputError(f"mask is {m.shape[1]}x{m.shape[0]} but the photo is {shape[1]}x{shape[0]}", path)
+    return m > 0
+
+
+def write_image(path: str | os.PathLike, rgb: np.ndarray) -> None:
+    """Write an (H, W, 3) uint8 RGB or (H, W) image, atomically; format from the suffix."""
+    import cv2
+
+    img = rgb[:, :, ::-1] if rgb.ndim == 3 else rgb
+    with atomic_output(path) as tmp:
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(img)):
+            raise InputError("could not write image", path)

@@ -1,0 +1,43 @@
+"""Visibility of points by a coarse Z-buffer.
+
+A Z-buffer at full image resolution lets background points show through the gaps between
+the projections of foreground points, because a point cloud covers only part of the pixels.
+Cells of `cell` x `cell` pixels, with `cell` at least the projected point spacing, close those
+gaps: a point is visible when its depth is within a tolerance of the nearest depth in its cell.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+
+def cell_size_for(spacing_m: float, focal_px: float, median_depth_m: float, minimum: int = 1) -> int:
+    """Cell side (pixels) that no gap between neighbouring points can slip through:
+    1.5 x the projected point spacing at the median depth, at least `minimum`."""
+    projected = focal_px * spacing_m / max(median_depth_m, 1e-6)
+    return max(minimum, int(math.ceil(1.5 * projected)))
+
+
+def visible_points(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cell: int,
+                   rel_tol: float = 0.02, abs_tol: float = 0.01, near: float = 1e-3) -> torch.Tensor:
+    """Boolean mask (N,) of points that are in the image, in front of the camera and not occluded.
+
+    Args:
+        uv: (N, 2) pixel coordinates; z: (N,) depth (metres).
+        size: (width, height) of the image.
+        cell: Z-buffer cell side in pixels.
+        rel_tol, abs_tol: a point is visible when z <= zmin_cell * (1 + rel_tol) + abs_tol.
+    """
+    w, h = size
+    u, v = uv[:, 0], uv[:, 1]
+    inside = (z > near) & (u >= 0) & (v >= 0) & (u <= w - 1) & (v <= h - 1)
+    cw, ch = (w + cell - 1) // cell, (h + cell - 1) // cell
+    cx = (u.clamp(0, w - 1) / cell).long()
+    cy = (v.clamp(0, h - 1) / cell).long()
+    key = cy * cw + cx
+    zz = torch.where(inside, z, torch.full_like(z, float("inf")))
+    zmin = torch.full((ch * cw,), float("inf"), dtype=z.dtype, device=z.device)
+    zmin = zmin.scatter_reduce(0, key, zz, reduce="amin", include_self=True)
+    return inside & (z <= zmin[key] * (1 + rel_tol) + abs_tol)
