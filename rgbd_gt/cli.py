@@ -153,6 +153,79 @@ def synth(
     out.print(f"wrote {', '.join(FILES)} in {out_dir}")
 
 
+@app.command()
+def refine(
+    scan: Path = typer.Option(..., "--scan", help="The colored scan (.ply or .e57), in the scan/world frame."),
+    image: Path = typer.Option(..., "--image", help="The photo (its size must match the camera file)."),
+    camera: Path = typer.Option(..., "--camera", help="Camera file (YAML or OpenCV calibration), with distortion."),
+    init: Path = typer.Option(..., "--init", help="Initial pose file (T_cam_from_scan), e.g. from init-pose."),
+    output: Path = typer.Option(..., "-o", "--output", help="Refined pose file to write."),
+    config: Optional[Path] = typer.Option(None, "--config", help="Aligner settings (default: configs/refine.yaml)."),
+    device: str = typer.Option("auto", "--device", help="auto (CUDA when present), cpu or cuda."),
+    report: Optional[Path] = typer.Option(None, "--report", help="Folder for a convergence plot and color-difference images."),
+    mask: Optional[Path] = typer.Option(None, "--mask", help="Image of the photo's size: non-zero pixels are ignored (people, reflections)."),
+    color_model: Optional[str] = typer.Option(None, "--color-model", help="quadratic (default), quadratic_rgb, linear, none, gray or gray_affine."),
+    gradient: Optional[str] = typer.Option(None, "--gradient", help="direct (the bilinear interpolant's own derivative) or central."),
+    optimizer: Optional[str] = typer.Option(None, "--optimizer", help="lm (Levenberg-Marquardt) or adam (the paper's)."),
+    levels: Optional[int] = typer.Option(None, "--levels", help="Image pyramid levels (1 = full resolution only)."),
+    iterations: Optional[int] = typer.Option(None, "--iterations", help="Maximum iterations per pyramid level."),
+    max_points: Optional[int] = typer.Option(None, "--max-points", help="Scan points used at full resolution."),
+    beta_max: Optional[float] = typer.Option(None, "--beta-max", help="Color inlier threshold of the color fit."),
+) -> None:
+    """Refine a photo's pose against the colored scan by multimodal photometric alignment."""
+    import dataclasses
+
+    from rgbd_gt.align.config import RefineConfig
+    from rgbd_gt.align.refine import load_inputs, run_refine
+    from rgbd_gt.config import load_config
+    from rgbd_gt.io import check_not_input, write_pose
+
+    start = time.perf_counter()
+    check_not_input(output, [scan, image, camera, init] + ([mask] if mask else []))
+    cfg = load_config(RefineConfig, config, "refine.yaml")
+    flags = dict(color_model=color_model, gradient=gradient, optimizer=optimizer, levels=levels,
+                 iterations=iterations, max_points=max_points, beta_max=beta_max)
+    cfg = dataclasses.replace(cfg, **{k: v for k, v in flags.items() if v is not None})
+    if optimizer == "adam" and iterations is not None:
+        cfg = dataclasses.replace(cfg, adam_iterations=iterations)
+    try:
+        cfg.check()
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    inputs = load_inputs(scan, image, camera, init, mask)
+    with _progress(TextColumn("{task.fields[info]}")) as bar:
+        task = bar.add_task("refine", total=None, info="")
+
+        def progress(rec: dict) -> None:
+            bar.update(task, description=f"level {rec['level']} iteration {rec['iteration']}",
+                       info=f"loss {rec['loss']:.4f}  step {rec['rotation_update_deg']:.1e} deg {rec['translation_update_m'] * 1e3:.1e} mm")
+
+        result = run_refine(inputs, cfg, device, progress, keep_residuals=report is not None)
+    from rgbd_gt.pose import rotation_error_deg, translation_error_m
+
+    moved_mm = translation_error_m(result.T_cam_from_scan, inputs.T_init) * 1e3
+    moved_deg = rotation_error_deg(result.T_cam_from_scan, inputs.T_init)
+    write_pose(
+        output, result.T_cam_from_scan, method="rgbd-gt refine (photometric)", init=str(init),
+        color_model=cfg.color_model, gradient=cfg.gradient, optimizer=cfg.optimizer,
+        color_transform=result.color_transform.tolist(), iterations=result.iterations,
+        final_loss=result.loss, inlier_fraction=result.inlier_fraction, visible_points=result.visible_points,
+        seconds=round(result.seconds, 3), change_from_init={"translation_mm": moved_mm, "rotation_deg": moved_deg},
+    )
+    if report is not None:
+        from rgbd_gt.align.report import write_report
+
+        write_report(report, result, inputs.camera.size)
+    table = Table(title="refine", show_header=False)
+    table.add_row("moved from init", f"{moved_mm:.2f} mm, {moved_deg:.4f} deg")
+    table.add_row("iterations", str(result.iterations))
+    table.add_row("visible points", f"{result.visible_points:,} (inliers {result.inlier_fraction:.0%})")
+    table.add_row("final loss", f"{result.loss:.4f}")
+    table.add_row("aligner time", f"{result.seconds:.2f} s (total {time.perf_counter() - start:.2f} s)")
+    out.print(table)
+    out.print(f"wrote {output}" + (f" and a report in {report}" if report else ""))
+
+
 def main(argv: list[str] | None = None) -> None:
     args = sys.argv[1:] if argv is None else argv
     debug = "--debug" in args

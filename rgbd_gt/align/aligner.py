@@ -299,6 +299,7 @@ class Aligner:
             "level": level, "iteration": iteration, "loss": state.own_loss,
             "rotation_update_deg": float(np.degrees(np.linalg.norm(delta[:3]))),
             "translation_update_m": float(np.linalg.norm(delta[3:])),
+            "median_residual": float(state.err.median()),
             "visible": state.visible, "inlier_fraction": state.inlier_fraction, "accepted": accepted,
         }
         history.append(rec)

@@ -81,7 +81,7 @@ class ColorModel:
 
 
 def fit_transform(K: torch.Tensor, target: torch.Tensor, weights: torch.Tensor | None = None,
-                  ridge: float = 1e-6) -> torch.Tensor:
+                  ridge: float = 1e-10) -> torch.Tensor:
     """Least-squares D (m, k) minimising sum_i w_i |D K_i - t_i|^2.
 
     A tiny ridge keeps the solve well posed when a kernel column is constant (a gray photo).

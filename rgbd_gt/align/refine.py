@@ -1,0 +1,72 @@
+"""`rgbd-gt refine` on files: read the inputs, check them against each other, run the aligner."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from rgbd_gt.align.aligner import Aligner, RefineResult
+from rgbd_gt.align.config import RefineConfig
+from rgbd_gt.errors import InputError
+
+
+def resolve_device(name: str):
+    """'auto' | 'cpu' | 'cuda' -> torch.device ('auto' takes CUDA when present)."""
+    import torch
+
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise InputError("--device cuda: no CUDA device is available")
+    if name not in ("cpu", "cuda"):
+        raise InputError(f"--device must be auto, cpu or cuda, got {name!r}")
+    return torch.device(name)
+
+
+def scan_colors(scan, path) -> np.ndarray:
+    """What the aligner matches: RGB (N, 3) uint8, else intensity (N, 1) float in [0, 1]."""
+    if scan.rgb is not None:
+        return scan.rgb
+    if scan.intensity is not None:
+        return scan.intensity.reshape(-1, 1)
+    raise InputError("the scan has neither colors nor intensity to align with", path)
+
+
+@dataclass
+class RefineInputs:
+    points: np.ndarray
+    colors: np.ndarray
+    photo: np.ndarray
+    camera: object
+    T_init: np.ndarray
+    ignore: np.ndarray | None
+
+
+def load_inputs(scan_path: Path, image_path: Path, camera_path: Path, init_path: Path,
+                mask_path: Path | None = None) -> RefineInputs:
+    from rgbd_gt.io import load_scan, read_camera, read_pose
+    from rgbd_gt.io.camera_file import check_image_matches
+    from rgbd_gt.io.image import read_image, read_mask
+
+    camera = read_camera(camera_path)
+    photo = read_image(image_path)
+    check_image_matches(camera, photo.shape, image_path, camera_path)
+    T_init, _ = read_pose(init_path)
+    ignore = read_mask(mask_path, photo.shape[:2]) if mask_path is not None else None
+    scan = load_scan(scan_path)
+    if len(scan) == 0:
+        raise InputError("the scan has no points", scan_path)
+    return RefineInputs(scan.xyz, scan_colors(scan, scan_path), photo, camera, T_init, ignore)
+
+
+def run_refine(inputs: RefineInputs, cfg: RefineConfig, device: str = "auto",
+               progress: Callable[[dict], None] | None = None, keep_residuals: bool = False) -> RefineResult:
+    """Refine inputs.T_init; raises InputError when no scan points are in view."""
+    from rgbd_gt.align.pyramid import photo_pyramid
+
+    pyramid = photo_pyramid(inputs.photo, inputs.camera, cfg.levels, resolve_device(device), inputs.ignore)
+    aligner = Aligner(inputs.points, inputs.colors, pyramid, cfg)
+    return aligner.refine(inputs.T_init, progress=progress, keep_residuals=keep_residuals)

@@ -1,0 +1,186 @@
+"""The aligner's parts against their definitions, and the whole refine on a synthetic scene."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from conftest import assert_one_line_error, run_cli
+from rgbd_gt.align.color_models import ColorModel, fit_with_inliers
+from rgbd_gt.align.config import RefineConfig
+from rgbd_gt.align.refine import load_inputs, run_refine
+from rgbd_gt.align.sampling import bilinear, bilinear_with_gradient
+from rgbd_gt.io import Scan, load_scan, read_pose, save_scan, write_pose
+from rgbd_gt.pose import rotation_error_deg, translation_error_m
+
+torch.set_default_dtype(torch.float64)
+
+
+def test_direct_gradient_is_the_derivative_of_the_bilinear_interpolant():
+    g = torch.Generator().manual_seed(0)
+    image = torch.rand(12, 15, 3, generator=g, dtype=torch.float64)
+    # stay off the integer grid lines, where the interpolant has kinks
+    uv = torch.rand(200, 2, generator=g, dtype=torch.float64) * torch.tensor([12.0, 9.0]) + 1
+    uv = uv.floor() + 0.05 + 0.9 * (uv - uv.floor())
+    value, du, dv = bilinear_with_gradient(image, uv, "direct")
+    h = 1e-6
+    fd_u = (bilinear(image, uv + torch.tensor([h, 0])) - bilinear(image, uv - torch.tensor([h, 0]))) / (2 * h)
+    fd_v = (bilinear(image, uv + torch.tensor([0, h])) - bilinear(image, uv - torch.tensor([0, h]))) / (2 * h)
+    torch.testing.assert_close(du, fd_u, atol=1e-8, rtol=0)
+    torch.testing.assert_close(dv, fd_v, atol=1e-8, rtol=0)
+    torch.testing.assert_close(value, bilinear(image, uv))
+
+
+def test_central_gradient_is_the_direct_one_blurred_by_the_box_window():
+    """1-D (one image row): g_B(x) = 1/2 * integral_{x-1}^{x+1} g_A = (f(x+1) - f(x-1)) / 2,
+    with f the linear interpolant, i.e. g_A convolved with the box of width 2 and height 1/2."""
+    g = torch.Generator().manual_seed(1)
+    signal = torch.rand(1, 40, 1, generator=g, dtype=torch.float64).expand(2, 40, 1).contiguous()
+    x = torch.linspace(1.01, 37.99, 301, dtype=torch.float64)
+    uv = torch.stack([x, torch.zeros_like(x)], 1)
+    _, g_b, _ = bilinear_with_gradient(signal, uv, "central")
+    f = lambda xs: bilinear(signal, torch.stack([xs, torch.zeros_like(xs)], 1))  # noqa: E731
+    torch.testing.assert_close(g_b, (f(x + 1) - f(x - 1)) / 2, atol=1e-12, rtol=0)
+    # and the same by numerically convolving g_A with the box
+    s = torch.linspace(-1, 1, 20001, dtype=torch.float64)
+    xs = (x[:, None] + s[None, :]).reshape(-1)
+    _, g_a, _ = bilinear_with_gradient(signal, torch.stack([xs, torch.zeros_like(xs)], 1), "direct")
+    conv = torch.trapezoid(0.5 * g_a.reshape(len(x), -1), s, dim=1)
+    torch.testing.assert_close(g_b[:, 0], conv, atol=2e-4, rtol=0)
+
+
+def test_color_fit_recovers_a_quadratic_transform_and_ignores_outliers():
+    g = torch.Generator().manual_seed(2)
+    I = torch.rand(5000, 3, generator=g, dtype=torch.float64)
+    model = ColorModel("quadratic")
+    K, dK = model.kernel(I)
+    assert K.shape == (5000, 10) and dK.shape == (5000, 10, 3)
+    D_true = torch.randn(3, 10, generator=g, dtype=torch.float64) * 0.3
+    target = K @ D_true.T
+    D, inliers = fit_with_inliers(K, target, beta_max=0.1)
+    torch.testing.assert_close(D, D_true, atol=1e-6, rtol=0)
+    assert inliers.all()
+    noisy = target.clone()
+    bad = torch.randperm(5000, generator=g)[:1000]
+    noisy[bad] += torch.rand(1000, 3, generator=g, dtype=torch.float64) + 0.5  # 20% gross outliers
+    D, inliers = fit_with_inliers(K, noisy, beta_max=0.1)
+    torch.testing.assert_close(D, D_true, atol=1e-6, rtol=0)
+    assert not inliers[bad].any() and inliers.sum() == 4000
+    # the kernel's derivative is right
+    h = 1e-6
+    for c in range(3):
+        e = torch.zeros(3, dtype=torch.float64)
+        e[c] = h
+        fd = (model.kernel(I + e)[0] - model.kernel(I - e)[0]) / (2 * h)
+        torch.testing.assert_close(dK[:, :, c], fd, atol=1e-7, rtol=0)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    d = tmp_path_factory.mktemp("refine_scene")
+    proc = run_cli("synth", d, "--size", "small", "--seed", 0)
+    assert proc.returncode == 0, proc.stderr
+    return d
+
+
+def _errors(pose_path, scene):
+    T, meta = read_pose(pose_path)
+    gt, _ = read_pose(scene / "gt_pose.yaml")
+    return translation_error_m(T, gt) * 1e3, rotation_error_deg(T, gt), meta
+
+
+def test_refine_converges_on_a_synthetic_scene(scene, tmp_path):
+    out = tmp_path / "pose.yaml"
+    proc = run_cli("refine", "--scan", scene / "scan.e57", "--image", scene / "photo.png", "--camera",
+                   scene / "camera.yaml", "--init", scene / "init_pose.yaml", "-o", out, "--report", tmp_path / "rep")
+    assert proc.returncode == 0, proc.stderr
+    mm, deg, meta = _errors(out, scene)
+    init_mm, init_deg, _ = _errors(scene / "init_pose.yaml", scene)
+    assert init_mm > 15 and init_deg > 0.5
+    assert mm < 1.0 and deg < 0.02, (mm, deg)
+    assert np.array(meta["color_transform"]).shape == (3, 10)
+    for key in ("iterations", "final_loss", "inlier_fraction", "visible_points", "seconds"):
+        assert key in meta
+    assert meta["visible_points"] > 10_000 and 0.5 < meta["inlier_fraction"] <= 1
+    for name in ("convergence.png", "residuals_start.png", "residuals_end.png"):
+        assert (tmp_path / "rep" / name).stat().st_size > 1000
+
+
+@pytest.mark.parametrize("change", [
+    {"gradient": "central"},
+    {"color_model": "linear"},
+    {"color_model": "quadratic_rgb"},
+])
+def test_refine_variants_converge(scene, change):
+    inputs = load_inputs(scene / "scan.ply", scene / "photo.png", scene / "camera.yaml", scene / "init_pose.yaml")
+    res = run_refine(inputs, dataclasses.replace(RefineConfig(), **change), "cpu")
+    gt, _ = read_pose(scene / "gt_pose.yaml")
+    assert translation_error_m(res.T_cam_from_scan, gt) < 2e-3
+    assert rotation_error_deg(res.T_cam_from_scan, gt) < 0.05
+
+
+def test_adam_moves_towards_the_truth(scene):
+    inputs = load_inputs(scene / "scan.ply", scene / "photo.png", scene / "camera.yaml", scene / "init_pose.yaml")
+    cfg = dataclasses.replace(RefineConfig(), optimizer="adam", adam_iterations=60, levels=3,
+                              adam_lr_rotation=1e-3, adam_lr_translation=2e-3)
+    res = run_refine(inputs, cfg, "cpu")
+    gt, _ = read_pose(scene / "gt_pose.yaml")
+    assert translation_error_m(res.T_cam_from_scan, gt) < 0.25 * translation_error_m(inputs.T_init, gt)
+    assert rotation_error_deg(res.T_cam_from_scan, gt) < 0.25 * rotation_error_deg(inputs.T_init, gt)
+
+
+def test_intensity_only_scan(scene, tmp_path):
+    scan = load_scan(scene / "scan.ply")
+    save_scan(tmp_path / "gray.ply", dataclasses.replace(scan, rgb=None))
+    inputs = load_inputs(tmp_path / "gray.ply", scene / "photo.png", scene / "camera.yaml", scene / "init_pose.yaml")
+    assert inputs.colors.shape[1] == 1
+    res = run_refine(inputs, RefineConfig(), "cpu")
+    assert res.color_transform.shape == (1, 10)
+    gt, _ = read_pose(scene / "gt_pose.yaml")
+    assert translation_error_m(res.T_cam_from_scan, gt) < 3e-3
+    assert rotation_error_deg(res.T_cam_from_scan, gt) < 0.1
+
+
+def test_mask_removes_pixels(scene, tmp_path):
+    import cv2
+
+    mask = np.zeros((480, 640), np.uint8)
+    mask[:, :320] = 255  # ignore the left half of the photo
+    cv2.imwrite(str(tmp_path / "mask.png"), mask)
+    full = load_inputs(scene / "scan.ply", scene / "photo.png", scene / "camera.yaml", scene / "init_pose.yaml")
+    half = load_inputs(scene / "scan.ply", scene / "photo.png", scene / "camera.yaml", scene / "init_pose.yaml",
+                       tmp_path / "mask.png")
+    r_full, r_half = run_refine(full, RefineConfig(), "cpu"), run_refine(half, RefineConfig(), "cpu")
+    assert r_half.visible_points < 0.7 * r_full.visible_points
+    gt, _ = read_pose(scene / "gt_pose.yaml")
+    assert translation_error_m(r_half.T_cam_from_scan, gt) < 3e-3
+
+
+def test_refine_bad_inputs(scene, tmp_path):
+    args = ["--scan", scene / "scan.ply", "--image", scene / "photo.png", "--camera", scene / "camera.yaml",
+            "--init", scene / "init_pose.yaml", "-o", tmp_path / "o.yaml"]
+
+    def swap(flag, value):
+        a = list(args)
+        a[a.index(flag) + 1] = value
+        return a
+
+    cam = yaml.safe_load((scene / "camera.yaml").read_text())
+    cam["width"] = 800
+    (tmp_path / "cam.yaml").write_text(yaml.safe_dump(cam))
+    assert_one_line_error(run_cli("refine", *swap("--camera", tmp_path / "cam.yaml")), "photo.png", "640x480", "800x480")
+
+    T, _ = read_pose(scene / "init_pose.yaml")
+    (tmp_path / "shear.yaml").write_text(yaml.safe_dump({"T_cam_from_scan": (T @ np.diag([1, 1.05, 1, 1])).tolist()}))
+    assert_one_line_error(run_cli("refine", *swap("--init", tmp_path / "shear.yaml")), "shear.yaml", "not rigid")
+
+    away = np.diag([-1.0, 1, -1, 1]) @ T  # turned around in place: the camera looks away from the scan
+    write_pose(tmp_path / "away.yaml", away)
+    assert_one_line_error(run_cli("refine", *swap("--init", tmp_path / "away.yaml")), "in view")
+
+    save_scan(tmp_path / "empty.ply", Scan(xyz=np.zeros((0, 3))))
+    assert_one_line_error(run_cli("refine", *swap("--scan", tmp_path / "empty.ply")), "empty.ply", "no points")
+    assert_one_line_error(run_cli("refine", *args, "--color-model", "cubic"), "color_model")
+    assert not (tmp_path / "o.yaml").exists()
