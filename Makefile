@@ -22,4 +22,5 @@ clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache demo_out
 
 bench: $(STAMP)
+	$(PY) -m rgbd_gt bench
 	$(PY) benchmarks/load_large_scan.py

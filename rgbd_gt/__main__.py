@@ -1,0 +1,3 @@
+from rgbd_gt.cli import main
+
+main()
