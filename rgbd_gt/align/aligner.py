@@ -203,21 +203,20 @@ class Aligner:
         return idx
 
     def _sample(self, lv: _LevelData, T_local: np.ndarray, idx: torch.Tensor):
-        """Points idx at this pose: camera-frame p (n, 3), uv (n, 2), kernel K (n, k),
-        dK/dI (n, k, 3), image gradients dI/du, dI/dv (n, 3) and the targets (n, m)."""
+        """Points idx at this pose: camera-frame p (n, 3), uv (n, 2), photo colors I (n, 3),
+        kernel K(I) (n, k), image gradients dI/du, dI/dv (n, 3) and the targets (n, m)."""
         R, t = self._pose_tensors(T_local)
         p = lv.points[idx] @ R.T + t
         uv, _ = project_pinhole(p, lv.photo.K)
         w, h = lv.photo.camera.size
         uv = torch.stack([uv[:, 0].clamp(0, w - 1), uv[:, 1].clamp(0, h - 1)], 1)  # a point may drift out
         I, Iu, Iv = bilinear_with_gradient(lv.photo.image, uv, self.cfg.gradient, lv.grads)
-        Kk, dK = self.model.kernel(I)
-        return p, uv, Kk, dK, Iu, Iv, lv.target[idx]
+        return p, uv, I, self.model.kernel(I), Iu, Iv, lv.target[idx]
 
     def _loss_at(self, lv: _LevelData, T_local: np.ndarray, state: _State) -> float:
         """Robust loss at a candidate pose on the state's points with the state's D and sigma,
         so that it compares with state.own_loss as a smooth function of the pose."""
-        _, _, Kk, _, _, _, target = self._sample(lv, T_local, state.idx)
+        _, _, _, Kk, _, _, target = self._sample(lv, T_local, state.idx)
         r = (Kk @ state.D.T).clamp(0, 1) - target
         return float(student_t_loss(r, self.cfg.nu, state.sigma2))
 
@@ -226,7 +225,7 @@ class Aligner:
         pose. `prev` (the last accepted state) seeds the inliers and sigma."""
         cfg = self.cfg
         idx = self._visible(lv, T_local)
-        p, uv, Kk, dK, Iu, Iv, target = self._sample(lv, T_local, idx)
+        p, uv, I, Kk, Iu, Iv, target = self._sample(lv, T_local, idx)
         m = target.shape[1]
         if self.model.fitted:
             D, inliers = fit_with_inliers(Kk, target, cfg.beta_max, D0=prev.D if prev is not None else None)
@@ -241,22 +240,24 @@ class Aligner:
         if not jacobian:
             return state
 
-        # dr/du = D (dK/dI dI/du), likewise for v: (n, m)
-        dr_du = (dK * Iu.unsqueeze(1)).sum(2) @ D.T
-        dr_dv = (dK * Iv.unsqueeze(1)).sum(2) @ D.T
+        # dr/du = D (dK/dI . dI/du), likewise for v: (n, m)
+        a = self.model.kernel_derivative(I, Iu) @ D.T
+        b = self.model.kernel_derivative(I, Iv) @ D.T
         x, y, zz = p.unbind(1)
         iz = 1.0 / zz
         K = lv.photo.K
         fx, fy = K[0, 0], K[1, 1]
-        # d(u, v)/d(rotation vector, translation) for p' = exp(w) p + v at w = v = 0
+        # d(u, v)/d(rotation vector, translation) for p' = exp(w) p + v at w = v = 0: (n, 6)
         du = torch.stack([-fx * x * y * iz**2, fx * (1 + x * x * iz**2), -fx * y * iz,
-                          fx * iz, torch.zeros_like(x), -fx * x * iz**2], 1)
+                          fx * iz, torch.zeros_like(x), -fx * x * iz**2], 1).double()
         dv = torch.stack([-fy * (1 + y * y * iz**2), fy * x * y * iz**2, fy * x * iz,
-                          torch.zeros_like(x), fy * iz, -fy * y * iz**2], 1)
-        J = (dr_du.unsqueeze(2) * du.unsqueeze(1) + dr_dv.unsqueeze(2) * dv.unsqueeze(1)).reshape(-1, 6).double()
-        wd = w.reshape(-1, 1).double()
-        state.H = ((J * wd).T @ J).cpu().numpy()
-        state.g = (J.T @ (wd * r.reshape(-1, 1).double())).squeeze(1).cpu().numpy()
+                          torch.zeros_like(x), fy * iz, -fy * y * iz**2], 1).double()
+        # J_nm = a_nm du_n + b_nm dv_n, so sum_nm w J J^T needs only 2x2 sums over the channels
+        saa, sab, sbb = ((w * a * a).sum(1), (w * a * b).sum(1), (w * b * b).sum(1))
+        sar, sbr = (w * a * r).sum(1), (w * b * r).sum(1)
+        cross = du.T @ (sab.double()[:, None] * dv)
+        state.H = (du.T @ (saa.double()[:, None] * du) + cross + cross.T + dv.T @ (sbb.double()[:, None] * dv)).cpu().numpy()
+        state.g = (du.T @ sar.double() + dv.T @ sbr.double()).cpu().numpy()
         return state
 
     # -- optimisation ----------------------------------------------------------------------------

@@ -47,33 +47,39 @@ class ColorModel:
             return colors @ colors.new_tensor(LUMA).unsqueeze(1)
         return colors
 
-    def kernel(self, I: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Photo colors I (N, 3) -> K (N, k) and its derivative dK/dI (N, k, 3)."""
-        n = I.shape[0]
+    def kernel(self, I: torch.Tensor) -> torch.Tensor:
+        """Photo colors I (N, 3) -> K(I) (N, k)."""
         R, G, B = I[:, 0:1], I[:, 1:2], I[:, 2:3]
-        one, zero = torch.ones_like(R), torch.zeros_like(R)
-        eye = torch.eye(3, dtype=I.dtype, device=I.device).expand(n, 3, 3)
+        one = torch.ones_like(R)
         if self.name in ("gray", "gray_affine"):
-            w = I.new_tensor(LUMA)
-            Y = I @ w.unsqueeze(1)
-            dY = w.expand(n, 1, 3)
-            if self.name == "gray":
-                return Y, dY
-            return torch.cat([one, Y], 1), torch.cat([zero.new_zeros(n, 1, 3), dY], 1)
+            Y = I @ I.new_tensor(LUMA).unsqueeze(1)
+            return Y if self.name == "gray" else torch.cat([one, Y], 1)
         if self.name == "none":
-            return I, eye
+            return I
         if self.name == "linear":
-            return torch.cat([one, I], 1), torch.cat([I.new_zeros(n, 1, 3), eye], 1)
+            return torch.cat([one, I], 1)
         K = [one, R, G, B, R * G, G * B, R * B, R * R, G * G, B * B]
-        dK = [
-            torch.cat([zero, zero, zero], 1), *eye.unbind(1),
-            torch.cat([G, R, zero], 1), torch.cat([zero, B, G], 1), torch.cat([B, zero, R], 1),
-            torch.cat([2 * R, zero, zero], 1), torch.cat([zero, 2 * G, zero], 1), torch.cat([zero, zero, 2 * B], 1),
-        ]
         if self.name == "quadratic_rgb":
             K.append(R * G * B)
-            dK.append(torch.cat([G * B, R * B, R * G], 1))
-        return torch.cat(K, 1), torch.stack(dK, 1)
+        return torch.cat(K, 1)
+
+    def kernel_derivative(self, I: torch.Tensor, dI: torch.Tensor) -> torch.Tensor:
+        """Directional derivative dK/dI . dI (N, k) of the kernel at I (N, 3) along dI (N, 3),
+        e.g. the image gradient along u: how K(I) changes as the point moves one pixel."""
+        R, G, B = I[:, 0:1], I[:, 1:2], I[:, 2:3]
+        dR, dG, dB = dI[:, 0:1], dI[:, 1:2], dI[:, 2:3]
+        zero = torch.zeros_like(R)
+        if self.name in ("gray", "gray_affine"):
+            dY = dI @ I.new_tensor(LUMA).unsqueeze(1)
+            return dY if self.name == "gray" else torch.cat([zero, dY], 1)
+        if self.name == "none":
+            return dI
+        if self.name == "linear":
+            return torch.cat([zero, dI], 1)
+        d = [zero, dR, dG, dB, dR * G + R * dG, dG * B + G * dB, dR * B + R * dB, 2 * R * dR, 2 * G * dG, 2 * B * dB]
+        if self.name == "quadratic_rgb":
+            d.append(dR * G * B + R * dG * B + R * G * dB)
+        return torch.cat(d, 1)
 
     def identity(self, k: int, m: int, like: torch.Tensor) -> torch.Tensor:
         """D of the models that fit nothing: 'none' (I) and 'gray' (1)."""

@@ -19,7 +19,7 @@ class RefineConfig:
     adam_lr_translation: float = 5.0e-4  # metres per step
     beta_max: float = 0.1  # color inlier threshold |D K(I) - c| for the color fit
     nu: float = 5.0  # Student-t degrees of freedom
-    max_points: int = 60_000  # points used at full resolution (a quarter per coarser level)
+    max_points: int = 80_000  # points used at full resolution (a quarter per coarser level)
     min_points: int = 4_000  # ... but never fewer
     stop_rotation_deg: float = 2.0e-4  # stop a level when an update is smaller than both
     stop_translation_m: float = 2.0e-5
