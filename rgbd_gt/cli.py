@@ -153,6 +153,90 @@ def synth(
     out.print(f"wrote {', '.join(FILES)} in {out_dir}")
 
 
+def _board_shape(text: str) -> tuple[int, int]:
+    try:
+        cols, rows = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise InputError(f"--board must look like 9x6 (inner corners), got '{text}'") from None
+    if cols < 2 or rows < 2:
+        raise InputError(f"--board needs at least 2x2 inner corners, got '{text}'")
+    return cols, rows
+
+
+@app.command("init-pose")
+def init_pose(
+    scan: Path = typer.Option(..., "--scan", help="The colored (or intensity) scan, .ply or .e57."),
+    image: Path = typer.Option(..., "--image", help="The photo."),
+    camera: Path = typer.Option(..., "--camera", help="Camera file (with --estimate-focal, its focal length is ignored)."),
+    output: Path = typer.Option(..., "-o", "--output", help="Initial pose file to write (T_cam_from_scan)."),
+    board: str = typer.Option("9x6", "--board", help="Inner corners of the checkerboard, COLSxROWS."),
+    square: float = typer.Option(0.05, "--square", help="Checkerboard square size in metres."),
+    board_points: Optional[Path] = typer.Option(None, "--board-points", help="CSV x,y,z of the board's inner corners in the scan frame (OpenCV order), instead of finding them in the scan."),
+    correspondences: Optional[Path] = typer.Option(None, "--correspondences", help="CSV u,v,x,y,z of hand-picked photo pixels and scan points (>= 6): RANSAC PnP, no board needed."),
+    charuco: Optional[str] = typer.Option(None, "--charuco", help="A ChArUco board of this ArUco dictionary (e.g. DICT_5X5_100) instead of a checkerboard."),
+    marker: Optional[float] = typer.Option(None, "--marker", help="ChArUco marker side in metres (default 0.75 x square)."),
+    estimate_focal: bool = typer.Option(False, "--estimate-focal", help="With --correspondences: also estimate the focal length (photos without calibration)."),
+    report: Optional[Path] = typer.Option(None, "--report", help="Folder for the photo with detected/reprojected corners and the virtual scan view."),
+) -> None:
+    """Coarse pose of a photo from a checkerboard seen in both the photo and the scan (PnP), or
+    from hand-picked correspondences (RANSAC PnP)."""
+    from rgbd_gt.init.detect import BoardSpec
+    from rgbd_gt.init.run import (init_from_board, init_from_correspondences, read_board_points,
+                                  read_correspondences, write_report)
+    from rgbd_gt.io import check_not_input, load_scan, read_camera, write_pose
+    from rgbd_gt.io.camera_file import check_image_matches
+    from rgbd_gt.io.image import read_image
+
+    check_not_input(output, [p for p in (scan, image, camera, board_points, correspondences) if p])
+    cols, rows = _board_shape(board)
+    if not square > 0:
+        raise InputError(f"--square must be positive, got {square}")
+    if charuco is not None:
+        import cv2
+
+        if not hasattr(cv2.aruco, charuco):
+            raise InputError(f"--charuco: unknown ArUco dictionary '{charuco}' (e.g. DICT_5X5_100)")
+    if estimate_focal and correspondences is None:
+        raise InputError("--estimate-focal needs --correspondences")
+    cam = read_camera(camera)
+    photo = read_image(image)
+    if not estimate_focal:
+        check_image_matches(cam, photo.shape, image, camera)
+    elif (cam.width, cam.height) != (photo.shape[1], photo.shape[0]):
+        raise InputError(f"image is {photo.shape[1]}x{photo.shape[0]} but camera file {camera} is for {cam.width}x{cam.height}", image)
+    with _progress() as bar:
+        bar.add_task("init-pose", total=None)
+        if correspondences is not None:
+            img, obj = read_correspondences(correspondences)
+            result = init_from_correspondences(img, obj, cam, estimate_focal)
+        else:
+            spec = BoardSpec(cols, rows, square, charuco, marker)
+            the_scan = load_scan(scan)
+            if len(the_scan) == 0:
+                raise InputError("the scan has no points", scan)
+            corners = read_board_points(board_points) if board_points else None
+            result = init_from_board(the_scan, photo, cam, spec, corners, scan, image)
+    meta = {"method": result.method, "reprojection_rms_px": result.reprojection_rms_px,
+            "points_used": result.n_points, "seconds": round(result.seconds, 3)}
+    if result.color_agreement is not None:
+        meta["color_agreement"] = result.color_agreement
+    meta.update({k: v for k, v in result.extra.items() if v is not None})
+    write_pose(output, result.T_cam_from_scan, **meta)
+    if report is not None:
+        write_report(report, result, photo)
+    table = Table(title="init-pose", show_header=False)
+    table.add_row("method", result.method)
+    table.add_row("points used", str(result.n_points))
+    table.add_row("reprojection RMS", f"{result.reprojection_rms_px:.3f} px")
+    if result.color_agreement is not None:
+        table.add_row("color agreement", f"{result.color_agreement:.2f}")
+    if result.extra.get("estimated_focal_px"):
+        table.add_row("estimated focal", f"{result.extra['estimated_focal_px']:.1f} px")
+    table.add_row("time", f"{result.seconds:.1f} s")
+    out.print(table)
+    out.print(f"wrote {output}" + (f" and a report in {report}" if report else ""))
+
+
 @app.command()
 def refine(
     scan: Path = typer.Option(..., "--scan", help="The colored scan (.ply or .e57), in the scan/world frame."),

@@ -127,7 +127,7 @@ def generate(out_dir: Path, seed: int, size: str, cfg: SynthConfig,
     scan_resp = color.random_scanner_response(rng)
 
     say("photo")
-    rad = render_photo_radiance(scene, rc, camera, cam_pose, preset.supersample)
+    rad = render_photo_radiance(scene, rc, camera, cam_pose, preset.supersample, rng)
     photo = color.camera_forward(cam_resp, rad, rng)
 
     say("scan")

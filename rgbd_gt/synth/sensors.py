@@ -51,28 +51,33 @@ def radiance(scene: Scene, points: np.ndarray, normals: np.ndarray, gid: np.ndar
     return albedo * (0.45 + 0.55 * lambert * np.sqrt(3.0 / np.maximum(dist, 1.0)))[:, None]
 
 
-def _undistorted_samples(camera: Camera, offs: np.ndarray) -> np.ndarray:
+def _undistorted_samples(camera: Camera, ss: int, rng: np.random.Generator) -> np.ndarray:
     """Normalised ray coordinates (H, ss, W, ss, 2) of every sub-pixel sample.
 
-    Undistorts the pixel centres only and moves to the sub-samples along the local Jacobian:
-    the distortion is smooth, so the second-order error at 1/3 px is far below 1e-4 px,
-    and it costs ss*ss times fewer iterative undistortions.
+    Samples are stratified and jittered: one at a random place in each of the ss x ss cells of
+    a pixel. A regular grid would quantise edge positions to 1/ss px and bias corners by up to
+    1/(2 ss) px; jitter turns that into noise that averages out.
+    Undistorts the pixel centres only and moves to the samples along the local Jacobian: the
+    distortion is smooth, so the second-order error is far below 1e-4 px.
     """
     h, w = camera.height, camera.width
     v, u = np.mgrid[0:h, 0:w]
     xn = undistort_points(camera, np.stack([u.ravel(), v.ravel()], 1)).reshape(h, w, 2)
     d_du = np.gradient(xn, axis=1)
     d_dv = np.gradient(xn, axis=0)
-    return (xn[:, None, :, None] + offs[None, :, None, None, None] * d_dv[:, None, :, None]
-            + offs[None, None, None, :, None] * d_du[:, None, :, None])
+    cells = np.arange(ss)
+    du = (cells[None, None, None, :] + rng.random((h, ss, w, ss))) / ss - 0.5
+    dv = (cells[None, :, None, None] + rng.random((h, ss, w, ss))) / ss - 0.5
+    return (xn[:, None, :, None] + dv[..., None] * d_dv[:, None, :, None]
+            + du[..., None] * d_du[:, None, :, None])
 
 
-def render_photo_radiance(scene: Scene, rc, camera: Camera, world_from_cam: np.ndarray, supersample: int) -> np.ndarray:
+def render_photo_radiance(scene: Scene, rc, camera: Camera, world_from_cam: np.ndarray, supersample: int,
+                          rng: np.random.Generator) -> np.ndarray:
     """(H, W, 3) float32 radiance seen through `camera` (with its distortion), each pixel the
-    mean of supersample x supersample rays (anti-aliasing)."""
+    mean of supersample x supersample jittered rays (anti-aliasing)."""
     w, h, ss = camera.width, camera.height, supersample
-    offs = (np.arange(ss) + 0.5) / ss - 0.5
-    xn = _undistorted_samples(camera, offs)  # (H, ss, W, ss, 2)
+    xn = _undistorted_samples(camera, ss, rng)  # (H, ss, W, ss, 2)
     out = np.empty((h, w, 3), np.float32)
     rows_per = max(1, CHUNK // (w * ss * ss))
     R, c = world_from_cam[:3, :3], world_from_cam[:3, 3]

@@ -1,0 +1,125 @@
+"""Pose from 2D-3D correspondences: PnP for boards (with the board's symmetric orderings
+resolved by color), RANSAC PnP for hand-picked points, and a focal-length search."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from rgbd_gt.camera import Camera, project
+from rgbd_gt.errors import InputError
+from rgbd_gt.pose import transform_points
+
+
+def _to_T(rvec, tvec) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(rvec)[0]
+    T[:3, 3] = np.asarray(tvec).ravel()
+    return T
+
+
+def reprojection_rms(T: np.ndarray, obj: np.ndarray, img: np.ndarray, camera: Camera) -> float:
+    uv, _ = project(camera, transform_points(T, obj))
+    return float(np.sqrt(np.mean(np.sum((uv - img) ** 2, axis=1))))
+
+
+def pnp(obj: np.ndarray, img: np.ndarray, camera: Camera) -> np.ndarray:
+    """T_cam_from_scan from >= 4 correspondences (obj (n, 3) scan frame, img (n, 2) distorted
+    pixels): cv2.solvePnP, then Levenberg-Marquardt."""
+    dist = np.asarray(camera.distortion, float)
+    obj, img = np.ascontiguousarray(obj, np.float64), np.ascontiguousarray(img, np.float64)
+    ok, rvec, tvec = cv2.solvePnP(obj, img, camera.K, dist, flags=cv2.SOLVEPNP_SQPNP)
+    if not ok:
+        raise InputError("PnP failed on the board corners")
+    rvec, tvec = cv2.solvePnPRefineLM(obj, img, camera.K, dist, rvec, tvec)
+    return _to_T(rvec, tvec)
+
+
+def color_agreement(T: np.ndarray, points: np.ndarray, gray_scan: np.ndarray, photo_gray: np.ndarray,
+                    camera: Camera) -> float:
+    """Correlation of the scan's gray values with the photo's at their projections (points
+    (N, 3) and gray_scan (N,) near the board): the right ordering of a board correlates, its
+    180-degree turn (black squares on white) anti-correlates."""
+    uv, z = project(camera, transform_points(T, points))
+    ok = (z > 0) & np.all(np.isfinite(uv), axis=1)
+    ok &= (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] < camera.width - 1) & (uv[:, 1] < camera.height - 1)
+    if ok.sum() < 10:
+        return -1.0
+    px = np.round(uv[ok]).astype(int)
+    a = photo_gray[px[:, 1], px[:, 0]].astype(np.float64)
+    b = gray_scan[ok].astype(np.float64)
+    if a.std() == 0 or b.std() == 0:
+        return 0.0
+    return float(np.corrcoef(a, b)[0, 1])
+
+
+def board_pose(img_corners: np.ndarray, img_ids: np.ndarray, scan_corners: np.ndarray, scan_ids: np.ndarray,
+               n_corners: int, camera: Camera, board_points: np.ndarray, board_gray: np.ndarray,
+               photo_gray: np.ndarray, symmetric: bool) -> tuple[np.ndarray, float, float]:
+    """PnP between photo corners and scan corners matched by id. For chessboards (symmetric)
+    the scan's ids may be the photo's turned by 180 degrees; both are solved and the one whose
+    colors agree is kept. Returns (T, reprojection rms px, color correlation)."""
+    orders = [np.arange(n_corners)]
+    if symmetric:
+        orders.append(np.arange(n_corners)[::-1])
+    best = None
+    for order in orders:
+        lookup = {int(i): k for k, i in enumerate(order[scan_ids])}
+        pairs = [(k, lookup[int(i)]) for k, i in enumerate(img_ids) if int(i) in lookup]
+        if len(pairs) < 6:
+            continue
+        a, b = np.array(pairs).T
+        T = pnp(scan_corners[b], img_corners[a], camera)
+        rms = reprojection_rms(T, scan_corners[b], img_corners[a], camera)
+        corr = color_agreement(T, board_points, board_gray, photo_gray, camera)
+        if best is None or corr > best[2]:
+            best = (T, rms, corr)
+    if best is None:
+        raise InputError("fewer than 6 board corners are common to the photo and the scan")
+    return best
+
+
+def pnp_ransac(obj: np.ndarray, img: np.ndarray, camera: Camera, threshold_px: float = 4.0) -> tuple[np.ndarray, np.ndarray]:
+    """RANSAC PnP for hand-picked correspondences. Returns (T, inlier mask)."""
+    dist = np.asarray(camera.distortion, float)
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(np.ascontiguousarray(obj, np.float64), np.ascontiguousarray(img, np.float64),
+                                             camera.K, dist, reprojectionError=threshold_px, iterationsCount=5000,
+                                             confidence=0.9999, flags=cv2.SOLVEPNP_SQPNP)
+    if not ok or inl is None or len(inl) < 4:
+        raise InputError("RANSAC PnP found no consistent pose in the correspondences")
+    mask = np.zeros(len(obj), bool)
+    mask[inl.ravel()] = True
+    rvec, tvec = cv2.solvePnPRefineLM(obj[mask], img[mask], camera.K, dist, rvec, tvec)
+    return _to_T(rvec, tvec), mask
+
+
+def estimate_focal(obj: np.ndarray, img: np.ndarray, camera: Camera) -> tuple[Camera, np.ndarray, np.ndarray]:
+    """Search the focal length (fx = fy, principal point from the camera file, no distortion)
+    that minimises the RANSAC PnP reprojection error: a coarse log-spaced scan, then golden
+    section. Returns (camera with that focal, T, inlier mask)."""
+    import dataclasses
+
+    def cost(f: float):
+        cam = dataclasses.replace(camera, fx=f, fy=f, distortion=())
+        try:
+            T, mask = pnp_ransac(obj, img, cam)
+        except InputError:
+            return np.inf, None, None, cam
+        err = reprojection_rms(T, obj[mask], img[mask], cam)
+        return err + 1e3 * (1 - mask.mean()), T, mask, cam
+
+    grid = camera.width * np.geomspace(0.3, 4.0, 28)
+    costs = [cost(f)[0] for f in grid]
+    k = int(np.argmin(costs))
+    lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
+    g = (np.sqrt(5) - 1) / 2
+    for _ in range(30):
+        a, b = hi - g * (hi - lo), lo + g * (hi - lo)
+        if cost(a)[0] < cost(b)[0]:
+            hi = b
+        else:
+            lo = a
+    _, T, mask, cam = cost((lo + hi) / 2)
+    if T is None:
+        raise InputError("no focal length gives a consistent pose for the correspondences")
+    return cam, T, mask

@@ -1,0 +1,193 @@
+"""Find the board in the scan: render virtual pinhole views from the scanner position, detect
+the board there, and lift its corners to 3D on the board's fitted plane."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from rgbd_gt.errors import InputError
+from rgbd_gt.init.detect import BoardSpec, detect_corners
+
+VIEW_FOV_DEG = (70.0, 55.0)  # horizontal, vertical
+
+
+@dataclass
+class ScanView:
+    """A virtual pinhole view from the scanner. R: world_from_view (OpenCV axes); f, cx, cy in
+    pixels; image: (H, W) uint8 gray of the scan's colors (or intensity)."""
+
+    R: np.ndarray
+    origin: np.ndarray
+    f: float
+    cx: float
+    cy: float
+    image: np.ndarray
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.f, 0, self.cx], [0, self.f, self.cy], [0, 0, 1.0]])
+
+
+@dataclass
+class ScanBoard:
+    corners: np.ndarray  # (n, 3) world, metres
+    ids: np.ndarray  # (n,) into BoardSpec.object_points()
+    view: ScanView
+    pixels: np.ndarray  # (n, 2) where they were detected in the view
+    plane_rms_m: float
+
+
+def _view_rotation(az: float, el: float) -> np.ndarray:
+    """world_from_view for a view looking at azimuth az / elevation el (radians), world z up."""
+    fwd = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    right = np.cross(fwd, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    down = np.cross(fwd, right)
+    return np.stack([right, down, fwd], 1)
+
+
+def gray_of(colors: np.ndarray) -> np.ndarray:
+    """(N, 3) uint8 RGB or (N, 1) intensity in [0, 1] -> (N,) float32 gray in [0, 255]."""
+    if colors.shape[1] == 3:
+        return colors.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
+    return colors[:, 0].astype(np.float32) * 255
+
+
+def candidate_views(points: np.ndarray, origin: np.ndarray, step_rad: float) -> list[tuple[float, float]]:
+    """(azimuth, elevation) of views on a 30-degree grid that hold a useful share of the points."""
+    d = points - origin
+    az = np.arctan2(d[:, 1], d[:, 0])
+    el = np.arctan2(d[:, 2], np.linalg.norm(d[:, :2], axis=1))
+    hx, hy = np.deg2rad(VIEW_FOV_DEG[0]) / 2, np.deg2rad(VIEW_FOV_DEG[1]) / 2
+    views = []
+    for e in np.deg2rad([-30.0, 0.0, 30.0]):
+        for a in np.deg2rad(np.arange(-180.0, 180.0, 30.0)):
+            inside = (np.abs(np.angle(np.exp(1j * (az - a)))) < hx) & (np.abs(el - e) < hy)
+            if inside.mean() > 0.05:
+                views.append((float(inside.mean()), a, e))
+    return [(a, e) for _, a, e in sorted(views, reverse=True)]
+
+
+def render_view(points: np.ndarray, gray: np.ndarray, origin: np.ndarray, az: float, el: float, step_rad: float) -> ScanView:
+    """Render the scan's gray values from `origin`, one pixel per angular step of the scan.
+
+    Every front-surface point in a pixel counts (the mean of those within 2 cm of the nearest):
+    letting only the nearest win would shift edges on slanted surfaces towards the near side.
+    The few empty pixels are filled by normalised convolution.
+    """
+    import cv2
+
+    from rgbd_gt.render.project import project_pinhole
+
+    f = 1.0 / step_rad
+    w = int(2 * f * np.tan(np.deg2rad(VIEW_FOV_DEG[0]) / 2))
+    h = int(2 * f * np.tan(np.deg2rad(VIEW_FOV_DEG[1]) / 2))
+    R = _view_rotation(az, el)
+    cam = torch.as_tensor((points - origin) @ R, dtype=torch.float64)
+    K = torch.tensor([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]], dtype=torch.float64)
+    uv, z = project_pinhole(cam, K)
+    px = torch.round(uv).long()
+    ok = (z > 0.05) & (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] < w) & (px[:, 1] < h)
+    key = (px[:, 1] * w + px[:, 0])[ok]
+    z = z[ok]
+    zmin = torch.full((h * w,), float("inf"), dtype=z.dtype).scatter_reduce(0, key, z, reduce="amin")
+    front = z <= zmin[key] + 0.02
+    g = torch.as_tensor(gray, dtype=torch.float64)[ok][front]
+    total = torch.zeros(h * w, dtype=torch.float64).index_add_(0, key[front], g)
+    count = torch.zeros(h * w, dtype=torch.float64).index_add_(0, key[front], torch.ones_like(g))
+    img = (total / count.clamp_min(1)).reshape(h, w).numpy().astype(np.float32)
+    have = (count > 0).reshape(h, w).numpy().astype(np.float32)
+    fill = cv2.GaussianBlur(img * have, (0, 0), 1.0) / np.maximum(cv2.GaussianBlur(have, (0, 0), 1.0), 1e-6)
+    img = np.where(have > 0, img, fill)
+    return ScanView(R, origin, f, (w - 1) / 2, (h - 1) / 2, np.clip(np.round(img), 0, 255).astype(np.uint8))
+
+
+def _lift(view: ScanView, pixels: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, float]:
+    """Intersect the rays of `pixels` with the plane fitted (robustly) to the scan points that
+    project inside the detected corners' outline. Returns (corners (n, 3) world, plane rms m)."""
+    import cv2
+
+    cam = (points - view.origin) @ view.R
+    front = cam[:, 2] > 0
+    cam = cam[front]
+    uv = cam[:, :2] / cam[:, 2:3] * view.f + [view.cx, view.cy]
+    hull = cv2.convexHull(pixels.astype(np.float32))
+    centre = pixels.mean(axis=0)
+    shrunk = (hull.reshape(-1, 2) - centre) * 0.9 + centre
+    inside = _in_polygon(uv, shrunk)
+    P = cam[inside]
+    if len(P) < 20:
+        raise InputError("the board in the scan has too few points to fit its plane")
+    for _ in range(3):  # fit, drop points off the plane (the stand, the background), refit
+        c = P.mean(axis=0)
+        _, _, vt = np.linalg.svd(P - c, full_matrices=False)
+        n = vt[2]
+        dist = (P - c) @ n
+        rms = float(np.sqrt(np.mean(dist**2)))
+        keep = np.abs(dist) < max(3 * rms, 1e-4)
+        if keep.all():
+            break
+        P = P[keep]
+    rays = np.concatenate([(pixels - [view.cx, view.cy]) / view.f, np.ones((len(pixels), 1))], axis=1)
+    t = (c @ n) / (rays @ n)
+    corners_view = rays * t[:, None]
+    return corners_view @ view.R.T + view.origin, rms
+
+
+def _in_polygon(pts: np.ndarray, poly: np.ndarray) -> np.ndarray:
+    """Points (N, 2) inside the convex polygon poly (M, 2), vectorised over points."""
+    nxt = np.roll(poly, -1, axis=0)
+    orientation = np.sign(np.sum(poly[:, 0] * nxt[:, 1] - nxt[:, 0] * poly[:, 1]))
+    inside = np.ones(len(pts), bool)
+    for a, b in zip(poly, nxt):
+        inside &= ((b[0] - a[0]) * (pts[:, 1] - a[1]) - (b[1] - a[1]) * (pts[:, 0] - a[0])) * orientation >= 0
+    return inside
+
+
+def find_board_in_scan(points: np.ndarray, colors: np.ndarray, origin: np.ndarray, spec: BoardSpec,
+                       step_rad: float) -> ScanBoard:
+    """Search the virtual views (most populated first) for the board; lift the corners of the
+    detection that lies farthest inside its view."""
+    gray = gray_of(colors)
+    best = None
+    for az, el in candidate_views(points, origin, step_rad):
+        view = render_view(points, gray, origin, az, el, step_rad)
+        found = detect_corners(view.image, spec)
+        if found is None:
+            continue
+        px, ids = found
+        h, w = view.image.shape
+        margin = min(px[:, 0].min(), px[:, 1].min(), w - px[:, 0].max(), h - px[:, 1].max())
+        if best is None or margin > best[0]:
+            best = (margin, view, px, ids)
+        if margin > 0.1 * w:
+            break
+    if best is None:
+        raise InputError(f"no {spec.cols}x{spec.rows} board found in the scan's virtual views")
+    _, view, px, ids = best
+    lifted, rms = _lift(view, px, points)
+    # the board is a rigid, known grid: fitting it to all lifted corners averages their errors
+    model = spec.object_points()[ids]
+    T = rigid_fit(model, lifted)
+    return ScanBoard(model @ T[:3, :3].T + T[:3, 3], ids, view, px, rms)
+
+
+def rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Least-squares rigid transform (4x4) taking src (n, 3) onto dst (n, 3) (Kabsch)."""
+    cs, cd = src.mean(axis=0), dst.mean(axis=0)
+    U, _, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = cd - R @ cs
+    return T
+
+
+def angular_step(points: np.ndarray, origin: np.ndarray, spacing_m: float) -> float:
+    """The scan's angular spacing (radians): point spacing over the median range."""
+    rng = np.linalg.norm(points - origin, axis=1)
+    return float(spacing_m / np.median(rng))
