@@ -38,6 +38,11 @@ def test_charuco_detection():
     assert found is not None
     corners, ids = found
     assert len(ids) == 35 and sorted(ids.tolist()) == list(range(35))
+    # ids index the board's own corner positions: a homography maps them onto the detections
+    obj = spec.object_points()[ids][:, :2]
+    H, _ = cv2.findHomography(obj, corners)
+    mapped = cv2.perspectiveTransform(obj.reshape(-1, 1, 2), H).reshape(-1, 2)
+    assert np.abs(mapped - corners).max() < 0.5
 
 
 @pytest.fixture(scope="module")

@@ -20,7 +20,10 @@ class BoardSpec:
     marker: float | None = None
 
     def object_points(self) -> np.ndarray:
-        """(cols*rows, 3) inner corners in the board frame, x fastest (OpenCV's order), metres."""
+        """(cols*rows, 3) inner corners in the board frame, x fastest (OpenCV's order), metres;
+        for ChArUco, indexed by corner id."""
+        if self.charuco:
+            return np.asarray(self.charuco_board().getChessboardCorners(), np.float64).reshape(-1, 3)
         j, i = np.mgrid[0 : self.rows, 0 : self.cols]
         return np.stack([i.ravel(), j.ravel(), np.zeros(i.size)], 1) * self.square
 
