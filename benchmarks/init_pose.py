@@ -24,12 +24,13 @@ from rgbd_gt.pose import rotation_error_deg, translation_error_m
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, default=10)
+    ap.add_argument("--first", type=int, default=0, help="first seed")
     ap.add_argument("--size", default="default")
     ap.add_argument("--dir", type=Path, default=Path("bench_out/init"))
     ap.add_argument("--out", type=Path, default=Path("docs/init_benchmark.md"))
     args = ap.parse_args()
     rows = []
-    for seed in range(args.seeds):
+    for seed in range(args.first, args.first + args.seeds):
         d = args.dir / f"{args.size}_{seed}"
         if not (d / "scene.json").exists():
             subprocess.run([sys.executable, "-m", "rgbd_gt", "synth", d, "--seed", str(seed), "--size", args.size],
@@ -50,7 +51,7 @@ def main() -> None:
     e = np.array([r[1:5] for r in rows], float)
     ok = np.isfinite(e[:, 0])
     lines = [
-        f"# init-pose benchmark: {args.seeds} synthetic scenes (`--size {args.size}`)",
+        f"# init-pose benchmark: {args.seeds} synthetic scenes (`--size {args.size}`, seeds {args.first}-{args.first + args.seeds - 1})",
         "",
         "Made by `python benchmarks/init_pose.py`. Automatic mode: the 9x6 board is found in the photo and in",
         "virtual views of the scan, then PnP. Errors against `gt_pose.yaml`; time is the whole command.",

@@ -23,16 +23,24 @@ def reprojection_rms(T: np.ndarray, obj: np.ndarray, img: np.ndarray, camera: Ca
     return float(np.sqrt(np.mean(np.sum((uv - img) ** 2, axis=1))))
 
 
-def pnp(obj: np.ndarray, img: np.ndarray, camera: Camera) -> np.ndarray:
-    """T_cam_from_scan from >= 4 correspondences (obj (n, 3) scan frame, img (n, 2) distorted
-    pixels): cv2.solvePnP, then Levenberg-Marquardt."""
+def pnp(obj: np.ndarray, img: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """T_cam_from_scan from >= 6 correspondences (obj (n, 3) scan frame, img (n, 2) distorted
+    pixels): cv2.solvePnP, Levenberg-Marquardt, then once more without the corners whose
+    reprojection error exceeds 3x the median (one bad corner tilts a small board by a
+    tenth of a degree). Returns (T, mask of the corners kept)."""
     dist = np.asarray(camera.distortion, float)
     obj, img = np.ascontiguousarray(obj, np.float64), np.ascontiguousarray(img, np.float64)
     ok, rvec, tvec = cv2.solvePnP(obj, img, camera.K, dist, flags=cv2.SOLVEPNP_SQPNP)
     if not ok:
         raise InputError("PnP failed on the board corners")
     rvec, tvec = cv2.solvePnPRefineLM(obj, img, camera.K, dist, rvec, tvec)
-    return _to_T(rvec, tvec)
+    err = np.linalg.norm(project(camera, transform_points(_to_T(rvec, tvec), obj))[0] - img, axis=1)
+    keep = err <= max(3 * np.median(err), 0.05)
+    if 6 <= keep.sum() < len(keep):
+        rvec, tvec = cv2.solvePnPRefineLM(obj[keep], img[keep], camera.K, dist, rvec, tvec)
+    else:
+        keep[:] = True
+    return _to_T(rvec, tvec), keep
 
 
 def color_agreement(T: np.ndarray, points: np.ndarray, gray_scan: np.ndarray, photo_gray: np.ndarray,
@@ -69,8 +77,8 @@ def board_pose(img_corners: np.ndarray, img_ids: np.ndarray, scan_corners: np.nd
         if len(pairs) < 6:
             continue
         a, b = np.array(pairs).T
-        T = pnp(scan_corners[b], img_corners[a], camera)
-        rms = reprojection_rms(T, scan_corners[b], img_corners[a], camera)
+        T, keep = pnp(scan_corners[b], img_corners[a], camera)
+        rms = reprojection_rms(T, scan_corners[b][keep], img_corners[a][keep], camera)
         corr = color_agreement(T, board_points, board_gray, photo_gray, camera)
         if best is None or corr > best[2]:
             best = (T, rms, corr)
