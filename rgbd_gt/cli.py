@@ -63,6 +63,15 @@ def _progress(*extra_columns) -> Progress:
     )
 
 
+def _summary(title: str, rows: list[tuple[str, str]], output: Path, report: Optional[Path]) -> None:
+    """The closing table of a command and where its outputs went."""
+    table = Table(title=title, show_header=False)
+    for key, value in rows:
+        table.add_row(key, value)
+    out.print(table)
+    out.print(f"wrote {output}" + (f" and a report in {report}" if report else ""))
+
+
 def _fmt_bounds(b: np.ndarray) -> str:
     if not np.isfinite(b).all():
         return "-"
@@ -181,8 +190,8 @@ def init_pose(
     """Coarse pose of a photo from a checkerboard seen in both the photo and the scan (PnP), or
     from hand-picked correspondences (RANSAC PnP)."""
     from rgbd_gt.init.detect import BoardSpec
-    from rgbd_gt.init.run import (init_from_board, init_from_correspondences, read_board_points,
-                                  read_correspondences, write_report)
+    from rgbd_gt.init.run import (init_from_board, init_from_correspondences, read_correspondences,
+                                  read_csv_rows, write_report)
     from rgbd_gt.io import check_not_input, load_scan, read_camera, write_pose
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import read_image
@@ -214,7 +223,7 @@ def init_pose(
             the_scan = load_scan(scan)
             if len(the_scan) == 0:
                 raise InputError("the scan has no points", scan)
-            corners = read_board_points(board_points) if board_points else None
+            corners = read_csv_rows(board_points, "x,y,z") if board_points else None
             result = init_from_board(the_scan, photo, cam, spec, corners, scan, image)
     meta = {"method": result.method, "reprojection_rms_px": result.reprojection_rms_px,
             "points_used": result.n_points, "seconds": round(result.seconds, 3)}
@@ -224,17 +233,14 @@ def init_pose(
     write_pose(output, result.T_cam_from_scan, **meta)
     if report is not None:
         write_report(report, result, photo)
-    table = Table(title="init-pose", show_header=False)
-    table.add_row("method", result.method)
-    table.add_row("points used", str(result.n_points))
-    table.add_row("reprojection RMS", f"{result.reprojection_rms_px:.3f} px")
+    rows = [("method", result.method), ("points used", str(result.n_points)),
+            ("reprojection RMS", f"{result.reprojection_rms_px:.3f} px")]
     if result.color_agreement is not None:
-        table.add_row("color agreement", f"{result.color_agreement:.2f}")
+        rows.append(("color agreement", f"{result.color_agreement:.2f}"))
     if result.extra.get("estimated_focal_px"):
-        table.add_row("estimated focal", f"{result.extra['estimated_focal_px']:.1f} px")
-    table.add_row("time", f"{result.seconds:.1f} s")
-    out.print(table)
-    out.print(f"wrote {output}" + (f" and a report in {report}" if report else ""))
+        rows.append(("estimated focal", f"{result.extra['estimated_focal_px']:.1f} px"))
+    rows.append(("time", f"{result.seconds:.1f} s"))
+    _summary("init-pose", rows, output, report)
 
 
 @app.command()
@@ -300,14 +306,13 @@ def refine(
         from rgbd_gt.align.report import write_report
 
         write_report(report, result, inputs.camera.size)
-    table = Table(title="refine", show_header=False)
-    table.add_row("moved from init", f"{moved_mm:.2f} mm, {moved_deg:.4f} deg")
-    table.add_row("iterations", str(result.iterations))
-    table.add_row("visible points", f"{result.visible_points:,} (inliers {result.inlier_fraction:.0%})")
-    table.add_row("final loss", f"{result.loss:.4f}")
-    table.add_row("aligner time", f"{result.seconds:.2f} s (total {time.perf_counter() - start:.2f} s)")
-    out.print(table)
-    out.print(f"wrote {output}" + (f" and a report in {report}" if report else ""))
+    _summary("refine", [
+        ("moved from init", f"{moved_mm:.2f} mm, {moved_deg:.4f} deg"),
+        ("iterations", str(result.iterations)),
+        ("visible points", f"{result.visible_points:,} (inliers {result.inlier_fraction:.0%})"),
+        ("final loss", f"{result.loss:.4f}"),
+        ("aligner time", f"{result.seconds:.2f} s (total {time.perf_counter() - start:.2f} s)"),
+    ], output, report)
 
 
 @app.command()

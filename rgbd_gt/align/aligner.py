@@ -274,11 +274,9 @@ class Aligner:
             s0 = self._evaluate(levels[0], T, None, jacobian=False)
             start_res = (s0.uv.cpu().numpy(), s0.err.cpu().numpy())
         total_iterations = 0
-        state = None
+        step = self._lm_level if cfg.optimizer == "lm" else self._adam_level
         for level in reversed(range(len(levels))):
-            lv = levels[level]
-            step = self._lm_level if cfg.optimizer == "lm" else self._adam_level
-            T, state, n_it = step(lv, level, T, history, progress)
+            T, n_it = step(levels[level], level, T, history, progress)
             total_iterations += n_it
         final = self._evaluate(levels[0], T, None, jacobian=False)
         end_res = (final.uv.cpu().numpy(), final.err.cpu().numpy()) if keep_residuals else None
@@ -332,7 +330,7 @@ class Aligner:
             self._record(history, progress, level, it, state, delta, accepted)
             if (accepted and self._converged(delta)) or lam > 1e6:
                 break
-        return T, state, it
+        return T, it
 
     def _adam_level(self, lv, level, T, history, progress):
         """Adam on the 6 pose parameters (the paper's optimiser), separate step sizes for
@@ -351,4 +349,4 @@ class Aligner:
             delta = -lr * (m1 / (1 - b1**it)) / (np.sqrt(m2 / (1 - b2**it)) + eps)
             T = apply_update(T, delta)
             self._record(history, progress, level, it, state, delta, True)
-        return T, state, it
+        return T, it

@@ -13,7 +13,7 @@ from rgbd_gt.camera import Camera, project
 from rgbd_gt.errors import InputError
 from rgbd_gt.init.detect import BoardSpec, detect_corners
 from rgbd_gt.init.pnp import board_pose, estimate_focal, pnp_ransac, reprojection_rms
-from rgbd_gt.init.scan_board import ScanBoard, _in_polygon, angular_step, find_board_in_scan, gray_of
+from rgbd_gt.init.scan_board import ScanBoard, in_convex_polygon, angular_step, find_board_in_scan, gray_of
 from rgbd_gt.io.scan import Scan
 from rgbd_gt.pose import transform_points
 
@@ -45,7 +45,7 @@ def board_neighbourhood(scan: Scan, corners: np.ndarray, square: float) -> np.nd
     hull = cv2.convexHull(cuv.astype(np.float32)).reshape(-1, 2).astype(np.float64)
     grow = hull + square * 1.4 * (hull / np.linalg.norm(hull, axis=1, keepdims=True))
     idx = np.nonzero(near)[0]
-    return idx[_in_polygon(uv, grow)]
+    return idx[in_convex_polygon(uv, grow)]
 
 
 def _colors(scan: Scan, path) -> np.ndarray:
@@ -80,42 +80,32 @@ def init_from_board(scan: Scan, photo: np.ndarray, camera: Camera, spec: BoardSp
     near = board_neighbourhood(scan, scan_corners, spec.square)
     T, rms, corr = board_pose(img_corners, img_ids, scan_corners, scan_ids, spec.cols * spec.rows, camera,
                               scan.xyz[near], gray_of(colors[near]), photo_gray, symmetric=spec.charuco is None)
-    # the photo corners and the scan corners as matched by the chosen ordering
-    uv, _ = project(camera, transform_points(T, scan_corners))
     return InitResult(T, f"{'charuco' if spec.charuco else 'checkerboard'} PnP ({method})", rms, len(img_ids), camera,
                       corr, img_corners, scan_corners, sb, time.perf_counter() - start,
                       {"board_plane_rms_mm": sb.plane_rms_m * 1e3 if sb else None})
 
 
-def read_correspondences(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """CSV rows u,v,x,y,z (a header line is allowed) -> (img (n, 2), obj (n, 3))."""
+def read_csv_rows(path: Path, fields: str) -> np.ndarray:
+    """A CSV of numeric rows with the given comma-separated `fields` (an optional header line
+    is skipped) -> (n, len(fields)) float64."""
     if not path.is_file():
         raise InputError("file not found", path)
+    first = path.read_text(errors="replace").lstrip().split("\n", 1)[0]
     try:
-        data = np.loadtxt(path, delimiter=",", ndmin=2, skiprows=_header_rows(path))
+        data = np.loadtxt(path, delimiter=",", ndmin=2, skiprows=1 if any(ch.isalpha() for ch in first) else 0)
     except ValueError as exc:
-        raise InputError(f"not a CSV of u,v,x,y,z rows ({exc})", path) from None
-    if data.shape[1] != 5 or len(data) < 6:
-        raise InputError(f"need at least 6 rows of u,v,x,y,z, got {data.shape[0]} rows of {data.shape[1]} values", path)
-    return data[:, :2], data[:, 2:]
-
-
-def read_board_points(path: Path) -> np.ndarray:
-    """CSV rows x,y,z (a header line is allowed) -> (n, 3)."""
-    if not path.is_file():
-        raise InputError("file not found", path)
-    try:
-        data = np.loadtxt(path, delimiter=",", ndmin=2, skiprows=_header_rows(path))
-    except ValueError as exc:
-        raise InputError(f"not a CSV of x,y,z rows ({exc})", path) from None
-    if data.shape[1] != 3:
-        raise InputError(f"expected x,y,z rows, got {data.shape[1]} values per row", path)
+        raise InputError(f"not a CSV of {fields} rows ({exc})", path) from None
+    if data.shape[1] != len(fields.split(",")):
+        raise InputError(f"expected {fields} rows, got {data.shape[1]} values per row", path)
     return data
 
 
-def _header_rows(path: Path) -> int:
-    first = path.read_text(errors="replace").lstrip().split("\n", 1)[0]
-    return 1 if any(ch.isalpha() for ch in first) else 0
+def read_correspondences(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """CSV rows u,v,x,y,z -> (img (n, 2), obj (n, 3)); at least 6 rows."""
+    data = read_csv_rows(path, "u,v,x,y,z")
+    if len(data) < 6:
+        raise InputError(f"need at least 6 rows of u,v,x,y,z, got {len(data)}", path)
+    return data[:, :2], data[:, 2:]
 
 
 def init_from_correspondences(img: np.ndarray, obj: np.ndarray, camera: Camera, focal: bool) -> InitResult:

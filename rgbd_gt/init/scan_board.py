@@ -117,7 +117,7 @@ def _lift(view: ScanView, pixels: np.ndarray, points: np.ndarray) -> tuple[np.nd
     hull = cv2.convexHull(pixels.astype(np.float32))
     centre = pixels.mean(axis=0)
     shrunk = (hull.reshape(-1, 2) - centre) * 0.9 + centre
-    inside = _in_polygon(uv, shrunk)
+    inside = in_convex_polygon(uv, shrunk)
     P = cam[inside]
     if len(P) < 20:
         raise InputError("the board in the scan has too few points to fit its plane")
@@ -137,7 +137,7 @@ def _lift(view: ScanView, pixels: np.ndarray, points: np.ndarray) -> tuple[np.nd
     return corners_view @ view.R.T + view.origin, rms
 
 
-def _in_polygon(pts: np.ndarray, poly: np.ndarray) -> np.ndarray:
+def in_convex_polygon(pts: np.ndarray, poly: np.ndarray) -> np.ndarray:
     """Points (N, 2) inside the convex polygon poly (M, 2), vectorised over points."""
     nxt = np.roll(poly, -1, axis=0)
     orientation = np.sign(np.sum(poly[:, 0] * nxt[:, 1] - nxt[:, 0] * poly[:, 1]))
