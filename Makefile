@@ -23,4 +23,5 @@ clean:
 
 bench: $(STAMP)
 	$(PY) -m rgbd_gt bench
+	$(PY) benchmarks/export_depth.py
 	$(PY) benchmarks/load_large_scan.py

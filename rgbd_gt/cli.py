@@ -315,6 +315,58 @@ def refine(
     ], output, report)
 
 
+@app.command("export-depth")
+def export_depth(
+    scan: Path = typer.Option(..., "--scan", help="The scan (.ply or .e57)."),
+    camera: Path = typer.Option(..., "--camera", help="Camera file of the photo (the depth map has its size and distortion)."),
+    pose: Path = typer.Option(..., "--pose", help="Pose file (T_cam_from_scan), e.g. from refine."),
+    output: Path = typer.Option(..., "-o", "--output", help="Depth map to write (.exr, channel Z, metres, 0 = no depth)."),
+    png16: Optional[Path] = typer.Option(None, "--png16", help="Also a 16-bit PNG in millimetres (0 = no depth)."),
+    normals: Optional[Path] = typer.Option(None, "--normals", help="Also the camera-frame normals as an EXR (N.X, N.Y, N.Z)."),
+    mask: Optional[Path] = typer.Option(None, "--mask", help="Also a validity mask PNG (255 where there is depth)."),
+    max_depth: Optional[float] = typer.Option(None, "--max-depth", help="Depths beyond this (metres) are left out (0)."),
+) -> None:
+    """Depth of the scan as the photo's camera sees it, pixel for pixel with the original photo:
+    z-depth in metres, occlusion-correct (a grid mesh ray-cast, or splats for unstructured scans)."""
+    from rgbd_gt.io import check_not_input, load_scan, read_camera, read_pose
+    from rgbd_gt.io.depth_file import write_depth_exr, write_depth_png16
+    from rgbd_gt.io.image import write_image
+    from rgbd_gt.render.depth import render_depth
+
+    outputs = [p for p in (output, png16, normals, mask) if p]
+    for p in outputs:
+        check_not_input(p, [scan, camera, pose])
+    if output.suffix.lower() != ".exr":
+        raise InputError("the depth map is written as .exr", output)
+    start = time.perf_counter()
+    cam = read_camera(camera)
+    T, _ = read_pose(pose)
+    the_scan = load_scan(scan)
+    if len(the_scan) == 0:
+        raise InputError("the scan has no points", scan)
+    with _progress() as bar:
+        bar.add_task("rendering depth", total=None)
+        depth = render_depth(the_scan, cam, T, max_depth)
+    valid = depth.z > 0
+    if not valid.any():
+        raise InputError("no scan points in view of this pose: the depth map would be empty", pose)
+    write_depth_exr(output, depth.z, cam, T, scan.name)
+    if png16:
+        write_depth_png16(png16, depth.z)
+    if normals:
+        write_depth_exr(normals, depth.z, cam, T, scan.name, normals=depth.normals)
+    if mask:
+        write_image(mask, valid.astype(np.uint8) * 255)
+    zs = depth.z[valid]
+    _summary("export-depth", [
+        ("method", depth.method),
+        ("size", f"{cam.width} x {cam.height}"),
+        ("pixels with depth", f"{valid.mean():.1%}"),
+        ("depth range", f"{zs.min():.3f} .. {zs.max():.3f} m (median {np.median(zs):.3f})"),
+        ("time", f"{time.perf_counter() - start:.1f} s"),
+    ], output, None)
+
+
 @app.command()
 def bench(
     data: Path = typer.Option(Path("../shared/data/icl_nuim_livingroom1"), "--data", help="The ICL-NUIM livingroom1 folder."),

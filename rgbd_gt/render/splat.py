@@ -7,17 +7,22 @@ import torch
 
 def render_points(points_cam: torch.Tensor, values: torch.Tensor, K: torch.Tensor, size: tuple[int, int],
                   radius: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Nearest-point image of camera-frame points.
-
-    Each point covers the (2 radius + 1)^2 pixels around its projection; per pixel the nearest
-    point wins. Args: points_cam (N, 3) metres; values (N, C); K (3, 3); size (width, height).
-    Returns image (H, W, C) (0 where empty), depth (H, W) metres (0 where empty) and
-    index (H, W) int64 of the winning point (-1 where empty).
-    """
+    """Nearest-point image of camera-frame points (N, 3) through the pinhole K (3, 3); see `splat`."""
     from rgbd_gt.render.project import project_pinhole
 
-    w, h = size
     uv, z = project_pinhole(points_cam, K)
+    return splat(uv, z, values, size, radius)
+
+
+def splat(uv: torch.Tensor, z: torch.Tensor, values: torch.Tensor, size: tuple[int, int],
+          radius: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Nearest-point image of points projected at uv (N, 2) with depth z (N,).
+
+    Each point covers the (2 radius + 1)^2 pixels around its projection; per pixel the nearest
+    point wins. values: (N, C); size: (width, height). Returns image (H, W, C) (0 where empty),
+    depth (H, W) metres (0 where empty) and index (H, W) int64 of the winning point (-1 where empty).
+    """
+    w, h = size
     px = torch.round(uv).long()
     ok = (z > 1e-6) & (px[:, 0] >= -radius) & (px[:, 1] >= -radius) & (px[:, 0] < w + radius) & (px[:, 1] < h + radius)
     ids = torch.nonzero(ok).squeeze(1)
