@@ -367,6 +367,59 @@ def export_depth(
     ], output, None)
 
 
+@app.command("qa-edges")
+def qa_edges(
+    scan: Path = typer.Option(..., "--scan", help="The scan (.ply or .e57)."),
+    image: Path = typer.Option(..., "--image", help="The photo."),
+    camera: Path = typer.Option(..., "--camera", help="Camera file of the photo."),
+    pose: Path = typer.Option(..., "--pose", help="The pose to check (T_cam_from_scan)."),
+    output: Path = typer.Option(..., "-o", "--output", help="Overlay PNG: red photo edges, blue scan edges, white both."),
+    before: Optional[Path] = typer.Option(None, "--before", help="Another pose (e.g. the initial one): a before/after panel."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the score as JSON."),
+) -> None:
+    """Canny edges of the photo against edges of the scan rendered at the pose, and how far the
+    scan's edges lie from the photo's (median/mean distance in pixels, fraction within 1 px)."""
+    import json
+
+    from rgbd_gt.align.refine import scan_colors
+    from rgbd_gt.io import atomic_output, check_not_input, load_scan, read_camera, read_pose
+    from rgbd_gt.io.camera_file import check_image_matches
+    from rgbd_gt.io.image import read_image, write_image
+    from rgbd_gt.qa.edges import qa
+
+    for p in (output, json_out):
+        if p:
+            check_not_input(p, [scan, image, camera, pose] + ([before] if before else []))
+    cam = read_camera(camera)
+    photo = read_image(image)
+    check_image_matches(cam, photo.shape, image, camera)
+    T, _ = read_pose(pose)
+    T_before = read_pose(before)[0] if before else None
+    the_scan = load_scan(scan)
+    if len(the_scan) == 0:
+        raise InputError("the scan has no points", scan)
+    colors = scan_colors(the_scan, scan)
+    with _progress() as bar:
+        bar.add_task("edges", total=None)
+        img, score = qa(the_scan, colors, photo, cam, T)
+        if score.scan_edge_pixels == 0:
+            raise InputError("no scan edges in view of this pose (no scan points in view?)", pose)
+        result = score.as_dict()
+        rows = [("after" if before else "score", f"median {score.median_distance_px:.2f} px, mean {score.mean_distance_px:.2f} px, "
+                 f"within 1 px {score.within_1px:.1%}")]
+        if T_before is not None:
+            img_b, score_b = qa(the_scan, colors, photo, cam, T_before)
+            img = np.concatenate([img_b, np.full((img.shape[0], 8, 3), 255, np.uint8), img], axis=1)
+            result.update(score_b.as_dict("before_"))
+            rows.insert(0, ("before", f"median {score_b.median_distance_px:.2f} px, mean {score_b.mean_distance_px:.2f} px, "
+                            f"within 1 px {score_b.within_1px:.1%}"))
+    write_image(output, img)
+    if json_out:
+        with atomic_output(json_out) as tmp:
+            tmp.write_text(json.dumps(result, indent=1))
+    _summary("qa-edges", rows, output, None)
+
+
 @app.command()
 def bench(
     data: Path = typer.Option(Path("../shared/data/icl_nuim_livingroom1"), "--data", help="The ICL-NUIM livingroom1 folder."),

@@ -12,7 +12,7 @@ class RefineConfig:
     color_model: str = "quadratic"  # one of color_models.MODELS
     gradient: str = "direct"  # 'direct' (strategy A) or 'central' (strategy B)
     optimizer: str = "lm"  # 'lm' (Levenberg-Marquardt on the 6 pose parameters) or 'adam' (the paper's)
-    levels: int = 4  # image pyramid levels (1 = full resolution only)
+    levels: int = 5  # image pyramid levels (1 = full resolution only)
     iterations: int = 30  # per level (lm) ...
     adam_iterations: int = 300  # ... and per level for adam
     adam_lr_rotation: float = 2.0e-4  # radians per step

@@ -19,6 +19,7 @@ class DepthMap:
     z: np.ndarray
     normals: np.ndarray
     method: str
+    colors: np.ndarray | None = None  # (H, W, C) the scan's colors where seen (0 elsewhere)
 
 
 def pixel_rays(camera: Camera) -> np.ndarray:
@@ -29,13 +30,15 @@ def pixel_rays(camera: Camera) -> np.ndarray:
     return np.concatenate([xn, np.ones((xn.shape[0], 1))], axis=1)
 
 
-def render_depth(scan: Scan, camera: Camera, T_cam_from_scan: np.ndarray, max_depth: float | None = None) -> DepthMap:
+def render_depth(scan: Scan, camera: Camera, T_cam_from_scan: np.ndarray, max_depth: float | None = None,
+                 values: np.ndarray | None = None) -> DepthMap:
     """Occlusion-correct depth: a structured scan is triangulated along its grid and ray-cast
-    (Open3D); a scan without a grid is splatted with discs sized by its point spacing."""
+    (Open3D); a scan without a grid is splatted with discs sized by its point spacing.
+    values: optional per-point (N, C) values (colors) rendered along, as DepthMap.colors."""
     if scan.has_grid:
-        out = _raycast_mesh(scan, camera, T_cam_from_scan)
+        out = _raycast_mesh(scan, camera, T_cam_from_scan, values)
     else:
-        out = _splat(scan, camera, T_cam_from_scan)
+        out = _splat(scan, camera, T_cam_from_scan, values)
     if max_depth is not None:
         far = out.z > max_depth
         out.z[far] = 0
@@ -43,7 +46,7 @@ def render_depth(scan: Scan, camera: Camera, T_cam_from_scan: np.ndarray, max_de
     return out
 
 
-def _raycast_mesh(scan: Scan, camera: Camera, T: np.ndarray) -> DepthMap:
+def _raycast_mesh(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None) -> DepthMap:
     import open3d as o3d
 
     from rgbd_gt.render.mesh import grid_triangles
@@ -68,10 +71,21 @@ def _raycast_mesh(scan: Scan, camera: Camera, T: np.ndarray) -> DepthMap:
     n *= -np.sign(np.sum(n * d_cam.astype(np.float32), axis=1, keepdims=True) + 1e-12)
     n[z == 0] = 0
     h, w = camera.height, camera.width
-    return DepthMap(z.reshape(h, w), n.reshape(h, w, 3).astype(np.float32), f"ray-cast grid mesh ({len(tris):,} triangles)")
+    colors = None
+    if values is not None:  # barycentric interpolation of the hit triangle's vertex values
+        prim = hit["primitive_ids"].numpy().astype(np.int64)
+        bary = hit["primitive_uvs"].numpy()
+        ok = z > 0
+        tri = tris[np.where(ok, prim, 0)]
+        vals = values.astype(np.float32)
+        c = (1 - bary[:, :1] - bary[:, 1:]) * vals[tri[:, 0]] + bary[:, :1] * vals[tri[:, 1]] + bary[:, 1:] * vals[tri[:, 2]]
+        c[~ok] = 0
+        colors = c.reshape(h, w, -1)
+    return DepthMap(z.reshape(h, w), n.reshape(h, w, 3).astype(np.float32),
+                    f"ray-cast grid mesh ({len(tris):,} triangles)", colors)
 
 
-def _splat(scan: Scan, camera: Camera, T: np.ndarray) -> DepthMap:
+def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None) -> DepthMap:
     import torch
 
     from rgbd_gt.align.aligner import estimate_spacing
@@ -81,9 +95,13 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray) -> DepthMap:
     front = p[:, 2] > 1e-3
     p = p[front]
     uv, z = project(camera, p)
+    if not len(z):
+        zz = np.zeros((camera.height, camera.width), np.float32)
+        return DepthMap(zz, np.zeros(zz.shape + (3,), np.float32), "splats (nothing in view)")
     spacing = estimate_spacing(torch.as_tensor(scan.xyz))
-    radius = int(np.ceil(0.75 * camera.fx * spacing / max(float(np.median(z)), 1e-6)))
-    img, depth, _ = splat(torch.as_tensor(uv), torch.as_tensor(z), torch.as_tensor(np.zeros((len(z), 1))),
-                          camera.size, max(radius, 1))
+    radius = max(1, int(np.ceil(0.75 * camera.fx * spacing / max(float(np.median(z)), 1e-6))))
+    vals = values[front].astype(np.float32) if values is not None else np.zeros((len(z), 1), np.float32)
+    img, depth, _ = splat(torch.as_tensor(uv), torch.as_tensor(z), torch.as_tensor(vals), camera.size, radius)
     zz = depth.numpy().astype(np.float32)
-    return DepthMap(zz, np.zeros(zz.shape + (3,), np.float32), f"splats of radius {max(radius, 1)} px")
+    return DepthMap(zz, np.zeros(zz.shape + (3,), np.float32), f"splats of radius {radius} px",
+                    img.numpy() if values is not None else None)

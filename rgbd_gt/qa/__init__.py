@@ -1,0 +1,1 @@
+"""Checking an alignment by eye and by number: edges of the photo against edges of the scan."""

@@ -1,0 +1,56 @@
+"""qa-edges: the score falls from the initial to the refined pose."""
+
+import json
+
+import numpy as np
+
+from conftest import assert_one_line_error, run_cli
+from rgbd_gt.align.config import RefineConfig
+from rgbd_gt.align.refine import RefineInputs, run_refine
+from rgbd_gt.bench.depth import frame_grid_scan
+from rgbd_gt.bench.icl import ICL_CAMERA, make_cases
+from rgbd_gt.qa.edges import edge_score, qa
+
+
+def test_score_of_identical_and_shifted_edges():
+    a = np.zeros((50, 60), bool)
+    a[10:40, 30] = True
+    assert edge_score(a, a).median_distance_px == 0 and edge_score(a, a).within_1px == 1
+    b = np.roll(a, 3, axis=1)
+    s = edge_score(a, b)
+    assert abs(s.median_distance_px - 3) < 0.05 and s.within_1px == 0
+
+
+def test_qa_edges_on_a_synthetic_scene(tmp_path):
+    d = tmp_path / "scene"
+    assert run_cli("synth", d, "--size", "small", "--seed", 1).returncode == 0
+    assert run_cli("refine", "--scan", d / "scan.ply", "--image", d / "photo.png", "--camera", d / "camera.yaml",
+                   "--init", d / "init_pose.yaml", "-o", d / "pose.yaml").returncode == 0
+    proc = run_cli("qa-edges", "--scan", d / "scan.ply", "--image", d / "photo.png", "--camera", d / "camera.yaml",
+                   "--pose", d / "pose.yaml", "--before", d / "init_pose.yaml", "-o", tmp_path / "qa.png",
+                   "--json", tmp_path / "qa.json")
+    assert proc.returncode == 0, proc.stderr
+    score = json.loads((tmp_path / "qa.json").read_text())
+    assert score["median_distance_px"] < score["before_median_distance_px"]
+    assert score["within_1px"] > score["before_within_1px"] + 0.15
+    assert score["mean_distance_px"] < 1.0
+    import cv2
+
+    assert cv2.imread(str(tmp_path / "qa.png")).shape == (480, 2 * 640 + 8, 3)
+    away = tmp_path / "away.yaml"
+    from rgbd_gt.io import read_pose, write_pose
+
+    write_pose(away, np.diag([-1.0, 1, -1, 1]) @ read_pose(d / "pose.yaml")[0])
+    assert_one_line_error(run_cli("qa-edges", "--scan", d / "scan.ply", "--image", d / "photo.png", "--camera",
+                                  d / "camera.yaml", "--pose", away, "-o", tmp_path / "x.png"), "away.yaml")
+
+
+def test_qa_score_falls_on_icl_pairs(icl_dir):
+    for case in make_cases(icl_dir, offsets=(1,), effects_per_pair=1, seed=7)[:2]:
+        scan = frame_grid_scan(icl_dir, case.i, "noisy")
+        res = run_refine(RefineInputs(case.points, case.colors, case.photo, ICL_CAMERA, case.T_init, None),
+                         RefineConfig(), "cpu")
+        _, before = qa(scan, scan.rgb, case.photo, ICL_CAMERA, case.T_init)
+        _, after = qa(scan, scan.rgb, case.photo, ICL_CAMERA, res.T_cam_from_scan)
+        assert after.mean_distance_px < before.mean_distance_px
+        assert after.within_1px > before.within_1px
