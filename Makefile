@@ -24,4 +24,5 @@ clean:
 bench: $(STAMP)
 	$(PY) -m rgbd_gt bench
 	$(PY) benchmarks/export_depth.py
+	$(PY) benchmarks/init_pose.py
 	$(PY) benchmarks/load_large_scan.py

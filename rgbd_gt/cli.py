@@ -141,6 +141,7 @@ def synth(
     seed: int = typer.Option(0, "--seed", help="Random seed: the same seed gives the same files."),
     size: str = typer.Option("default", "--size", help="'default' (1280x960 photo, 0.1 deg scan) or 'small' (640x480, 0.15 deg)."),
     config: Optional[Path] = typer.Option(None, "--config", help="Scene settings YAML (default: configs/synth.yaml)."),
+    photos: int = typer.Option(1, "--photos", help="Photos of the scan from nearby places (photo.png, photo_1.png, ...)."),
 ) -> None:
     """Generate a synthetic scene with exact ground truth: a laser scan (E57 + PLY), a photo,
     its camera file, the true and a rough initial pose, and the board's 3D corners."""
@@ -151,7 +152,9 @@ def synth(
     start = time.perf_counter()
     with _progress() as bar:
         task = bar.add_task("synth", total=None)
-        info = generate(out_dir, seed, size, cfg, progress=lambda stage: bar.update(task, description=stage))
+        if photos < 1:
+            raise InputError(f"--photos must be at least 1, got {photos}")
+        info = generate(out_dir, seed, size, cfg, progress=lambda stage: bar.update(task, description=stage), photos=photos)
     table = Table(title=f"Synthetic scene (seed {seed}, {size})", show_header=False)
     table.add_row("scan points", f"{info['scanner']['points']:,} ({info['scanner']['grid']['rows']} x {info['scanner']['grid']['cols']} grid, {info['scanner']['step_deg']} deg)")
     table.add_row("photo", f"{info['image']['width']} x {info['image']['height']}")
@@ -418,6 +421,68 @@ def qa_edges(
         with atomic_output(json_out) as tmp:
             tmp.write_text(json.dumps(result, indent=1))
     _summary("qa-edges", rows, output, None)
+
+
+@app.command("run")
+def run_workflow(
+    config: Path = typer.Argument(..., help="Workflow config (see configs/example.yaml): scan, camera, board, photos, output."),
+) -> None:
+    """The whole workflow for one scan and many photos: init-pose -> refine -> export-depth ->
+    qa-edges per photo. Steps whose outputs exist are skipped (a rerun resumes); a photo that
+    fails is reported and the others go on. Writes OUTPUT/<photo>/... and OUTPUT/summary.csv."""
+    from rgbd_gt.align.refine import scan_colors
+    from rgbd_gt.config import from_dict
+    from rgbd_gt.io import load_scan, read_camera
+    from rgbd_gt.workflow import PhotoResult, RunConfig, resolve, run_photo, write_summary
+
+    import yaml
+
+    if not config.is_file():
+        raise InputError("config file not found", config)
+    try:
+        cfg = from_dict(RunConfig, yaml.safe_load(config.read_text()) or {})
+    except yaml.YAMLError as exc:
+        raise InputError(f"invalid YAML ({str(exc).splitlines()[0]})", config) from None
+    except InputError as exc:
+        raise InputError(str(exc), config) from None
+    try:
+        cfg.refine.check()
+    except ValueError as exc:
+        raise InputError(f"refine: {exc}", config) from None
+    scan_path, camera_path, photos, out_dir = resolve(config, cfg)
+    camera = read_camera(camera_path)
+    scan = load_scan(scan_path)
+    if len(scan) == 0:
+        raise InputError("the scan has no points", scan_path)
+    colors = scan_colors(scan, scan_path)
+    results = []
+    with _progress(TextColumn("{task.fields[step]}")) as bar:
+        task = bar.add_task("photos", total=len(photos), step="")
+        for photo in photos:
+            bar.update(task, description=photo.name)
+            try:
+                results.append(run_photo(photo, scan, colors, camera, cfg, scan_path, out_dir,
+                                         lambda step: bar.update(task, step=step)))
+            except InputError as exc:
+                results.append(PhotoResult(photo.name, status="failed", error=str(exc)))
+                err.print(f"{photo.name}: failed: {exc}", markup=False, highlight=False)
+            bar.advance(task)
+    write_summary(out_dir / "summary.csv", results)
+    table = Table(title=f"rgbd-gt run: {len(photos)} photo(s)")
+    for col in ("photo", "status", "init rms px", "inliers", "edge mean px before -> after", "within 1 px", "s", "skipped"):
+        table.add_column(col)
+
+    def f(v, fmt):
+        return "-" if v is None else format(v, fmt)
+
+    for r in results:
+        table.add_row(r.photo, r.status if not r.error else f"failed: {r.error}", f(r.init_rms_px, ".3f"), f(r.inlier_fraction, ".0%"),
+                      f"{f(r.edge_before_px, '.2f')} -> {f(r.edge_after_px, '.2f')}",
+                      f"{f(r.within_1px_before, '.0%')} -> {f(r.within_1px_after, '.0%')}", f(r.seconds, ".1f"), " ".join(r.skipped))
+    out.print(table)
+    out.print(f"outputs in {out_dir}/<photo>/ (init.yaml, pose.yaml, depth.exr, depth.png, qa.png, qa.json); summary in {out_dir / 'summary.csv'}")
+    if all(r.status == "failed" for r in results):
+        raise typer.Exit(1)
 
 
 @app.command()

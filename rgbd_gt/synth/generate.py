@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -95,10 +96,46 @@ def perturb_pose(T: np.ndarray, rng: np.random.Generator, trans_m: list[float], 
     return rigid(R, tdir * rng.uniform(*trans_m)) @ T
 
 
+def extra_cameras(scene: Scene, rc, camera: Camera, count: int, rng: np.random.Generator) -> list[np.ndarray]:
+    """`count` more world_from_camera poses near the first (0.15-0.4 m away, looking at the board
+    from a slightly different direction), each seeing the whole board."""
+    from rgbd_gt.synth.scene import look_at
+
+    base = scene.camera_pose
+    target = scene.board.corners().mean(axis=0)
+    poses = []
+    for _ in range(60 * max(count, 1)):
+        if len(poses) == count:
+            break
+        offset = base[:3, :3] @ np.array([rng.uniform(-1, 1), rng.uniform(-0.3, 0.3), rng.uniform(-0.5, 0.3)])
+        offset *= rng.uniform(0.15, 0.4) / np.linalg.norm(offset)
+        pose = look_at(base[:3, 3] + offset, target + rng.uniform(-0.25, 0.25, 3), np.deg2rad(rng.uniform(-4, 4)))
+        trial = dataclasses.replace(scene, camera_pose=pose)
+        if _board_visible(trial, rc, camera):
+            poses.append(pose)
+    if len(poses) < count:
+        raise InputError(f"could place only {len(poses) + 1} cameras that see the board")
+    return poses
+
+
+def _seen_points(rc, camera: Camera, pose: np.ndarray) -> np.ndarray:
+    """World points hit by a coarse grid of the camera's rays (what it sees)."""
+    from rgbd_gt.camera import undistort_points
+
+    v, u = np.mgrid[0 : camera.height : complex(0, 31), 0 : camera.width : complex(0, 41)]
+    xn = undistort_points(camera, np.stack([u.ravel(), v.ravel()], 1))
+    d = np.concatenate([xn, np.ones((xn.shape[0], 1))], 1) @ pose[:3, :3].T
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    t, _, _ = cast(rc, pose[:3, 3], d)
+    return pose[:3, 3] + t[np.isfinite(t), None] * d[np.isfinite(t)]
+
+
 def generate(out_dir: Path, seed: int, size: str, cfg: SynthConfig,
-             progress: Callable[[str], None] | None = None) -> dict:
-    """Generate one scene into `out_dir` (the FILES). Returns the scene's numbers (also in
-    scene.json). Deterministic: the same seed, size and config give byte-identical files."""
+             progress: Callable[[str], None] | None = None, photos: int = 1) -> dict:
+    """Generate one scene into `out_dir` (the FILES; with photos > 1 also photo_K.png,
+    gt_pose_K.yaml, init_pose_K.yaml for K = 1 .. photos-1, taken by the same camera from
+    nearby places). Returns the scene's numbers (also in scene.json). Deterministic: the same
+    seed, size, photos and config give byte-identical files."""
     if size not in cfg.sizes:
         raise InputError(f"unknown size '{size}' (choose from {', '.join(cfg.sizes)})")
     preset = cfg.sizes[size]
@@ -129,17 +166,15 @@ def generate(out_dir: Path, seed: int, size: str, cfg: SynthConfig,
     say("photo")
     rad = render_photo_radiance(scene, rc, camera, cam_pose, preset.supersample, rng)
     photo = color.camera_forward(cam_resp, rad, rng)
+    # more photos draw from their own generator, so that the first photo's scene stays the same
+    more_rng = np.random.default_rng([seed, 7])
+    more_poses = extra_cameras(scene, rc, camera, photos - 1, more_rng) if photos > 1 else []
+    more_photos = [color.camera_forward(cam_resp, render_photo_radiance(
+        scene, rc, camera, pose, preset.supersample, more_rng), more_rng) for pose in more_poses]
 
     say("scan")
-    # the scanner covers what the camera sees, with a margin
-    v, u = np.mgrid[0 : camera.height : complex(0, 31), 0 : camera.width : complex(0, 41)]
-    from rgbd_gt.camera import undistort_points
-
-    xn = undistort_points(camera, np.stack([u.ravel(), v.ravel()], 1))
-    d = np.concatenate([xn, np.ones((xn.shape[0], 1))], 1) @ cam_pose[:3, :3].T
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    t, _, _ = cast(rc, cam_pose[:3, 3], d)
-    seen = cam_pose[:3, 3] + t[:, None] * d
+    # the scanner covers what the cameras see, with a margin
+    seen = np.concatenate([_seen_points(rc, camera, pose) for pose in [cam_pose] + more_poses])
     Rws, s = scan_pose[:3, :3], scan_pose[:3, 3]
     grid = grid_covering((seen - s) @ Rws, np.deg2rad(preset.scan_step_deg), np.deg2rad(cfg.scan_margin_deg))
     local, _world, srad, cos_inc, row, col = laser_scan(scene, rc, grid, cfg.range_noise_m, rng)
@@ -162,6 +197,13 @@ def generate(out_dir: Path, seed: int, size: str, cfg: SynthConfig,
     write_pose(out_dir / "gt_pose.yaml", T_gt, method="synthetic ground truth", seed=seed)
     T_init = perturb_pose(T_gt, rng, cfg.init_translation_m, cfg.init_rotation_deg)
     write_pose(out_dir / "init_pose.yaml", T_init, method="ground truth perturbed (synthetic)", seed=seed)
+    for k, (pose, img) in enumerate(zip(more_poses, more_photos), start=1):
+        with atomic_output(out_dir / f"photo_{k}.png") as tmp:
+            cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+        T_k = np.linalg.inv(pose)
+        write_pose(out_dir / f"gt_pose_{k}.yaml", T_k, method="synthetic ground truth", seed=seed)
+        write_pose(out_dir / f"init_pose_{k}.yaml", perturb_pose(T_k, more_rng, cfg.init_translation_m, cfg.init_rotation_deg),
+                   method="ground truth perturbed (synthetic)", seed=seed)
     corners = board.corners()
     with atomic_output(out_dir / "board_corners.csv") as tmp:
         np.savetxt(tmp, corners, delimiter=",", header="x,y,z", comments="", fmt="%.9f")
@@ -187,6 +229,7 @@ def generate(out_dir: Path, seed: int, size: str, cfg: SynthConfig,
         "objects": [{"name": s_.name, "shape": s_.shape, "T_world_from_local": s_.pose.tolist(),
                      "lo": s_.lo.tolist(), "hi": s_.hi.tolist()} for s_ in surfaces],
         "layout_attempts": attempt + 1,
+        "more_photos": [{"photo": f"photo_{k}.png", "T_world_from_camera": p.tolist()} for k, p in enumerate(more_poses, start=1)],
     }
     with atomic_output(out_dir / "scene.json") as tmp:
         tmp.write_text(json.dumps(info, indent=1))

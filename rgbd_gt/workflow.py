@@ -1,0 +1,164 @@
+"""`rgbd-gt run CONFIG.yaml`: one scan, many photos; per photo init-pose -> refine ->
+export-depth -> qa-edges, skipping steps whose outputs exist, going on past failures."""
+
+from __future__ import annotations
+
+import csv
+import glob
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from rgbd_gt.align.config import RefineConfig
+from rgbd_gt.errors import InputError
+
+
+@dataclass
+class BoardConfig:
+    cols: int = 9
+    rows: int = 6
+    square: float = 0.05
+    charuco: str | None = None
+    marker: float | None = None
+    points: str | None = None  # CSV of the board's corners in the scan frame (skips finding it)
+
+
+@dataclass
+class RunConfig:
+    """configs/example.yaml. Relative paths are relative to the config file's folder."""
+
+    scan: str = ""
+    camera: str = ""
+    photos: list[str] = field(default_factory=list)  # files or glob patterns
+    output: str = "rgbd_gt_out"
+    board: BoardConfig = field(default_factory=BoardConfig)
+    refine: RefineConfig = field(default_factory=RefineConfig)
+    device: str = "auto"
+    max_depth: float | None = None
+
+
+STEPS = ("init", "refine", "depth", "qa")
+
+
+@dataclass
+class PhotoResult:
+    photo: str
+    status: str = "ok"
+    init_rms_px: float | None = None
+    refine_loss: float | None = None
+    inlier_fraction: float | None = None
+    edge_before_px: float | None = None
+    edge_after_px: float | None = None
+    within_1px_before: float | None = None
+    within_1px_after: float | None = None
+    seconds: float = 0.0
+    skipped: list[str] = field(default_factory=list)
+    error: str = ""
+
+
+def resolve(config_path: Path, cfg: RunConfig) -> tuple[Path, Path, list[Path], Path]:
+    """(scan, camera, photos, output folder) with the config's relative paths resolved."""
+    base = config_path.parent
+
+    def norm(p: Path) -> Path:
+        return Path(os.path.normpath(p))
+
+    if not cfg.scan or not cfg.camera or not cfg.photos:
+        raise InputError("the config needs scan, camera and photos", config_path)
+    photos: list[Path] = []
+    for pattern in cfg.photos:
+        hits = sorted(glob.glob(str(base / pattern)))
+        if not hits:
+            raise InputError(f"no photo matches '{pattern}'", config_path)
+        photos += [norm(Path(h)) for h in hits]
+    return norm(base / cfg.scan), norm(base / cfg.camera), photos, norm(base / cfg.output)
+
+
+def run_photo(photo: Path, scan, colors: np.ndarray, camera, cfg: RunConfig, scan_path: Path, out: Path,
+              progress: Callable[[str], None]) -> PhotoResult:
+    """The four steps for one photo into out/<photo stem>/."""
+    from rgbd_gt.align.refine import RefineInputs, run_refine
+    from rgbd_gt.init.detect import BoardSpec
+    from rgbd_gt.init.run import init_from_board, read_csv_rows
+    from rgbd_gt.io import read_pose, write_pose
+    from rgbd_gt.io.atomic import atomic_output
+    from rgbd_gt.io.camera_file import check_image_matches
+    from rgbd_gt.io.depth_file import write_depth_exr, write_depth_png16
+    from rgbd_gt.io.image import read_image, write_image
+    from rgbd_gt.qa.edges import qa
+    from rgbd_gt.render.depth import render_depth
+
+    start = time.perf_counter()
+    res = PhotoResult(photo.name)
+    d = out / photo.stem
+    d.mkdir(parents=True, exist_ok=True)
+    files = {"init": d / "init.yaml", "refine": d / "pose.yaml", "depth": d / "depth.exr", "qa": d / "qa.json"}
+    image = read_image(photo)
+    check_image_matches(camera, image.shape, photo, "the camera file")
+
+    progress("init-pose")
+    if files["init"].exists():
+        res.skipped.append("init")
+    else:
+        b = cfg.board
+        spec = BoardSpec(b.cols, b.rows, b.square, b.charuco, b.marker)
+        corners = read_csv_rows(Path(b.points), "x,y,z") if b.points else None
+        r = init_from_board(scan, image, camera, spec, corners, scan_path, photo)
+        write_pose(files["init"], r.T_cam_from_scan, method=r.method, reprojection_rms_px=r.reprojection_rms_px,
+                   points_used=r.n_points, seconds=round(r.seconds, 3))
+    T_init, init_meta = read_pose(files["init"])
+    res.init_rms_px = init_meta.get("reprojection_rms_px")
+
+    progress("refine")
+    if files["refine"].exists():
+        res.skipped.append("refine")
+    else:
+        r = run_refine(RefineInputs(scan.xyz, colors, image, camera, T_init, None), cfg.refine, cfg.device)
+        write_pose(files["refine"], r.T_cam_from_scan, method="rgbd-gt refine (photometric)", init=str(files["init"]),
+                   color_model=cfg.refine.color_model, color_transform=r.color_transform.tolist(),
+                   iterations=r.iterations, final_loss=r.loss, inlier_fraction=r.inlier_fraction,
+                   visible_points=r.visible_points, seconds=round(r.seconds, 3))
+    T, meta = read_pose(files["refine"])
+    res.refine_loss, res.inlier_fraction = meta.get("final_loss"), meta.get("inlier_fraction")
+
+    progress("export-depth")
+    if files["depth"].exists():
+        res.skipped.append("depth")
+    else:
+        depth = render_depth(scan, camera, T, cfg.max_depth)
+        write_depth_png16(d / "depth.png", depth.z)
+        write_depth_exr(files["depth"], depth.z, camera, T, scan_path.name)
+
+    progress("qa-edges")
+    if files["qa"].exists():
+        res.skipped.append("qa")
+    else:
+        img_b, before = qa(scan, colors, image, camera, T_init)
+        img_a, after = qa(scan, colors, image, camera, T)
+        write_image(d / "qa.png", np.concatenate([img_b, np.full((img_a.shape[0], 8, 3), 255, np.uint8), img_a], axis=1))
+        with atomic_output(files["qa"]) as tmp:
+            tmp.write_text(json.dumps({**after.as_dict(), **before.as_dict("before_")}, indent=1))
+    score = json.loads(files["qa"].read_text())
+    res.edge_before_px, res.edge_after_px = score["before_mean_distance_px"], score["mean_distance_px"]
+    res.within_1px_before, res.within_1px_after = score["before_within_1px"], score["within_1px"]
+    res.seconds = time.perf_counter() - start
+    return res
+
+
+def write_summary(path: Path, results: list[PhotoResult]) -> None:
+    from rgbd_gt.io.atomic import atomic_output
+
+    cols = ["photo", "status", "init_rms_px", "refine_loss", "inlier_fraction", "edge_before_px", "edge_after_px",
+            "within_1px_before", "within_1px_after", "seconds", "skipped", "error"]
+    with atomic_output(path) as tmp, open(tmp, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(cols)
+        for r in results:
+            row = [getattr(r, c) for c in cols]
+            row[cols.index("skipped")] = " ".join(r.skipped)
+            w.writerow(["" if v is None else (f"{v:.6g}" if isinstance(v, float) else v) for v in row])

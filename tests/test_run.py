@@ -1,0 +1,49 @@
+"""rgbd-gt run: the whole workflow on a synthetic scene with two photos, resumable."""
+
+import csv
+
+import cv2
+import numpy as np
+import yaml
+
+from conftest import assert_one_line_error, run_cli
+from rgbd_gt.io import read_pose
+from rgbd_gt.io.depth_file import read_depth_exr
+from rgbd_gt.pose import rotation_error_deg, translation_error_m
+
+
+def test_run_two_photos_then_resume(tmp_path):
+    scene = tmp_path / "scene"
+    assert run_cli("synth", scene, "--size", "small", "--seed", 2, "--photos", 2).returncode == 0
+    cv2.imwrite(str(scene / "photo_blank.png"), np.full((480, 640, 3), 90, np.uint8))  # a photo without the board
+    config = {"scan": "scene/scan.e57", "camera": "scene/camera.yaml", "photos": ["scene/photo*.png"],
+              "output": "out", "refine": {"max_points": 40000}}
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump(config))
+    proc = run_cli("run", tmp_path / "run.yaml")
+    assert proc.returncode == 0, proc.stderr
+    assert "photo_blank.png: failed" in proc.stderr  # reported, and the others went on
+    rows = {r["photo"]: r for r in csv.DictReader(open(tmp_path / "out" / "summary.csv"))}
+    assert rows["photo_blank.png"]["status"] == "failed" and "checkerboard" in rows["photo_blank.png"]["error"]
+    for photo, truth in (("photo", "gt_pose.yaml"), ("photo_1", "gt_pose_1.yaml")):
+        r = rows[f"{photo}.png"]
+        assert r["status"] == "ok"
+        assert float(r["edge_after_px"]) < float(r["edge_before_px"])
+        gt = read_pose(scene / truth)[0]
+        T = read_pose(tmp_path / "out" / photo / "pose.yaml")[0]
+        assert translation_error_m(T, gt) < 0.003 and rotation_error_deg(T, gt) < 0.05
+        z, header = read_depth_exr(tmp_path / "out" / photo / "depth.exr")
+        assert z.shape == (480, 640) and (z > 0).mean() > 0.5
+        np.testing.assert_allclose(header["rgbd_gt_T_cam_from_scan"], T)
+    stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "out").rglob("*") if p.is_file() and p.name != "summary.csv"}
+    again = run_cli("run", tmp_path / "run.yaml")
+    assert again.returncode == 0, again.stderr
+    assert {p: p.stat().st_mtime_ns for p in stamps} == stamps  # nothing recomputed
+    rows = {r["photo"]: r for r in csv.DictReader(open(tmp_path / "out" / "summary.csv"))}
+    assert rows["photo.png"]["skipped"] == "init refine depth qa"
+
+
+def test_run_bad_config(tmp_path):
+    (tmp_path / "bad.yaml").write_text("scan: x.ply\nphotos: [a.png]\ncamera: c.yaml\nwhatever: 1\n")
+    assert_one_line_error(run_cli("run", tmp_path / "bad.yaml"), "bad.yaml", "whatever")
+    (tmp_path / "nophotos.yaml").write_text("scan: x.ply\ncamera: c.yaml\nphotos: [none*.png]\n")
+    assert_one_line_error(run_cli("run", tmp_path / "nophotos.yaml"), "no photo matches")
