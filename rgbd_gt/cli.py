@@ -384,7 +384,7 @@ def qa_edges(
     scan's edges lie from the photo's (median/mean distance in pixels, fraction within 1 px)."""
     import json
 
-    from rgbd_gt.align.refine import scan_colors
+    from rgbd_gt.io.scan import scan_colors
     from rgbd_gt.io import atomic_output, check_not_input, load_scan, read_camera, read_pose
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import read_image, write_image
@@ -430,7 +430,7 @@ def run_workflow(
     """The whole workflow for one scan and many photos: init-pose -> refine -> export-depth ->
     qa-edges per photo. Steps whose outputs exist are skipped (a rerun resumes); a photo that
     fails is reported and the others go on. Writes OUTPUT/<photo>/... and OUTPUT/summary.csv."""
-    from rgbd_gt.align.refine import scan_colors
+    from rgbd_gt.io.scan import scan_colors
     from rgbd_gt.config import from_dict
     from rgbd_gt.io import load_scan, read_camera
     from rgbd_gt.workflow import PhotoResult, RunConfig, resolve, run_photo, write_summary

@@ -11,6 +11,7 @@ import numpy as np
 from rgbd_gt.align.aligner import Aligner, RefineResult
 from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.errors import InputError
+from rgbd_gt.io.scan import scan_colors
 
 
 def resolve_device(name: str):
@@ -24,15 +25,6 @@ def resolve_device(name: str):
     if name not in ("cpu", "cuda"):
         raise InputError(f"--device must be auto, cpu or cuda, got {name!r}")
     return torch.device(name)
-
-
-def scan_colors(scan, path) -> np.ndarray:
-    """What the aligner matches: RGB (N, 3) uint8, else intensity (N, 1) float in [0, 1]."""
-    if scan.rgb is not None:
-        return scan.rgb
-    if scan.intensity is not None:
-        return scan.intensity.reshape(-1, 1)
-    raise InputError("the scan has neither colors nor intensity to align with", path)
 
 
 @dataclass

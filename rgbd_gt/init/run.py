@@ -13,8 +13,8 @@ from rgbd_gt.camera import Camera, project
 from rgbd_gt.errors import InputError
 from rgbd_gt.init.detect import BoardSpec, detect_corners
 from rgbd_gt.init.pnp import board_pose, estimate_focal, pnp_ransac, reprojection_rms
-from rgbd_gt.init.scan_board import ScanBoard, in_convex_polygon, angular_step, find_board_in_scan, gray_of
-from rgbd_gt.io.scan import Scan
+from rgbd_gt.init.scan_board import ScanBoard, angular_step, find_board_in_scan, in_convex_polygon
+from rgbd_gt.io.scan import Scan, colors_to_gray, scan_colors
 from rgbd_gt.pose import transform_points
 
 
@@ -48,12 +48,6 @@ def board_neighbourhood(scan: Scan, corners: np.ndarray, square: float) -> np.nd
     return idx[in_convex_polygon(uv, grow)]
 
 
-def _colors(scan: Scan, path) -> np.ndarray:
-    from rgbd_gt.align.refine import scan_colors
-
-    return scan_colors(scan, path)
-
-
 def init_from_board(scan: Scan, photo: np.ndarray, camera: Camera, spec: BoardSpec,
                     board_points: np.ndarray | None = None, scan_path=None, image_path=None) -> InitResult:
     """Board corners in the photo and in the scan (found in virtual views, or given), then PnP."""
@@ -65,7 +59,7 @@ def init_from_board(scan: Scan, photo: np.ndarray, camera: Camera, spec: BoardSp
     if found is None:
         raise InputError(f"no {spec.cols}x{spec.rows} {'ChArUco board' if spec.charuco else 'checkerboard'} found in the photo", image_path)
     img_corners, img_ids = found
-    colors = _colors(scan, scan_path)
+    colors = scan_colors(scan, scan_path)
     sb = None
     if board_points is not None:
         if len(board_points) != spec.cols * spec.rows:
@@ -79,7 +73,7 @@ def init_from_board(scan: Scan, photo: np.ndarray, camera: Camera, spec: BoardSp
         scan_corners, scan_ids, method = sb.corners, sb.ids, "board found in the scan's virtual views"
     near = board_neighbourhood(scan, scan_corners, spec.square)
     T, rms, corr = board_pose(img_corners, img_ids, scan_corners, scan_ids, spec.cols * spec.rows, camera,
-                              scan.xyz[near], gray_of(colors[near]), photo_gray, symmetric=spec.charuco is None)
+                              scan.xyz[near], colors_to_gray(colors[near]), photo_gray, symmetric=spec.charuco is None)
     return InitResult(T, f"{'charuco' if spec.charuco else 'checkerboard'} PnP ({method})", rms, len(img_ids), camera,
                       corr, img_corners, scan_corners, sb, time.perf_counter() - start,
                       {"board_plane_rms_mm": sb.plane_rms_m * 1e3 if sb else None})

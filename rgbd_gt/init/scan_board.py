@@ -10,6 +10,7 @@ import torch
 
 from rgbd_gt.errors import InputError
 from rgbd_gt.init.detect import BoardSpec, detect_corners
+from rgbd_gt.io.scan import colors_to_gray
 
 VIEW_FOV_DEG = (70.0, 55.0)  # horizontal, vertical
 
@@ -47,13 +48,6 @@ def _view_rotation(az: float, el: float) -> np.ndarray:
     right /= np.linalg.norm(right)
     down = np.cross(fwd, right)
     return np.stack([right, down, fwd], 1)
-
-
-def gray_of(colors: np.ndarray) -> np.ndarray:
-    """(N, 3) uint8 RGB or (N, 1) intensity in [0, 1] -> (N,) float32 gray in [0, 255]."""
-    if colors.shape[1] == 3:
-        return colors.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
-    return colors[:, 0].astype(np.float32) * 255
 
 
 def candidate_views(points: np.ndarray, origin: np.ndarray, step_rad: float) -> list[tuple[float, float]]:
@@ -151,7 +145,7 @@ def find_board_in_scan(points: np.ndarray, colors: np.ndarray, origin: np.ndarra
                        step_rad: float) -> ScanBoard:
     """Search the virtual views (most populated first) for the board; lift the corners of the
     detection that lies farthest inside its view."""
-    gray = gray_of(colors)
+    gray = colors_to_gray(colors)
     best = None
     for az, el in candidate_views(points, origin, step_rad):
         view = render_view(points, gray, origin, az, el, step_rad)

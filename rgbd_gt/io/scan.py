@@ -55,6 +55,22 @@ class Scan:
         return dataclasses.replace(self, **picked)
 
 
+def scan_colors(scan: Scan, path: object = None) -> np.ndarray:
+    """What photos are matched against: RGB (N, 3) uint8, else intensity (N, 1) in [0, 1]."""
+    if scan.rgb is not None:
+        return scan.rgb
+    if scan.intensity is not None:
+        return scan.intensity.reshape(-1, 1)
+    raise InputError("the scan has neither colors nor intensity", path)
+
+
+def colors_to_gray(colors: np.ndarray) -> np.ndarray:
+    """`scan_colors` output -> (N,) float32 gray in [0, 255]."""
+    if colors.shape[1] == 3:
+        return colors.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
+    return colors[:, 0].astype(np.float32) * 255
+
+
 def merge_scans(scans: list[Scan]) -> Scan:
     """Concatenate scans into one, renumbering scan_id so each input scan keeps its origins.
 

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 
 from rgbd_gt.camera import Camera
-from rgbd_gt.io.scan import Scan
+from rgbd_gt.io.scan import Scan, colors_to_gray
 from rgbd_gt.render.depth import render_depth
 
 
@@ -41,9 +41,7 @@ def auto_canny(gray: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
 
 def scan_view(scan: Scan, colors: np.ndarray, camera: Camera, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The scan's gray values as the camera sees them (H, W) float32 0..255, and where it sees them."""
-    gray = colors.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32) if colors.shape[1] == 3 \
-        else colors[:, :1].astype(np.float32) * 255
-    out = render_depth(scan, camera, T, values=gray.reshape(-1, 1))
+    out = render_depth(scan, camera, T, values=colors_to_gray(colors).reshape(-1, 1))
     return out.colors[..., 0], out.z > 0
 
 
