@@ -12,7 +12,6 @@ import argparse
 import time
 from pathlib import Path
 
-import numpy as np
 
 from rgbd_gt.bench.depth import depth_errors
 from rgbd_gt.bench.icl import frame_count

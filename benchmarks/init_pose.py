@@ -15,7 +15,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from rgbd_gt.io import read_pose
 from rgbd_gt.pose import rotation_error_deg, translation_error_m

@@ -1,7 +1,6 @@
 """init-pose: board detection in real photos, the automatic board pose on synthetic scenes, the
 given-corners and correspondence modes, and the errors."""
 
-import dataclasses
 
 import cv2
 import numpy as np

@@ -160,7 +160,7 @@ def write_markdown(path: Path, report: dict) -> None:
     lines += ["| " + " | ".join(r) + " |" for r in summary_rows(report)]
     lines += [
         "",
-        f"The whole `rgbd-gt refine` command on one 640x480 case (reading a PLY of the frame's cloud, the",
+        "The whole `rgbd-gt refine` command on one 640x480 case (reading a PLY of the frame's cloud, the",
         f"photo, camera and pose files; writing the pose): {report['refine_command_s']:.2f} s wall,",
         f"of which {report['refine_aligner_s']:.2f} s aligner time (median of 3 runs).",
         "",

@@ -175,14 +175,6 @@ def _layout(path: Path, node) -> _ScanLayout:
     return _ScanLayout(node, int(points.childCount()), spherical, names, _pose(node))
 
 
-def e57_scan_count(path: str | os.PathLike) -> int:
-    imf = _open(Path(path))
-    try:
-        return int(imf.root()["data3D"].childCount())
-    finally:
-        imf.close()
-
-
 def read_e57(
     path: str | os.PathLike,
     scan_index: int | None = None,

@@ -1,13 +1,8 @@
-"""Rigid transform and pinhole projection of point tensors."""
+"""Pinhole projection of point tensors."""
 
 from __future__ import annotations
 
 import torch
-
-
-def transform(R: torch.Tensor, t: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-    """p' = R p + t for points (N, 3); R (3, 3), t (3,). Same dtype and device as points."""
-    return points @ R.T + t
 
 
 def project_pinhole(points: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
