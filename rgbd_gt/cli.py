@@ -212,10 +212,7 @@ def init_pose(
         raise InputError("--estimate-focal needs --correspondences")
     cam = read_camera(camera)
     photo = read_image(image)
-    if not estimate_focal:
-        check_image_matches(cam, photo.shape, image, camera)
-    elif (cam.width, cam.height) != (photo.shape[1], photo.shape[0]):
-        raise InputError(f"image is {photo.shape[1]}x{photo.shape[0]} but camera file {camera} is for {cam.width}x{cam.height}", image)
+    check_image_matches(cam, photo.shape, image, camera)
     with _progress() as bar:
         bar.add_task("init-pose", total=None)
         if correspondences is not None:
@@ -223,17 +220,10 @@ def init_pose(
             result = init_from_correspondences(img, obj, cam, estimate_focal)
         else:
             spec = BoardSpec(cols, rows, square, charuco, marker)
-            the_scan = load_scan(scan)
-            if len(the_scan) == 0:
-                raise InputError("the scan has no points", scan)
+            the_scan = load_scan(scan, require_points=True)
             corners = read_csv_rows(board_points, "x,y,z") if board_points else None
             result = init_from_board(the_scan, photo, cam, spec, corners, scan, image)
-    meta = {"method": result.method, "reprojection_rms_px": result.reprojection_rms_px,
-            "points_used": result.n_points, "seconds": round(result.seconds, 3)}
-    if result.color_agreement is not None:
-        meta["color_agreement"] = result.color_agreement
-    meta.update({k: v for k, v in result.extra.items() if v is not None})
-    write_pose(output, result.T_cam_from_scan, **meta)
+    write_pose(output, result.T_cam_from_scan, **result.pose_meta())
     if report is not None:
         write_report(report, result, photo)
     rows = [("method", result.method), ("points used", str(result.n_points)),
@@ -269,7 +259,7 @@ def refine(
     import dataclasses
 
     from rgbd_gt.align.config import RefineConfig
-    from rgbd_gt.align.refine import load_inputs, run_refine
+    from rgbd_gt.align.refine import load_inputs, refine_meta, run_refine
     from rgbd_gt.config import load_config
     from rgbd_gt.io import check_not_input, write_pose
 
@@ -294,17 +284,9 @@ def refine(
                        info=f"loss {rec['loss']:.4f}  step {rec['rotation_update_deg']:.1e} deg {rec['translation_update_m'] * 1e3:.1e} mm")
 
         result = run_refine(inputs, cfg, device, progress, keep_residuals=report is not None)
-    from rgbd_gt.pose import rotation_error_deg, translation_error_m
-
-    moved_mm = translation_error_m(result.T_cam_from_scan, inputs.T_init) * 1e3
-    moved_deg = rotation_error_deg(result.T_cam_from_scan, inputs.T_init)
-    write_pose(
-        output, result.T_cam_from_scan, method="rgbd-gt refine (photometric)", init=str(init),
-        color_model=cfg.color_model, gradient=cfg.gradient, optimizer=cfg.optimizer,
-        color_transform=result.color_transform.tolist(), iterations=result.iterations,
-        final_loss=result.loss, inlier_fraction=result.inlier_fraction, visible_points=result.visible_points,
-        seconds=round(result.seconds, 3), change_from_init={"translation_mm": moved_mm, "rotation_deg": moved_deg},
-    )
+    meta = refine_meta(result, cfg, inputs.T_init, init)
+    write_pose(output, result.T_cam_from_scan, **meta)
+    moved_mm, moved_deg = meta["change_from_init"]["translation_mm"], meta["change_from_init"]["rotation_deg"]
     if report is not None:
         from rgbd_gt.align.report import write_report
 
@@ -344,9 +326,7 @@ def export_depth(
     start = time.perf_counter()
     cam = read_camera(camera)
     T, _ = read_pose(pose)
-    the_scan = load_scan(scan)
-    if len(the_scan) == 0:
-        raise InputError("the scan has no points", scan)
+    the_scan = load_scan(scan, require_points=True)
     with _progress() as bar:
         bar.add_task("rendering depth", total=None)
         depth = render_depth(the_scan, cam, T, max_depth)
@@ -388,7 +368,7 @@ def qa_edges(
     from rgbd_gt.io import atomic_output, check_not_input, load_scan, read_camera, read_pose
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import read_image, write_image
-    from rgbd_gt.qa.edges import qa
+    from rgbd_gt.qa.edges import qa, side_by_side
 
     for p in (output, json_out):
         if p:
@@ -398,9 +378,7 @@ def qa_edges(
     check_image_matches(cam, photo.shape, image, camera)
     T, _ = read_pose(pose)
     T_before = read_pose(before)[0] if before else None
-    the_scan = load_scan(scan)
-    if len(the_scan) == 0:
-        raise InputError("the scan has no points", scan)
+    the_scan = load_scan(scan, require_points=True)
     colors = scan_colors(the_scan, scan)
     with _progress() as bar:
         bar.add_task("edges", total=None)
@@ -412,7 +390,7 @@ def qa_edges(
                  f"within 1 px {score.within_1px:.1%}")]
         if T_before is not None:
             img_b, score_b = qa(the_scan, colors, photo, cam, T_before)
-            img = np.concatenate([img_b, np.full((img.shape[0], 8, 3), 255, np.uint8), img], axis=1)
+            img = side_by_side(img_b, img)
             result.update(score_b.as_dict("before_"))
             rows.insert(0, ("before", f"median {score_b.median_distance_px:.2f} px, mean {score_b.mean_distance_px:.2f} px, "
                             f"within 1 px {score_b.within_1px:.1%}"))
@@ -451,9 +429,7 @@ def run_workflow(
         raise InputError(f"refine: {exc}", config) from None
     scan_path, camera_path, photos, out_dir = resolve(config, cfg)
     camera = read_camera(camera_path)
-    scan = load_scan(scan_path)
-    if len(scan) == 0:
-        raise InputError("the scan has no points", scan_path)
+    scan = load_scan(scan_path, require_points=True)
     colors = scan_colors(scan, scan_path)
     results = []
     with _progress(TextColumn("{task.fields[step]}")) as bar:

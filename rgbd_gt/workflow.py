@@ -82,7 +82,7 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[Path, Path, list[Path], 
 def run_photo(photo: Path, scan, colors: np.ndarray, camera, cfg: RunConfig, scan_path: Path, out: Path,
               progress: Callable[[str], None]) -> PhotoResult:
     """The four steps for one photo into out/<photo stem>/."""
-    from rgbd_gt.align.refine import RefineInputs, run_refine
+    from rgbd_gt.align.refine import RefineInputs, refine_meta, run_refine
     from rgbd_gt.init.detect import BoardSpec
     from rgbd_gt.init.run import init_from_board, read_csv_rows
     from rgbd_gt.io import read_pose, write_pose
@@ -90,7 +90,7 @@ def run_photo(photo: Path, scan, colors: np.ndarray, camera, cfg: RunConfig, sca
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.depth_file import write_depth_exr, write_depth_png16
     from rgbd_gt.io.image import read_image, write_image
-    from rgbd_gt.qa.edges import qa
+    from rgbd_gt.qa.edges import qa, side_by_side
     from rgbd_gt.render.depth import render_depth
 
     start = time.perf_counter()
@@ -109,8 +109,7 @@ def run_photo(photo: Path, scan, colors: np.ndarray, camera, cfg: RunConfig, sca
         spec = BoardSpec(b.cols, b.rows, b.square, b.charuco, b.marker)
         corners = read_csv_rows(Path(b.points), "x,y,z") if b.points else None
         r = init_from_board(scan, image, camera, spec, corners, scan_path, photo)
-        write_pose(files["init"], r.T_cam_from_scan, method=r.method, reprojection_rms_px=r.reprojection_rms_px,
-                   points_used=r.n_points, seconds=round(r.seconds, 3))
+        write_pose(files["init"], r.T_cam_from_scan, **r.pose_meta())
     T_init, init_meta = read_pose(files["init"])
     res.init_rms_px = init_meta.get("reprojection_rms_px")
 
@@ -119,10 +118,7 @@ def run_photo(photo: Path, scan, colors: np.ndarray, camera, cfg: RunConfig, sca
         res.skipped.append("refine")
     else:
         r = run_refine(RefineInputs(scan.xyz, colors, image, camera, T_init, None), cfg.refine, cfg.device)
-        write_pose(files["refine"], r.T_cam_from_scan, method="rgbd-gt refine (photometric)", init=str(files["init"]),
-                   color_model=cfg.refine.color_model, color_transform=r.color_transform.tolist(),
-                   iterations=r.iterations, final_loss=r.loss, inlier_fraction=r.inlier_fraction,
-                   visible_points=r.visible_points, seconds=round(r.seconds, 3))
+        write_pose(files["refine"], r.T_cam_from_scan, **refine_meta(r, cfg.refine, T_init, files["init"]))
     T, meta = read_pose(files["refine"])
     res.refine_loss, res.inlier_fraction = meta.get("final_loss"), meta.get("inlier_fraction")
 
@@ -140,7 +136,7 @@ def run_photo(photo: Path, scan, colors: np.ndarray, camera, cfg: RunConfig, sca
     else:
         img_b, before = qa(scan, colors, image, camera, T_init)
         img_a, after = qa(scan, colors, image, camera, T)
-        write_image(d / "qa.png", np.concatenate([img_b, np.full((img_a.shape[0], 8, 3), 255, np.uint8), img_a], axis=1))
+        write_image(d / "qa.png", side_by_side(img_b, img_a))
         with atomic_output(files["qa"]) as tmp:
             tmp.write_text(json.dumps({**after.as_dict(), **before.as_dict("before_")}, indent=1))
     score = json.loads(files["qa"].read_text())

@@ -48,10 +48,22 @@ def load_inputs(scan_path: Path, image_path: Path, camera_path: Path, init_path:
     check_image_matches(camera, photo.shape, image_path, camera_path)
     T_init, _ = read_pose(init_path)
     ignore = read_mask(mask_path, photo.shape[:2]) if mask_path is not None else None
-    scan = load_scan(scan_path)
-    if len(scan) == 0:
-        raise InputError("the scan has no points", scan_path)
+    scan = load_scan(scan_path, require_points=True)
     return RefineInputs(scan.xyz, scan_colors(scan, scan_path), photo, camera, T_init, ignore)
+
+
+def refine_meta(result: RefineResult, cfg: RefineConfig, T_init: np.ndarray, init_path) -> dict:
+    """The keys a refined pose file records besides the pose."""
+    from rgbd_gt.pose import rotation_error_deg, translation_error_m
+
+    return dict(
+        method="rgbd-gt refine (photometric)", init=str(init_path), color_model=cfg.color_model,
+        gradient=cfg.gradient, optimizer=cfg.optimizer, color_transform=result.color_transform.tolist(),
+        iterations=result.iterations, final_loss=result.loss, inlier_fraction=result.inlier_fraction,
+        visible_points=result.visible_points, seconds=round(result.seconds, 3),
+        change_from_init={"translation_mm": translation_error_m(result.T_cam_from_scan, T_init) * 1e3,
+                          "rotation_deg": rotation_error_deg(result.T_cam_from_scan, T_init)},
+    )
 
 
 def run_refine(inputs: RefineInputs, cfg: RefineConfig, device: str = "auto",

@@ -32,6 +32,15 @@ class InitResult:
     seconds: float = 0.0
     extra: dict = field(default_factory=dict)
 
+    def pose_meta(self) -> dict:
+        """The keys an initial pose file records besides the pose."""
+        meta = {"method": self.method, "reprojection_rms_px": self.reprojection_rms_px,
+                "points_used": self.n_points, "seconds": round(self.seconds, 3)}
+        if self.color_agreement is not None:
+            meta["color_agreement"] = self.color_agreement
+        meta.update({k: v for k, v in self.extra.items() if v is not None})
+        return meta
+
 
 def board_neighbourhood(scan: Scan, corners: np.ndarray, square: float) -> np.ndarray:
     """Indices of scan points on the board: within 1 cm of the corners' plane and inside their

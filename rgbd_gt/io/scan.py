@@ -91,15 +91,23 @@ def merge_scans(scans: list[Scan]) -> Scan:
     return Scan(**out, scan_id=np.concatenate(ids).astype(np.int32), origins=np.concatenate(origins))
 
 
-def load_scan(path: str | os.PathLike, scan_index: int | None = None, progress=None) -> Scan:
+def load_scan(path: str | os.PathLike, scan_index: int | None = None, progress=None,
+              require_points: bool = False) -> Scan:
     """Load an `.e57` or `.ply` scan file.
 
     Args:
         path: the file.
         scan_index: for E57, load only this scan (0-based); None loads and merges all.
         progress: optional callable(done_points, total_points) for progress reporting.
+        require_points: raise InputError for a scan without points.
     """
-    path = Path(path)
+    scan = _load(Path(path), scan_index, progress)
+    if require_points and len(scan) == 0:
+        raise InputError("the scan has no points", path)
+    return scan
+
+
+def _load(path: Path, scan_index: int | None, progress) -> Scan:
     if not path.is_file():
         raise InputError("file not found", path)
     suffix = path.suffix.lower()

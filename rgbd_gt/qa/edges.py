@@ -63,6 +63,11 @@ def overlay(photo: np.ndarray, photo_edges: np.ndarray, scan_edges: np.ndarray) 
     return out
 
 
+def side_by_side(before: np.ndarray, after: np.ndarray) -> np.ndarray:
+    """Two overlays (H, W, 3) as one panel, separated by an 8-pixel white bar."""
+    return np.concatenate([before, np.full((before.shape[0], 8, 3), 255, np.uint8), after], axis=1)
+
+
 def qa(scan: Scan, colors: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray) -> tuple[np.ndarray, EdgeScore]:
     """(overlay image, score) for one pose."""
     photo_edges = auto_canny(cv2.cvtColor(photo, cv2.COLOR_RGB2GRAY))
