@@ -8,7 +8,7 @@ import torch
 import yaml
 
 from conftest import assert_one_line_error, run_cli
-from rgbd_gt.align.color_models import ColorModel, fit_with_inliers
+from rgbd_gt.align.color_models import ColorModel, fit_transform, fit_with_inliers, unclipped
 from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.align.refine import load_inputs, run_refine
 from rgbd_gt.align.sampling import bilinear, bilinear_with_gradient
@@ -75,6 +75,25 @@ def test_color_fit_recovers_a_quadratic_transform_and_ignores_outliers():
         m = ColorModel(name)
         fd = (m.kernel(I + h * direction) - m.kernel(I - h * direction)) / (2 * h)
         torch.testing.assert_close(m.kernel_derivative(I, direction), fd, atol=1e-7, rtol=0)
+
+
+def test_clipped_photo_colors_are_left_out_of_the_color_fit():
+    """An over-exposed photo: the scan colors follow a quadratic transform of the true photo
+    colors, but the photo saturates. Fitting on the unclipped samples recovers the transform."""
+    g = torch.Generator().manual_seed(3)
+    scene = torch.rand(20000, 3, generator=g, dtype=torch.float64)
+    model = ColorModel("quadratic")
+    D_true = torch.randn(3, 10, generator=g, dtype=torch.float64) * 0.3
+    target = model.kernel(scene) @ D_true.T
+    photo = torch.round((1.6 * scene).clamp(0, 1) * 255) / 255  # ~80% of the samples clip a channel
+    ok = unclipped(photo)
+    assert torch.equal(ok, (1.6 * scene < 1 - 0.5 / 255).all(1) & (1.6 * scene > 0.5 / 255).all(1))
+    assert 0.1 < ok.double().mean() < 0.3
+    D_ok = fit_transform(model.kernel(photo[ok]), target[ok])
+    D_all = fit_transform(model.kernel(photo), target)
+    err_ok = (model.kernel(photo[ok]) @ D_ok.T - target[ok]).abs().max()
+    err_all = (model.kernel(photo[ok]) @ D_all.T - target[ok]).abs().max()
+    assert err_ok < 0.005 and err_all > 0.05  # 8-bit rounding only, against a fit bent by the clipped samples
 
 
 @pytest.fixture(scope="module")

@@ -20,7 +20,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from rgbd_gt.align.color_models import ColorModel, fit_with_inliers
+from rgbd_gt.align.color_models import ColorModel, fit_with_inliers, unclipped
 from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.align.pyramid import PhotoLevel
 from rgbd_gt.align.robust import student_t_loss, student_t_weights
@@ -228,11 +228,14 @@ class Aligner:
         p, uv, I, Kk, Iu, Iv, target = self._sample(lv, T_local, idx)
         m = target.shape[1]
         if self.model.fitted:
-            D, inliers = fit_with_inliers(Kk, target, cfg.beta_max, D0=prev.D if prev is not None else None)
+            fit = unclipped(I)
+            if int(fit.sum()) < max(100, int(0.05 * fit.numel())):  # a photo clipped almost everywhere
+                fit = torch.ones_like(fit)
+            D, inliers = fit_with_inliers(Kk[fit], target[fit], cfg.beta_max, D0=prev.D if prev is not None else None)
         else:
             D = self.model.identity(Kk.shape[1], m, Kk)
             inliers = (Kk @ D.T - target).norm(dim=1) < cfg.beta_max
-        inlier_fraction = float(inliers.float().mean())
+        inlier_fraction = float(inliers.sum()) / max(int(idx.numel()), 1)  # of all visible points
         r = (Kk @ D.T).clamp(0, 1) - target  # clipped values; the Jacobian below is the unclipped one
         w, sigma2 = student_t_weights(r, cfg.nu, prev.sigma2 if prev is not None else None)
         own = float(student_t_loss(r, cfg.nu, sigma2))

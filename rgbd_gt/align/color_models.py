@@ -86,6 +86,18 @@ class ColorModel:
         return torch.eye(m, k, dtype=like.dtype, device=like.device)
 
 
+def unclipped(I: torch.Tensor, levels: int = 255) -> torch.Tensor:
+    """(N,) mask of photo colors I (N, 3) in [0, 1] with no channel clipped at black or white.
+
+    A clipped channel reads the same for a range of scene colors, so no color transform maps it
+    to the scan's color: such samples are left out of the fit (they still count in the loss,
+    where the Student-t weights handle them). A sample is clipped when it is within half a
+    quantisation step (1 / (2 levels)) of 0 or 1, i.e. all its bilinear neighbours are.
+    """
+    half = 0.5 / levels
+    return ((I > half) & (I < 1 - half)).all(dim=1)
+
+
 def fit_transform(K: torch.Tensor, target: torch.Tensor, weights: torch.Tensor | None = None,
                   ridge: float = 1e-10) -> torch.Tensor:
     """Least-squares D (m, k) minimising sum_i w_i |D K_i - t_i|^2.
