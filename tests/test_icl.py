@@ -52,3 +52,16 @@ def test_bench_quick(icl_dir, tmp_path):
     assert (tmp_path / "benchmark_cumulative.png").stat().st_size > 10_000
     ours = [line for line in text.splitlines() if line.startswith("| quadratic (ours) |")][0].split("|")
     assert ours[4].strip() == "100%"  # i±1 success
+    floor = text.split("## What the data costs at i±3")[1]
+    rows = [line.split("|") for line in floor.splitlines() if line.startswith(("| noisy", "| clean"))]
+    assert len(rows) == 2 and all(float(r[2]) < 1.5 and float(r[3]) < 0.05 for r in rows)
+
+
+def test_cases_without_effects_use_the_photo_and_depth_asked_for(icl_dir):
+    cases = make_cases(icl_dir, offsets=(3,), effects=False, depth="clean")
+    assert [c.name for c in cases] == ["0->3#0", "1->4#0", "3->0#0", "4->1#0"]
+    from rgbd_gt.bench.icl import read_color
+
+    assert np.array_equal(cases[0].photo, read_color(icl_dir, 3)) and cases[0].effects == {}
+    pts, _, _ = frame_cloud(icl_dir, 0, "clean")
+    assert np.array_equal(cases[0].points, pts)

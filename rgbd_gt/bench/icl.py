@@ -105,8 +105,10 @@ class Case:
     T_true: np.ndarray  # ... of camera j
 
 
-def make_cases(folder: Path, offsets=(1,), effects_per_pair: int = 4, seed: int = 0) -> list[Case]:
-    """Every ordered pair (i, j = i +- offset) of frames, each with `effects_per_pair` random effects."""
+def make_cases(folder: Path, offsets=(1,), effects_per_pair: int = 4, seed: int = 0, effects: bool = True,
+               depth: str = "noisy") -> list[Case]:
+    """Every ordered pair (i, j = i +- offset) of frames, each with `effects_per_pair` random effects
+    (with effects=False, the photo as it is, once per pair). depth: 'noisy' (the paper's) or 'clean'."""
     n = frame_count(folder)
     if n == 0:
         raise InputError("no ICL frames (color_00000.jpg ...)", folder)
@@ -120,10 +122,10 @@ def make_cases(folder: Path, offsets=(1,), effects_per_pair: int = 4, seed: int 
                 if not 0 <= j < n:
                     continue
                 if i not in clouds:
-                    clouds[i] = frame_cloud(folder, i)[:2]
+                    clouds[i] = frame_cloud(folder, i, depth)[:2]
                 photo = read_color(folder, j)
-                for k in range(effects_per_pair):
-                    img, eff = multimodal_effects(photo, rng)
+                for k in range(effects_per_pair if effects else 1):
+                    img, eff = multimodal_effects(photo, rng) if effects else (photo, {})
                     cases.append(Case(f"{i}->{j}#{k}", i, j, eff, clouds[i][0], clouds[i][1], img,
                                       invert(poses[i]), invert(poses[j])))
     return cases
