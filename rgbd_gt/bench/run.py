@@ -182,24 +182,22 @@ def write_markdown(path: Path, report: dict) -> None:
         "![cumulative errors](benchmark_cumulative.png)",
         "",
     ]
-    if report.get("floor"):
-        f = report["floor"]
-        lines += [
-            "## What the data costs at i±3",
-            "",
-            "The default method on the same i±3 pairs with the photos as they are (no effects):",
-            "",
-            "| depth of frame i | median t (mm) | median R (deg) |",
-            "|---|---|---|",
-        ] + [f"| {d} | {np.median(e[:, 0]):.3f} | {np.median(e[:, 1]):.4f} |" for d, e in f.items()] + [
-            "",
-            "Without any photo effect the error is already most of the i±3 figure above: it comes from the",
-            "data, not from the color model. Per pair it is the same for every effect and it flips sign",
-            "between i->j and j->i (the estimate falls short of the motion by about 0.5-1%). The noisy depth",
-            "is biased by depth (median -7 to +5 mm per depth band against the clean depth), and frame i's",
-            "colors are sampled on frame i's pixel grid and seen at another scale and blur from frame j.",
-            "",
-        ]
+    lines += [
+        "## What the data costs at i±3",
+        "",
+        "The default method on the same i±3 pairs with the photos as they are (no effects):",
+        "",
+        "| depth of frame i | median t (mm) | median R (deg) |",
+        "|---|---|---|",
+    ] + [f"| {d} | {np.median(e[:, 0]):.3f} | {np.median(e[:, 1]):.4f} |" for d, e in report["floor"].items()] + [
+        "",
+        "Without any photo effect the error is already most of the i±3 figure above: it comes from the",
+        "data, not from the color model. Per pair it is the same for every effect and it flips sign",
+        "between i->j and j->i (the estimate falls short of the motion by about 0.5-1%). The noisy depth",
+        "is biased by depth (median -7 to +5 mm per depth band against the clean depth), and frame i's",
+        "colors are sampled on frame i's pixel grid and seen at another scale and blur from frame j.",
+        "",
+    ]
     with atomic_output(path) as tmp:
         tmp.write_text("\n".join(lines))
 
