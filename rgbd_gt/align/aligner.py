@@ -155,8 +155,7 @@ class Aligner:
         """Per level: a random subset of the points near the initial view (nested subsets,
         `max_points` at full resolution and a quarter per coarser level) and its Z-buffer cell."""
         finest = self.pyramid[0]
-        R = torch.as_tensor(T_local[:3, :3], dtype=self.dtype, device=self.device)
-        t = torch.as_tensor(T_local[:3, 3], dtype=self.dtype, device=self.device)
+        R, t = self._pose_tensors(T_local)
         uv, z = project_pinhole(self.points @ R.T + t, finest.K)
         w, h = finest.camera.size
         m = 0.15 * w  # margin: the pose will move

@@ -15,7 +15,7 @@ import numpy as np
 
 from rgbd_gt.camera import Camera
 from rgbd_gt.errors import InputError
-from rgbd_gt.pose import invert
+from rgbd_gt.pose import invert, transform_points
 
 ICL_CAMERA = Camera(640, 480, 525.0, 525.0, 319.5, 239.5)
 
@@ -57,7 +57,7 @@ def frame_cloud(folder: Path, i: int, kind: str = "noisy") -> tuple[np.ndarray, 
     c = ICL_CAMERA
     cam = np.stack([(u - c.cx) / c.fx * z, (v - c.cy) / c.fy * z, z], 1)
     T_wc = read_trajectory(folder / "trajectory.log")[i]
-    return cam @ T_wc[:3, :3].T + T_wc[:3, 3], rgb[v, u], np.stack([u, v], 1)
+    return transform_points(T_wc, cam), rgb[v, u], np.stack([u, v], 1)
 
 
 def multimodal_effects(rgb: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, dict]:

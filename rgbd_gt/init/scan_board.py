@@ -11,6 +11,7 @@ import torch
 from rgbd_gt.errors import InputError
 from rgbd_gt.init.detect import BoardSpec, detect_corners
 from rgbd_gt.io.scan import colors_to_gray
+from rgbd_gt.pose import transform_points
 
 VIEW_FOV_DEG = (70.0, 55.0)  # horizontal, vertical
 
@@ -166,7 +167,7 @@ def find_board_in_scan(points: np.ndarray, colors: np.ndarray, origin: np.ndarra
     # the board is a rigid, known grid: fitting it to all lifted corners averages their errors
     model = spec.object_points()[ids]
     T = rigid_fit(model, lifted)
-    return ScanBoard(model @ T[:3, :3].T + T[:3, 3], ids, view, px, rms)
+    return ScanBoard(transform_points(T, model), ids, view, px, rms)
 
 
 def rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:

@@ -15,6 +15,7 @@ from rgbd_gt.camera import Camera, project
 from rgbd_gt.errors import InputError
 from rgbd_gt.io import Scan, atomic_output, save_scan, write_camera, write_pose
 from rgbd_gt.io.e57 import write_e57
+from rgbd_gt.pose import transform_points
 from rgbd_gt.synth import color
 from rgbd_gt.synth.scene import Scene, make_layout, rigid
 from rgbd_gt.synth.sensors import build_raycaster, cast, grid_covering, laser_scan, render_photo_radiance
@@ -67,9 +68,9 @@ def _board_visible(scene: Scene, rc, camera: Camera) -> bool:
     lo, hi = scene.board.outline_local()
     lo, hi = lo + 0.003, hi - 0.003  # a hair inside, so that rays aimed at the edge hit it
     outline = np.array([[lo[0], lo[1], 0], [hi[0], lo[1], 0], [lo[0], hi[1], 0], [hi[0], hi[1], 0]])
-    pts = np.concatenate([corners, outline @ scene.board.pose[:3, :3].T + scene.board.pose[:3, 3]])
+    pts = np.concatenate([corners, transform_points(scene.board.pose, outline)])
     cam_T = np.linalg.inv(scene.camera_pose)
-    uv, z = project(camera, pts @ cam_T[:3, :3].T + cam_T[:3, 3])
+    uv, z = project(camera, transform_points(cam_T, pts))
     m = 0.04 * camera.width
     if not (np.all(z > 0) and np.all(uv > m) and np.all(uv < [camera.width - m, camera.height - m])):
         return False

@@ -12,6 +12,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from rgbd_gt.pose import transform_points
+
 BOARD_TEXTURE = -1  # Surface.texture value of the checkerboard
 BOARD_WHITE, BOARD_BLACK, BOARD_EDGE = 0.85, 0.04, 0.5
 
@@ -48,7 +50,7 @@ class Board:
 
     def corners(self) -> np.ndarray:
         """(cols*rows, 3) inner corners in the world frame."""
-        return self.corners_local() @ self.pose[:3, :3].T + self.pose[:3, 3]
+        return transform_points(self.pose, self.corners_local())
 
     def outline_local(self) -> tuple[np.ndarray, np.ndarray]:
         """Board extent (lo, hi) in the board frame: the pattern plus one square of white border."""
