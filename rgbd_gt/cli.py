@@ -251,6 +251,7 @@ def refine(
     gradient: Optional[str] = typer.Option(None, "--gradient", help="direct (the bilinear interpolant's own derivative) or central."),
     optimizer: Optional[str] = typer.Option(None, "--optimizer", help="lm (Levenberg-Marquardt) or adam (the paper's)."),
     levels: Optional[int] = typer.Option(None, "--levels", help="Image pyramid levels (1 = full resolution only)."),
+    upsample: Optional[int] = typer.Option(None, "--upsample", help="Sample the photo enlarged this much (bicubic) at the finest level; 1 = as it is."),
     iterations: Optional[int] = typer.Option(None, "--iterations", help="Maximum iterations per pyramid level."),
     max_points: Optional[int] = typer.Option(None, "--max-points", help="Scan points used at full resolution."),
     beta_max: Optional[float] = typer.Option(None, "--beta-max", help="Color inlier threshold of the color fit."),
@@ -267,7 +268,7 @@ def refine(
     check_not_input(output, [scan, image, camera, init] + ([mask] if mask else []))
     cfg = load_config(RefineConfig, config, "refine.yaml")
     flags = dict(color_model=color_model, gradient=gradient, optimizer=optimizer, levels=levels,
-                 iterations=iterations, max_points=max_points, beta_max=beta_max)
+                 upsample=upsample, iterations=iterations, max_points=max_points, beta_max=beta_max)
     cfg = dataclasses.replace(cfg, **{k: v for k, v in flags.items() if v is not None})
     if optimizer == "adam" and iterations is not None:
         cfg = dataclasses.replace(cfg, adam_iterations=iterations)

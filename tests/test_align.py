@@ -10,10 +10,13 @@ import yaml
 from conftest import assert_one_line_error, run_cli
 from rgbd_gt.align.color_models import ColorModel, fit_transform, fit_with_inliers, unclipped
 from rgbd_gt.align.config import RefineConfig
+from rgbd_gt.align.pyramid import photo_pyramid, upsample_factor
 from rgbd_gt.align.refine import load_inputs, run_refine
 from rgbd_gt.align.sampling import bilinear, bilinear_with_gradient
+from rgbd_gt.camera import Camera
 from rgbd_gt.io import Scan, load_scan, read_pose, save_scan, write_pose
 from rgbd_gt.pose import rotation_error_deg, translation_error_m
+from rgbd_gt.render.project import project_pinhole
 
 torch.set_default_dtype(torch.float64)
 
@@ -49,6 +52,30 @@ def test_central_gradient_is_the_direct_one_blurred_by_the_box_window():
     _, g_a, _ = bilinear_with_gradient(signal, torch.stack([xs, torch.zeros_like(xs)], 1), "direct")
     conv = torch.trapezoid(0.5 * g_a.reshape(len(x), -1), s, dim=1)
     torch.testing.assert_close(g_b[:, 0], conv, atol=2e-4, rtol=0)
+
+
+def test_enlarged_finest_level_matches_the_photo_and_interpolates_it_better():
+    """The enlarged level's camera puts a point on the enlarged pixel that shows the photo there,
+    and its bilinear samples follow the smooth image behind the photo more closely."""
+    w, h = 64, 48
+    scene = lambda u, v: 0.5 + 0.4 * np.sin(0.9 * u + 0.3) * np.cos(0.7 * v - 0.2)  # noqa: E731
+    v, u = np.mgrid[0:h, 0:w]
+    photo = np.round(np.repeat(scene(u, v)[..., None], 3, 2) * 255).astype(np.uint8)
+    cam = Camera(w, h, 60.0, 60.0, 31.5, 23.5)
+    pyr = photo_pyramid(photo, cam, 2, torch.device("cpu"), upsample=4)
+    assert pyr[0].zoom == 4 and pyr[0].image.shape == (4 * h, 4 * w, 3) and pyr[1].image.shape == (h // 2, w // 2, 3)
+    g = torch.Generator().manual_seed(5)
+    p = torch.rand(2000, 3, generator=g, dtype=torch.float64) * torch.tensor([1.6, 1.2, 0.0]) - torch.tensor([0.8, 0.6, -2.0])
+    uv_big, _ = project_pinhole(p, torch.as_tensor(pyr[0].camera.K))
+    uv, _ = project_pinhole(p, torch.as_tensor(cam.K))
+    torch.testing.assert_close(pyr[0].to_photo_pixels(uv_big), uv)
+    inside = ((uv > 3) & (uv < torch.tensor([w - 4.0, h - 4.0]))).all(1)
+    truth = torch.as_tensor(scene(uv[inside, 0].numpy(), uv[inside, 1].numpy()))
+    err_big = (bilinear(pyr[0].image.double(), uv_big[inside])[:, 0] - truth).abs().mean()
+    err_plain = (bilinear(torch.as_tensor(photo / 255.0), uv[inside])[:, 0] - truth).abs().mean()
+    assert err_big < 0.5 * err_plain, (err_big, err_plain)
+    assert upsample_factor((640, 480), 4) == 4 and upsample_factor((1920, 1080), 4) == 3
+    assert upsample_factor((6000, 4000), 4) == 1 and upsample_factor((640, 480), 1) == 1
 
 
 def test_color_fit_recovers_a_quadratic_transform_and_ignores_outliers():
@@ -128,6 +155,7 @@ def test_refine_converges_on_a_synthetic_scene(scene, tmp_path):
 
 
 @pytest.mark.parametrize("change", [
+    {"upsample": 1},
     {"gradient": "central"},
     {"color_model": "linear"},
     {"color_model": "quadratic_rgb"},

@@ -180,7 +180,7 @@ class Aligner:
             sub = idx[:n]
             cell = cell_size_for(spacing * math.sqrt(idx.numel() / n), photo.camera.fx, depth)
             grads = central_gradients(photo.image) if self.cfg.gradient == "central" else None
-            out.append(_LevelData(photo, grads, self.points[sub], self.target[sub], min(cell, 16)))
+            out.append(_LevelData(photo, grads, self.points[sub], self.target[sub], min(cell, 16 * photo.zoom)))
         return out
 
     # -- one evaluation ------------------------------------------------------------------------
@@ -274,14 +274,14 @@ class Aligner:
         start_res = None
         if keep_residuals:
             s0 = self._evaluate(levels[0], T, None, jacobian=False)
-            start_res = (s0.uv.cpu().numpy(), s0.err.cpu().numpy())
+            start_res = (levels[0].photo.to_photo_pixels(s0.uv).cpu().numpy(), s0.err.cpu().numpy())
         total_iterations = 0
         step = self._lm_level if cfg.optimizer == "lm" else self._adam_level
         for level in reversed(range(len(levels))):
             T, n_it = step(levels[level], level, T, history, progress)
             total_iterations += n_it
         final = self._evaluate(levels[0], T, None, jacobian=False)
-        end_res = (final.uv.cpu().numpy(), final.err.cpu().numpy()) if keep_residuals else None
+        end_res = (levels[0].photo.to_photo_pixels(final.uv).cpu().numpy(), final.err.cpu().numpy()) if keep_residuals else None
         return RefineResult(
             T_cam_from_scan=self._to_scan(T),
             color_transform=final.D.double().cpu().numpy(),

@@ -13,6 +13,7 @@ class RefineConfig:
     gradient: str = "direct"  # 'direct' (strategy A) or 'central' (strategy B)
     optimizer: str = "lm"  # 'lm' (Levenberg-Marquardt on the 6 pose parameters) or 'adam' (the paper's)
     levels: int = 5  # image pyramid levels (1 = full resolution only)
+    upsample: int = 4  # the finest level samples the photo enlarged this much (bicubic; pyramid.py says why)
     iterations: int = 30  # per level (lm) ...
     adam_iterations: int = 300  # ... and per level for adam
     adam_lr_rotation: float = 2.0e-4  # radians per step
@@ -36,6 +37,6 @@ class RefineConfig:
             raise ValueError(f"gradient must be 'direct' or 'central', got {self.gradient!r}")
         if self.optimizer not in ("lm", "adam"):
             raise ValueError(f"optimizer must be 'lm' or 'adam', got {self.optimizer!r}")
-        if self.levels < 1 or self.iterations < 1 or self.max_points < 10:
-            raise ValueError("levels, iterations and max_points must be positive")
+        if self.levels < 1 or self.iterations < 1 or self.max_points < 10 or self.upsample < 1:
+            raise ValueError("levels, upsample, iterations and max_points must be positive")
         return self

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import math
+
 import numpy as np
 import torch
 
@@ -12,24 +14,47 @@ from rgbd_gt.camera import Camera, rescale, undistort_image, without_distortion
 
 @dataclass
 class PhotoLevel:
-    """One pyramid level. image: (H, W, 3) float32 in [0, 1]; valid: (H, W) bool of usable
+    """One pyramid level. image: (H, W, 3) float32 in [0, 1] (an enlarged level overshoots a
+    little at edges); valid: (H, W) bool of usable
     pixels (inside the original photo and not masked), or None when all are; camera: pinhole."""
 
     image: torch.Tensor
     valid: torch.Tensor | None
     camera: Camera
+    zoom: int = 1  # level pixels per photo pixel (> 1 on an upsampled finest level)
+
+    def to_photo_pixels(self, uv: torch.Tensor) -> torch.Tensor:
+        """(N, 2) pixel coordinates on this level -> on the photo (for levels at zoom >= 1)."""
+        return (uv + 0.5) / self.zoom - 0.5
 
     @property
     def K(self) -> torch.Tensor:
         return torch.as_tensor(self.camera.K, dtype=self.image.dtype, device=self.image.device)
 
 
+MAX_UPSAMPLED_PIXELS = 20_000_000  # ~240 MB as float32 RGB: large photos are not enlarged
+
+
+def upsample_factor(size: tuple[int, int], upsample: int) -> int:
+    """`upsample`, lowered so that the enlarged photo of `size` (W, H) stays within
+    MAX_UPSAMPLED_PIXELS (never below 1)."""
+    w, h = size
+    return max(1, min(upsample, int(math.sqrt(MAX_UPSAMPLED_PIXELS / (w * h)))))
+
+
 def photo_pyramid(photo: np.ndarray, camera: Camera, levels: int, device: torch.device,
-                  ignore: np.ndarray | None = None) -> list[PhotoLevel]:
+                  ignore: np.ndarray | None = None, upsample: int = 1) -> list[PhotoLevel]:
     """Undistort `photo` (H, W, 3) uint8 and build `levels` levels, finest first.
 
     Each coarser level halves the size by 2x2 box averaging (cv2.INTER_AREA), consistent with
     `camera.rescale` (pixel centres at (c + 0.5) * s - 0.5). `ignore`: (H, W) bool of masked pixels.
+
+    `upsample` > 1 replaces the finest level by the photo enlarged that much by bicubic
+    interpolation (see `upsample_factor`). Bilinear interpolation at a sub-pixel point averages
+    its pixel neighbours, a blur that changes with the sub-pixel position; the residual is then
+    smallest where points fall on pixel centres, which pulls the pose towards such positions (on
+    ICL-NUIM, where the scan is a depth image's pixel grid, towards the initial pose). On an
+    enlarged photo the bilinear interpolant stays close to the bicubic one and that pull shrinks.
     """
     import cv2
 
@@ -38,6 +63,7 @@ def photo_pyramid(photo: np.ndarray, camera: Camera, levels: int, device: torch.
     if camera.has_distortion:  # pixels that the undistortion filled from outside the photo
         valid = (undistort_image(camera, valid, cv2.INTER_LINEAR, constant_border=True) > 0.999).astype(np.float32)
     cam = without_distortion(camera)
+    zoom = upsample_factor(cam.size, upsample)
     out = []
     for level in range(levels):
         if level:
@@ -45,10 +71,21 @@ def photo_pyramid(photo: np.ndarray, camera: Camera, levels: int, device: torch.
             img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
             valid = cv2.resize(valid, (w, h), interpolation=cv2.INTER_AREA)
             cam = rescale(cam, w, h)
-        all_valid = bool(valid.min() > 0.999)
-        out.append(PhotoLevel(
-            image=torch.as_tensor(np.ascontiguousarray(img), device=device),
-            valid=None if all_valid else torch.as_tensor(valid > 0.999, device=device),
-            camera=cam,
-        ))
+            out.append(_level(img, valid, cam, device))
+        elif zoom > 1:
+            w, h = cam.size[0] * zoom, cam.size[1] * zoom
+            big = cv2.resize(img, (w, h), interpolation=cv2.INTER_CUBIC)  # cubic overshoots
+            out.append(_level(big, cv2.resize(valid, (w, h), interpolation=cv2.INTER_LINEAR),
+                              rescale(cam, w, h), device, zoom))
+        else:
+            out.append(_level(img, valid, cam, device))
     return out
+
+
+def _level(img: np.ndarray, valid: np.ndarray, cam: Camera, device: torch.device, zoom: int = 1) -> PhotoLevel:
+    all_valid = bool(valid.min() > 0.999)
+    return PhotoLevel(
+        image=torch.as_tensor(np.ascontiguousarray(img), device=device),
+        valid=None if all_valid else torch.as_tensor(valid > 0.999, device=device),
+        camera=cam, zoom=zoom,
+    )

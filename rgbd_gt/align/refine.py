@@ -71,6 +71,7 @@ def run_refine(inputs: RefineInputs, cfg: RefineConfig, device: str = "auto",
     """Refine inputs.T_init; raises InputError when no scan points are in view."""
     from rgbd_gt.align.pyramid import photo_pyramid
 
-    pyramid = photo_pyramid(inputs.photo, inputs.camera, cfg.levels, resolve_device(device), inputs.ignore)
+    pyramid = photo_pyramid(inputs.photo, inputs.camera, cfg.levels, resolve_device(device), inputs.ignore,
+                            cfg.upsample)
     aligner = Aligner(inputs.points, inputs.colors, pyramid, cfg)
     return aligner.refine(inputs.T_init, progress=progress, keep_residuals=keep_residuals)
