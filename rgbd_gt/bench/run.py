@@ -201,6 +201,9 @@ def write_markdown(path: Path, report: dict) -> None:
         "between i->j and j->i (the estimate falls short of the motion by about 0.5-1%). The noisy depth",
         "is biased by depth (median -7 to +5 mm per depth band against the clean depth), and frame i's",
         "colors are sampled on frame i's pixel grid and seen at another scale and blur from frame j.",
+        "That grid is also why the enlarged photo helps here: at the initial pose every point falls on",
+        "a pixel centre of the photo, where bilinear interpolation does not blur, and that pull towards",
+        "the initial pose shrinks when the photo is enlarged.",
         "",
     ]
     with atomic_output(path) as tmp:
