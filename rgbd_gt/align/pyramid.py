@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -15,8 +14,8 @@ from rgbd_gt.camera import Camera, rescale, undistort_image, without_distortion
 @dataclass
 class PhotoLevel:
     """One pyramid level. image: (H, W, 3) float32 in [0, 1] (an enlarged level overshoots a
-    little at edges); valid: (H, W) bool of usable
-    pixels (inside the original photo and not masked), or None when all are; camera: pinhole."""
+    little at edges); valid: (H, W) bool of usable pixels (inside the original photo and not
+    masked), or None when all are; camera: pinhole."""
 
     image: torch.Tensor
     valid: torch.Tensor | None
@@ -71,14 +70,7 @@ def photo_pyramid(photo: np.ndarray, camera: Camera, levels: int, device: torch.
             img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
             valid = cv2.resize(valid, (w, h), interpolation=cv2.INTER_AREA)
             cam = rescale(cam, w, h)
-            out.append(_level(img, valid, cam, device))
-        elif zoom > 1:
-            w, h = cam.size[0] * zoom, cam.size[1] * zoom
-            big = cv2.resize(img, (w, h), interpolation=cv2.INTER_CUBIC)  # cubic overshoots
-            out.append(_level(big, cv2.resize(valid, (w, h), interpolation=cv2.INTER_LINEAR),
-                              rescale(cam, w, h), device, zoom))
-        else:
-            out.append(_level(img, valid, cam, device))
+        out.append(_level(img, valid, cam, device) if level or zoom == 1 else _enlarged(img, valid, cam, zoom, device))
     return out
 
 
@@ -89,3 +81,11 @@ def _level(img: np.ndarray, valid: np.ndarray, cam: Camera, device: torch.device
         valid=None if all_valid else torch.as_tensor(valid > 0.999, device=device),
         camera=cam, zoom=zoom,
     )
+
+
+def _enlarged(img: np.ndarray, valid: np.ndarray, cam: Camera, zoom: int, device: torch.device) -> PhotoLevel:
+    import cv2
+
+    w, h = cam.size[0] * zoom, cam.size[1] * zoom
+    return _level(cv2.resize(img, (w, h), interpolation=cv2.INTER_CUBIC),
+                  cv2.resize(valid, (w, h), interpolation=cv2.INTER_LINEAR), rescale(cam, w, h), device, zoom)
