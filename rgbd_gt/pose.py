@@ -35,13 +35,18 @@ def translation_error_m(Ta: np.ndarray, Tb: np.ndarray) -> float:
     return float(np.linalg.norm(camera_centre(Ta) - camera_centre(Tb)))
 
 
+def rigid(R: np.ndarray, t) -> np.ndarray:
+    """The 4x4 transform p -> R p + t of a rotation R (3, 3) and a translation t (3,)."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.ravel(t)
+    return T
+
+
 def invert(T: np.ndarray) -> np.ndarray:
     """Inverse of a rigid 4x4 transform."""
     R, t = T[:3, :3], T[:3, 3]
-    out = np.eye(4)
-    out[:3, :3] = R.T
-    out[:3, 3] = -R.T @ t
-    return out
+    return rigid(R.T, -R.T @ t)
 
 
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -62,7 +67,4 @@ def so3_exp(w: np.ndarray) -> np.ndarray:
 def apply_update(T: np.ndarray, delta: np.ndarray) -> np.ndarray:
     """Left-multiply T (4x4) by the update delta = (rotation vector (3,), translation (3,)):
     p' = exp(w) p + v, in the camera frame."""
-    U = np.eye(4)
-    U[:3, :3] = so3_exp(delta[:3])
-    U[:3, 3] = delta[3:]
-    return U @ T
+    return rigid(so3_exp(delta[:3]), delta[3:]) @ T

@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from rgbd_gt.camera import Camera
-from rgbd_gt.pose import transform_points
+from rgbd_gt.pose import rigid, transform_points
 from rgbd_gt.render.splat import render_points
 
 
@@ -50,7 +50,4 @@ def feature_pose(points: np.ndarray, colors: np.ndarray, photo: np.ndarray, came
         return T_init
     idx = inliers[:, 0]
     rvec, tvec = cv2.solvePnPRefineLM(np.array(obj)[idx], np.array(img_pts)[idx], camera.K, None, rvec, tvec)
-    T = np.eye(4)
-    T[:3, :3] = cv2.Rodrigues(rvec)[0]
-    T[:3, 3] = tvec.ravel()
-    return T
+    return rigid(cv2.Rodrigues(rvec)[0], tvec)

@@ -8,14 +8,11 @@ import numpy as np
 
 from rgbd_gt.camera import Camera, project
 from rgbd_gt.errors import InputError
-from rgbd_gt.pose import transform_points
+from rgbd_gt.pose import rigid, transform_points
 
 
 def _to_T(rvec, tvec) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = cv2.Rodrigues(rvec)[0]
-    T[:3, 3] = np.asarray(tvec).ravel()
-    return T
+    return rigid(cv2.Rodrigues(rvec)[0], tvec)
 
 
 def reprojection_rms(T: np.ndarray, obj: np.ndarray, img: np.ndarray, camera: Camera) -> float:

@@ -11,7 +11,7 @@ import torch
 from rgbd_gt.errors import InputError
 from rgbd_gt.init.detect import BoardSpec, detect_corners
 from rgbd_gt.io.scan import colors_to_gray
-from rgbd_gt.pose import transform_points
+from rgbd_gt.pose import rigid, transform_points
 
 VIEW_FOV_DEG = (70.0, 55.0)  # horizontal, vertical
 
@@ -176,10 +176,7 @@ def rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     U, _, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
     R = Vt.T @ D @ U.T
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = cd - R @ cs
-    return T
+    return rigid(R, cd - R @ cs)
 
 
 def angular_step(points: np.ndarray, origin: np.ndarray, spacing_m: float) -> float:

@@ -15,9 +15,9 @@ from rgbd_gt.camera import Camera, project
 from rgbd_gt.errors import InputError
 from rgbd_gt.io import Scan, atomic_output, save_scan, write_camera, write_pose
 from rgbd_gt.io.e57 import write_e57
-from rgbd_gt.pose import transform_points
+from rgbd_gt.pose import rigid, transform_points
 from rgbd_gt.synth import color
-from rgbd_gt.synth.scene import Scene, make_layout, rigid
+from rgbd_gt.synth.scene import Scene, make_layout
 from rgbd_gt.synth.sensors import build_raycaster, cast, grid_covering, laser_scan, render_photo_radiance
 from rgbd_gt.synth.textures import make_texture
 

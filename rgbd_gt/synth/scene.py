@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from rgbd_gt.pose import transform_points
+from rgbd_gt.pose import rigid, transform_points
 
 BOARD_TEXTURE = -1  # Surface.texture value of the checkerboard
 BOARD_WHITE, BOARD_BLACK, BOARD_EDGE = 0.85, 0.04, 0.5
@@ -84,13 +84,6 @@ def rot_x(a: float) -> np.ndarray:
 def rot_y(a: float) -> np.ndarray:
     c, s = np.cos(a), np.sin(a)
     return np.array([[c, 0, s], [0, 1.0, 0], [-s, 0, c]])
-
-
-def rigid(R: np.ndarray, t) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = t
-    return T
 
 
 def look_at(eye: np.ndarray, target: np.ndarray, roll: float = 0.0) -> np.ndarray:
