@@ -28,7 +28,7 @@ from rgbd_gt.align.sampling import bilinear_with_gradient, central_gradients
 from rgbd_gt.errors import InputError
 from rgbd_gt.pose import apply_update
 from rgbd_gt.render.project import project_pinhole
-from rgbd_gt.render.zbuffer import cell_size_for, visible_points
+from rgbd_gt.render.zbuffer import cell_size_for, estimate_spacing, visible_points
 
 
 @dataclass
@@ -68,21 +68,6 @@ class _State:
     err: torch.Tensor  # |r| per visible point
     H: np.ndarray | None = None  # (6, 6) Gauss-Newton matrix J^T W J
     g: np.ndarray | None = None  # (6,) gradient J^T W r
-
-
-def estimate_spacing(points: torch.Tensor) -> float:
-    """Typical distance between neighbouring points (metres) of a surface sampling, from voxel
-    occupancy: a voxel of side v holding n/M points on a surface has spacing v / sqrt(n/M)."""
-    n = points.shape[0]
-    extent = float((points.max(0).values - points.min(0).values).max().clamp_min(1e-6))
-    v = extent / 64
-    for _ in range(8):
-        keys = torch.floor((points - points.min(0).values) / v).long()
-        m = torch.unique(keys[:, 0] * 4_000_000_000 + keys[:, 1] * 63_000 + keys[:, 2]).numel()
-        if n / m >= 4:  # several points per voxel: the estimate is meaningful
-            break
-        v *= 2
-    return v / math.sqrt(n / m)
 
 
 def texture_score(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cell: int,

@@ -88,8 +88,8 @@ def _raycast_mesh(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray 
 def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None) -> DepthMap:
     import torch
 
-    from rgbd_gt.align.aligner import estimate_spacing
     from rgbd_gt.render.splat import splat
+    from rgbd_gt.render.zbuffer import estimate_spacing
 
     p = transform_points(T, scan.xyz)
     front = p[:, 2] > 1e-3

@@ -13,6 +13,21 @@ import math
 import torch
 
 
+def estimate_spacing(points: torch.Tensor) -> float:
+    """Typical distance between neighbouring points (metres) of a surface sampling, from voxel
+    occupancy: a voxel of side v holding n/M points on a surface has spacing v / sqrt(n/M)."""
+    n = points.shape[0]
+    extent = float((points.max(0).values - points.min(0).values).max().clamp_min(1e-6))
+    v = extent / 64
+    for _ in range(8):
+        keys = torch.floor((points - points.min(0).values) / v).long()
+        m = torch.unique(keys[:, 0] * 4_000_000_000 + keys[:, 1] * 63_000 + keys[:, 2]).numel()
+        if n / m >= 4:  # several points per voxel: the estimate is meaningful
+            break
+        v *= 2
+    return v / math.sqrt(n / m)
+
+
 def cell_size_for(spacing_m: float, focal_px: float, median_depth_m: float, minimum: int = 1) -> int:
     """Cell side (pixels) that no gap between neighbouring points can slip through:
     1.5 x the projected point spacing at the median depth, at least `minimum`."""
