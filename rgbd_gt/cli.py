@@ -387,14 +387,12 @@ def qa_edges(
         if score.scan_edge_pixels == 0:
             raise InputError("no scan edges in view of this pose (no scan points in view?)", pose)
         result = score.as_dict()
-        rows = [("after" if before else "score", f"median {score.median_distance_px:.2f} px, mean {score.mean_distance_px:.2f} px, "
-                 f"within 1 px {score.within_1px:.1%}")]
+        rows = [("after" if before else "score", score.summary())]
         if T_before is not None:
             img_b, score_b = qa(the_scan, colors, photo, cam, T_before)
             img = side_by_side(img_b, img)
             result.update(score_b.as_dict("before_"))
-            rows.insert(0, ("before", f"median {score_b.median_distance_px:.2f} px, mean {score_b.mean_distance_px:.2f} px, "
-                            f"within 1 px {score_b.within_1px:.1%}"))
+            rows.insert(0, ("before", score_b.summary()))
     write_image(output, img)
     if json_out:
         with atomic_output(json_out) as tmp:
@@ -409,21 +407,12 @@ def run_workflow(
     """The whole workflow for one scan and many photos: init-pose -> refine -> export-depth ->
     qa-edges per photo. Steps whose outputs exist are skipped (a rerun resumes); a photo that
     fails is reported and the others go on. Writes OUTPUT/<photo>/... and OUTPUT/summary.csv."""
-    from rgbd_gt.io.scan import scan_colors
-    from rgbd_gt.config import from_dict
+    from rgbd_gt.config import load_config
     from rgbd_gt.io import load_scan, read_camera
+    from rgbd_gt.io.scan import scan_colors
     from rgbd_gt.workflow import PhotoResult, RunConfig, resolve, run_photo, write_summary
 
-    import yaml
-
-    if not config.is_file():
-        raise InputError("config file not found", config)
-    try:
-        cfg = from_dict(RunConfig, yaml.safe_load(config.read_text()) or {})
-    except yaml.YAMLError as exc:
-        raise InputError(f"invalid YAML ({str(exc).splitlines()[0]})", config) from None
-    except InputError as exc:
-        raise InputError(str(exc), config) from None
+    cfg = load_config(RunConfig, config)
     try:
         cfg.refine.check()
     except ValueError as exc:

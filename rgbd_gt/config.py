@@ -41,12 +41,15 @@ def from_dict(cls: type[T], data: dict[str, Any], where: str = "") -> T:
     return cls(**values)
 
 
-def load_config(cls: type[T], path: str | os.PathLike | None, default_name: str) -> T:
-    """Load `path` (or `configs/<default_name>` when None) into dataclass `cls`."""
-    path = Path(path) if path is not None else CONFIG_DIR / default_name
-    if not path.is_file():
-        if path.parent == CONFIG_DIR:  # installed without the configs folder: built-in defaults
+def load_config(cls: type[T], path: str | os.PathLike | None, default_name: str | None = None) -> T:
+    """Load `path` into dataclass `cls`; when `path` is None, `configs/<default_name>`, or the
+    dataclass defaults when that file is not installed."""
+    if path is None:
+        path = CONFIG_DIR / default_name
+        if not path.is_file():  # installed without the configs folder: built-in defaults
             return cls()
+    path = Path(path)
+    if not path.is_file():
         raise InputError("config file not found", path)
     try:
         data = yaml.safe_load(path.read_text()) or {}

@@ -20,6 +20,10 @@ class EdgeScore:
     within_1px: float
     scan_edge_pixels: int
 
+    def summary(self) -> str:
+        return (f"median {self.median_distance_px:.2f} px, mean {self.mean_distance_px:.2f} px, "
+                f"within 1 px {self.within_1px:.1%}")
+
     def as_dict(self, prefix: str = "") -> dict:
         return {f"{prefix}median_distance_px": self.median_distance_px, f"{prefix}mean_distance_px": self.mean_distance_px,
                 f"{prefix}within_1px": self.within_1px, f"{prefix}scan_edge_pixels": self.scan_edge_pixels}
