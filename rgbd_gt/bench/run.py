@@ -73,15 +73,15 @@ def machine() -> str:
 def time_refine_command(case: Case, repeats: int = 3) -> tuple[float, float]:
     """Wall time of the whole `rgbd-gt refine` command on one case written to files, and the
     aligner time it records (the medians of `repeats` runs)."""
-    import cv2
     import yaml
 
     from rgbd_gt.io import Scan, save_scan, write_camera, write_pose
+    from rgbd_gt.io.image import write_image
 
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
         save_scan(d / "scan.ply", Scan(xyz=case.points, rgb=case.colors))
-        cv2.imwrite(str(d / "photo.png"), cv2.cvtColor(case.photo, cv2.COLOR_RGB2BGR))
+        write_image(d / "photo.png", case.photo)
         write_camera(d / "camera.yaml", ICL_CAMERA)
         write_pose(d / "init.yaml", case.T_init)
         walls, aligner = [], []

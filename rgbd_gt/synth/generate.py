@@ -15,6 +15,7 @@ from rgbd_gt.camera import Camera, project
 from rgbd_gt.errors import InputError
 from rgbd_gt.io import Scan, atomic_output, save_scan, write_camera, write_pose
 from rgbd_gt.io.e57 import write_e57
+from rgbd_gt.io.image import write_image
 from rgbd_gt.pose import rigid, transform_points
 from rgbd_gt.synth import color
 from rgbd_gt.synth.scene import Scene, make_layout
@@ -187,20 +188,17 @@ def generate(out_dir: Path, seed: int, size: str, cfg: SynthConfig,
     say("writing")
     out_dir.mkdir(parents=True, exist_ok=True)
     write_e57(out_dir / "scan.e57", [scan_local], [scan_pose], names=["synthetic scan"])
-    world = Scan(xyz=local @ Rws.T + s, rgb=rgb, intensity=scan_local.intensity, row=scan_local.row,
+    world = Scan(xyz=transform_points(scan_pose, local), rgb=rgb, intensity=scan_local.intensity, row=scan_local.row,
                  col=scan_local.col, scan_id=np.zeros(len(local), np.int32), origins=s[None])
     save_scan(out_dir / "scan.ply", world)
-    with atomic_output(out_dir / "photo.png") as tmp:
-        if not cv2.imwrite(str(tmp), cv2.cvtColor(photo, cv2.COLOR_RGB2BGR)):
-            raise InputError("could not write the photo", out_dir / "photo.png")
+    write_image(out_dir / "photo.png", photo)
     write_camera(out_dir / "camera.yaml", camera)
     T_gt = np.linalg.inv(cam_pose)
     write_pose(out_dir / "gt_pose.yaml", T_gt, method="synthetic ground truth", seed=seed)
     T_init = perturb_pose(T_gt, rng, cfg.init_translation_m, cfg.init_rotation_deg)
     write_pose(out_dir / "init_pose.yaml", T_init, method="ground truth perturbed (synthetic)", seed=seed)
     for k, (pose, img) in enumerate(zip(more_poses, more_photos), start=1):
-        with atomic_output(out_dir / f"photo_{k}.png") as tmp:
-            cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+        write_image(out_dir / f"photo_{k}.png", img)
         T_k = np.linalg.inv(pose)
         write_pose(out_dir / f"gt_pose_{k}.yaml", T_k, method="synthetic ground truth", seed=seed)
         write_pose(out_dir / f"init_pose_{k}.yaml", perturb_pose(T_k, more_rng, cfg.init_translation_m, cfg.init_rotation_deg),
