@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbd_gt.bench.icl import ICL_CAMERA, read_color, read_depth, read_trajectory
+from rgbd_gt.bench.icl import ICL_CAMERA, depth_points, frame_cloud, read_depth, read_trajectory
 from rgbd_gt.io.scan import Scan
 from rgbd_gt.pose import invert, transform_points
 from rgbd_gt.render.depth import render_depth
@@ -15,29 +15,23 @@ from rgbd_gt.render.depth import render_depth
 
 def frame_grid_scan(folder: Path, i: int, kind: str = "clean") -> Scan:
     """Frame i's depth as a structured scan: rows/cols are the pixels, the origin camera i."""
-    depth = read_depth(folder, i, kind)
-    v, u = np.nonzero(depth > 0)
-    z = depth[v, u]
-    c = ICL_CAMERA
-    cam = np.stack([(u - c.cx) / c.fx * z, (v - c.cy) / c.fy * z, z], 1)
-    T_wc = read_trajectory(folder / "trajectory.log")[i]
-    return Scan(xyz=transform_points(T_wc, cam), rgb=read_color(folder, i)[v, u], row=v.astype(np.int32),
-                col=u.astype(np.int32), scan_id=np.zeros(len(z), np.int32), origins=T_wc[None, :3, 3])
+    xyz, rgb, pixel = frame_cloud(folder, i, kind)
+    origin = read_trajectory(folder / "trajectory.log")[i][:3, 3]
+    return Scan(xyz=xyz, rgb=rgb, row=pixel[:, 1].astype(np.int32), col=pixel[:, 0].astype(np.int32),
+                scan_id=np.zeros(len(xyz), np.int32), origins=origin[None])
 
 
 def seen_by_both(folder: Path, i: int, j: int) -> np.ndarray:
     """(H, W) bool: frame j's pixels whose surface point frame i also sees (its depth agrees)."""
     poses = read_trajectory(folder / "trajectory.log")
     dj, di = read_depth(folder, j, "clean"), read_depth(folder, i, "clean")
-    v, u = np.nonzero(dj > 0)
-    z = dj[v, u]
+    pj, v, u = depth_points(dj)
     c = ICL_CAMERA
-    pj = np.stack([(u - c.cx) / c.fx * z, (v - c.cy) / c.fy * z, z], 1)
     pi = transform_points(invert(poses[i]) @ poses[j], pj)
     ui = np.round(c.fx * pi[:, 0] / pi[:, 2] + c.cx).astype(int)
     vi = np.round(c.fy * pi[:, 1] / pi[:, 2] + c.cy).astype(int)
     ok = (pi[:, 2] > 0) & (ui >= 0) & (vi >= 0) & (ui < c.width) & (vi < c.height)
-    agree = np.zeros(len(z), bool)
+    agree = np.zeros(len(pj), bool)
     agree[ok] = np.abs(di[vi[ok], ui[ok]] - pi[ok, 2]) < 0.01 + 0.01 * pi[ok, 2]
     out = np.zeros(dj.shape, bool)
     out[v[agree], u[agree]] = True

@@ -13,11 +13,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rgbd_gt.camera import Camera
+from rgbd_gt.camera import Camera, backproject
 from rgbd_gt.errors import InputError
 from rgbd_gt.pose import invert, transform_points
 
 ICL_CAMERA = Camera(640, 480, 525.0, 525.0, 319.5, 239.5)
+LUMA = np.array([0.299, 0.587, 0.114], np.float32)
 
 
 def read_trajectory(path: Path) -> list[np.ndarray]:
@@ -48,16 +49,18 @@ def read_depth(folder: Path, i: int, kind: str = "noisy") -> np.ndarray:
     return d.astype(np.float64) / 1000.0
 
 
+def depth_points(depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pixels with depth of a depth image (H, W) metres, back-projected through ICL_CAMERA:
+    (camera-frame points (N, 3), their rows v (N,), their columns u (N,))."""
+    v, u = np.nonzero(depth > 0)
+    return backproject(ICL_CAMERA, np.stack([u, v], 1), depth[v, u]), v, u
+
+
 def frame_cloud(folder: Path, i: int, kind: str = "noisy") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Frame i's depth back-projected into the world: (xyz (N, 3), rgb (N, 3) uint8, pixel (N, 2))."""
-    depth = read_depth(folder, i, kind)
-    rgb = read_color(folder, i)
-    v, u = np.nonzero(depth > 0)
-    z = depth[v, u]
-    c = ICL_CAMERA
-    cam = np.stack([(u - c.cx) / c.fx * z, (v - c.cy) / c.fy * z, z], 1)
+    cam, v, u = depth_points(read_depth(folder, i, kind))
     T_wc = read_trajectory(folder / "trajectory.log")[i]
-    return transform_points(T_wc, cam), rgb[v, u], np.stack([u, v], 1)
+    return transform_points(T_wc, cam), read_color(folder, i)[v, u], np.stack([u, v], 1)
 
 
 def multimodal_effects(rgb: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
@@ -71,21 +74,21 @@ def multimodal_effects(rgb: np.ndarray, rng: np.random.Generator) -> tuple[np.nd
         "gamma": rng.uniform(0.5, 1.0) if rng.random() < 0.5 else rng.uniform(1.0, 2.0),
         "blur": rng.uniform(0.0, 0.75),
     }
-    gray = img @ np.array([0.299, 0.587, 0.114], np.float32)
+    gray = img @ LUMA
     for op in rng.permutation(["brightness", "contrast", "saturation", "hue"]):
         if op == "brightness":
             img = img * p["brightness"]
         elif op == "contrast":
             img = (img - gray.mean()) * p["contrast"] + gray.mean()
         elif op == "saturation":
-            g = (np.clip(img, 0, 1) @ np.array([0.299, 0.587, 0.114], np.float32))[..., None]
+            g = (np.clip(img, 0, 1) @ LUMA)[..., None]
             img = (img - g) * p["saturation"] + g
         else:
             hsv = cv2.cvtColor(np.clip(img, 0, 1), cv2.COLOR_RGB2HSV)
             hsv[..., 0] = (hsv[..., 0] + p["hue"] * 360.0) % 360.0
             img = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
         img = np.clip(img, 0, 1)
-        gray = img @ np.array([0.299, 0.587, 0.114], np.float32)
+        gray = img @ LUMA
     img = img ** p["gamma"]
     if p["blur"] > 0.05:
         img = cv2.GaussianBlur(img, (0, 0), p["blur"])
