@@ -12,9 +12,9 @@ import argparse
 import time
 from pathlib import Path
 
-
 from rgbd_gt.bench.depth import depth_errors
 from rgbd_gt.bench.icl import frame_count
+from rgbd_gt.io import atomic_output
 
 
 def main() -> None:
@@ -48,7 +48,8 @@ def main() -> None:
     med = [r["median_abs_error_m"] * 1e3 for r in rows]
     lines += ["", f"Worst pair: median error {max(med):.3f} mm, {max(r['leak_fraction'] for r in rows):.3%} off by > 5 cm, "
               f"{min(r['filled_fraction'] for r in rows):.2%} filled.", ""]
-    args.out.write_text("\n".join(lines))
+    with atomic_output(args.out) as tmp:
+        tmp.write_text("\n".join(lines))
     print(lines[-2])
 
 

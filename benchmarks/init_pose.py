@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbd_gt.io import read_pose
+from rgbd_gt.io import atomic_output, read_pose
 from rgbd_gt.pose import rotation_error_deg, translation_error_m
 
 
@@ -67,7 +67,8 @@ def main() -> None:
         f"time {np.nanmedian(e[:, 3]):.1f} s median, {np.nanmax(e[:, 3]):.1f} s max.",
         "",
     ]
-    args.out.write_text("\n".join(lines))
+    with atomic_output(args.out) as tmp:
+        tmp.write_text("\n".join(lines))
     print("\n".join(lines[-2:]))
 
 

@@ -51,7 +51,7 @@ def _view_rotation(az: float, el: float) -> np.ndarray:
     return np.stack([right, down, fwd], 1)
 
 
-def candidate_views(points: np.ndarray, origin: np.ndarray, step_rad: float) -> list[tuple[float, float]]:
+def candidate_views(points: np.ndarray, origin: np.ndarray) -> list[tuple[float, float]]:
     """(azimuth, elevation) of views on a 30-degree grid that hold a useful share of the points."""
     d = points - origin
     az = np.arctan2(d[:, 1], d[:, 0])
@@ -148,7 +148,7 @@ def find_board_in_scan(points: np.ndarray, colors: np.ndarray, origin: np.ndarra
     detection that lies farthest inside its view."""
     gray = colors_to_gray(colors)
     best = None
-    for az, el in candidate_views(points, origin, step_rad):
+    for az, el in candidate_views(points, origin):
         view = render_view(points, gray, origin, az, el, step_rad)
         found = detect_corners(view.image, spec)
         if found is None:
