@@ -1,5 +1,8 @@
 """The one exception type that the CLI turns into a single `error: ...` line and exit code 2."""
 
+import os
+from pathlib import Path
+
 
 class InputError(Exception):
     """Bad user input: a missing, corrupt or inconsistent file, or an impossible request.
@@ -9,3 +12,11 @@ class InputError(Exception):
 
     def __init__(self, message: str, path: object | None = None):
         super().__init__(f"{path}: {message}" if path is not None else message)
+
+
+def require_file(path: str | os.PathLike) -> Path:
+    """`path` as a Path; InputError "file not found" unless it names an existing file."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("file not found", path)
+    return path

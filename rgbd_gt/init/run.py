@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from rgbd_gt.camera import Camera, project
-from rgbd_gt.errors import InputError
+from rgbd_gt.errors import InputError, require_file
 from rgbd_gt.init.detect import BoardSpec, detect_corners
 from rgbd_gt.init.pnp import board_pose, estimate_focal, pnp_ransac, reprojection_rms
 from rgbd_gt.init.scan_board import ScanBoard, angular_step, find_board_in_scan, in_convex_polygon
@@ -91,8 +91,7 @@ def init_from_board(scan: Scan, photo: np.ndarray, camera: Camera, spec: BoardSp
 def read_csv_rows(path: Path, fields: str) -> np.ndarray:
     """A CSV of numeric rows with the given comma-separated `fields` (an optional header line
     is skipped) -> (n, len(fields)) float64."""
-    if not path.is_file():
-        raise InputError("file not found", path)
+    require_file(path)
     first = path.read_text(errors="replace").lstrip().split("\n", 1)[0]
     try:
         data = np.loadtxt(path, delimiter=",", ndmin=2, skiprows=1 if any(ch.isalpha() for ch in first) else 0)

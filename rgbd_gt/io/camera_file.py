@@ -9,7 +9,7 @@ import numpy as np
 import yaml
 
 from rgbd_gt.camera import Camera
-from rgbd_gt.errors import InputError
+from rgbd_gt.errors import InputError, require_file
 from rgbd_gt.io.atomic import atomic_output
 
 VALID_DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
@@ -54,9 +54,7 @@ def read_camera(path: str | os.PathLike) -> Camera:
     """Read a camera file: the project's YAML (width, height, fx, fy, cx, cy[, distortion])
     or an OpenCV calibration file (camera_matrix, distortion_coefficients, image_width, image_height).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise InputError("file not found", path)
+    path = require_file(path)
     text = path.read_text(errors="replace")
     if text.lstrip().startswith("%YAML:1.0") or "opencv-matrix" in text or path.suffix.lower() == ".xml":
         return _read_opencv(path)

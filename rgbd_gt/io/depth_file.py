@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 import numpy as np
 
 from rgbd_gt.camera import Camera
-from rgbd_gt.errors import InputError
+from rgbd_gt.errors import InputError, require_file
 from rgbd_gt.io.atomic import atomic_output
 
 
@@ -40,9 +39,7 @@ def read_depth_exr(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
     """(z (H, W) float32 metres, header dict) of a depth EXR written by rgbd-gt."""
     import OpenEXR
 
-    path = Path(path)
-    if not path.is_file():
-        raise InputError("file not found", path)
+    path = require_file(path)
     try:
         with OpenEXR.File(str(path)) as f:
             return np.array(f.channels()["Z"].pixels, np.float32), dict(f.header())

@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 import numpy as np
 
-from rgbd_gt.errors import InputError
+from rgbd_gt.errors import InputError, require_file
 from rgbd_gt.io.atomic import atomic_output
 
 
@@ -15,9 +14,7 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     """Read a photo as (H, W, 3) uint8 RGB (grayscale and 16-bit images are converted)."""
     import cv2
 
-    path = Path(path)
-    if not path.is_file():
-        raise InputError("file not found", path)
+    path = require_file(path)
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None or img.size == 0:
         raise InputError("not a readable image", path)
@@ -39,9 +36,7 @@ def read_mask(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarray:
     """
     import cv2
 
-    path = Path(path)
-    if not path.is_file():
-        raise InputError("file not found", path)
+    path = require_file(path)
     m = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if m is None:
         raise InputError("not a readable image", path)

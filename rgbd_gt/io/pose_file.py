@@ -4,12 +4,11 @@ points in metres into the OpenCV camera frame. Other keys are metadata and are k
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 import numpy as np
 import yaml
 
-from rgbd_gt.errors import InputError
+from rgbd_gt.errors import InputError, require_file
 from rgbd_gt.io.atomic import atomic_output
 
 POSE_KEY = "T_cam_from_scan"
@@ -38,9 +37,7 @@ def check_rigid(T: np.ndarray, path: object = None, tol: float = 1e-6) -> np.nda
 
 def read_pose(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
     """Read a pose file. Returns (T_cam_from_scan (4, 4) float64, the other keys as a dict)."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError("file not found", path)
+    path = require_file(path)
     try:
         data = yaml.safe_load(path.read_text(errors="replace"))
     except yaml.YAMLError as exc:

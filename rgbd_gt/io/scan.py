@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbd_gt.errors import InputError
+from rgbd_gt.errors import InputError, require_file
 
 SCAN_SUFFIXES = (".e57", ".ply")
 
@@ -108,8 +108,7 @@ def load_scan(path: str | os.PathLike, scan_index: int | None = None, progress=N
 
 
 def _load(path: Path, scan_index: int | None, progress) -> Scan:
-    if not path.is_file():
-        raise InputError("file not found", path)
+    require_file(path)
     suffix = path.suffix.lower()
     if suffix == ".e57":
         from rgbd_gt.io.e57 import read_e57
