@@ -118,12 +118,17 @@ def estimate_focal(obj: np.ndarray, img: np.ndarray, camera: Camera) -> tuple[Ca
     k = int(np.argmin(costs))
     lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
     g = (np.sqrt(5) - 1) / 2
-    for _ in range(30):
-        a, b = hi - g * (hi - lo), lo + g * (hi - lo)
-        if cost(a)[0] < cost(b)[0]:
-            hi = b
+    a, b = hi - g * (hi - lo), lo + g * (hi - lo)
+    ca, cb = cost(a)[0], cost(b)[0]
+    for _ in range(30):  # each step keeps one inner point and its cost: one new evaluation
+        if ca < cb:
+            hi, b, cb = b, a, ca
+            a = hi - g * (hi - lo)
+            ca = cost(a)[0]
         else:
-            lo = a
+            lo, a, ca = a, b, cb
+            b = lo + g * (hi - lo)
+            cb = cost(b)[0]
     _, T, mask, cam = cost((lo + hi) / 2)
     if T is None:
         raise InputError("no focal length gives a consistent pose for the correspondences")
