@@ -112,7 +112,7 @@ def _floor_box(name, xy, yaw, size, z0, tex, rng) -> Surface:
 
 def make_layout(rng: np.random.Generator, board_shape: tuple[int, int], square: float,
                 board_distance: tuple[float, float], scanner_distance: tuple[float, float],
-                hfov_deg: float, n_textures_hint: int = 0) -> tuple[list[Surface], Board, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                hfov_deg: float) -> tuple[list[Surface], Board, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Random room, objects, board, camera and scanner poses (no textures yet).
 
     Returns (surfaces, board, room size, camera pose, scanner pose, light position).
