@@ -5,6 +5,8 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=demo_out
 .venv/bin/rgbd-gt synth "$OUT/scene" --size small --seed 0 --photos 2
+# rgbd-gt run resumes from outputs that exist: start afresh so that the demo shows this code's results
+rm -rf "$OUT/run"
 .venv/bin/rgbd-gt run configs/example.yaml
 .venv/bin/python - <<'PY'
 from pathlib import Path
