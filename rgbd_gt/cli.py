@@ -72,6 +72,14 @@ def _summary(title: str, rows: list[tuple[str, str]], output: Path, report: Opti
     out.print(f"wrote {output}" + (f" and a report in {report}" if report else ""))
 
 
+VERDICT_STYLE = {"ok": "green", "suspect": "yellow", "failed": "bold red"}
+
+
+def _verdict_text(verdict: str | None) -> str:
+    """A verdict as colored rich markup ('-' when there is none)."""
+    return f"[{VERDICT_STYLE[verdict]}]{verdict}[/]" if verdict in VERDICT_STYLE else "-"
+
+
 def _fmt_bounds(b: np.ndarray) -> str:
     if not np.isfinite(b).all():
         return "-"
@@ -255,28 +263,38 @@ def refine(
     iterations: Optional[int] = typer.Option(None, "--iterations", help="Maximum iterations per pyramid level."),
     max_points: Optional[int] = typer.Option(None, "--max-points", help="Scan points used at full resolution."),
     beta_max: Optional[float] = typer.Option(None, "--beta-max", help="Color inlier threshold of the color fit."),
+    check: Optional[Path] = typer.Option(None, "--check", help="CSV u,v,x,y,z of held-out picked pairs: their reprojection error at the init and after refine goes into the verdict."),
+    repeats: Optional[int] = typer.Option(None, "--repeats", help="Refine again from this many starts around the init to check the result is reproduced (default 4; 0 skips it)."),
+    strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when the verdict is 'failed' (the pose file is still written, with the verdict)."),
 ) -> None:
-    """Refine a photo's pose against the colored scan by multimodal photometric alignment."""
+    """Refine a photo's pose against the colored scan by multimodal photometric alignment, then
+    judge the result: the pose file gets `verdict` (ok | suspect | failed), `reasons` and
+    `evidence` (uncertainty, convergence, repeatability, sharpness, a structural edge check
+    against chance, and the --check pairs). See docs/trust.md."""
     import dataclasses
 
     from rgbd_gt.align.config import RefineConfig
-    from rgbd_gt.align.refine import load_inputs, refine_meta, run_refine
+    from rgbd_gt.align.refine import load_inputs, refine_meta, refine_verified
     from rgbd_gt.config import load_config
+    from rgbd_gt.init.run import read_correspondences
     from rgbd_gt.io import check_not_input, write_pose
 
     start = time.perf_counter()
-    check_not_input(output, [scan, image, camera, init] + ([mask] if mask else []))
+    check_not_input(output, [p for p in (scan, image, camera, init, mask, check, config) if p])
     cfg = load_config(RefineConfig, config, "refine.yaml")
     flags = dict(color_model=color_model, gradient=gradient, optimizer=optimizer, levels=levels,
                  upsample=upsample, iterations=iterations, max_points=max_points, beta_max=beta_max)
     cfg = dataclasses.replace(cfg, **{k: v for k, v in flags.items() if v is not None})
     if optimizer == "adam" and iterations is not None:
         cfg = dataclasses.replace(cfg, adam_iterations=iterations)
+    if repeats is not None:
+        cfg = dataclasses.replace(cfg, verify=dataclasses.replace(cfg.verify, repeats=repeats))
     try:
         cfg.check()
     except ValueError as exc:
         raise InputError(str(exc)) from None
     inputs = load_inputs(scan, image, camera, init, mask)
+    pairs = read_correspondences(check, minimum=1) if check is not None else None
     with _progress(TextColumn("{task.fields[info]}")) as bar:
         task = bar.add_task("refine", total=None, info="")
 
@@ -284,21 +302,36 @@ def refine(
             bar.update(task, description=f"level {rec['level']} iteration {rec['iteration']}",
                        info=f"loss {rec['loss']:.4f}  step {rec['rotation_update_deg']:.1e} deg {rec['translation_update_m'] * 1e3:.1e} mm")
 
-        result = run_refine(inputs, cfg, device, progress, keep_residuals=report is not None)
-    meta = refine_meta(result, cfg, inputs.T_init, init)
+        result, verification = refine_verified(inputs, cfg, device, progress, keep_residuals=report is not None,
+                                               check=pairs)
+    meta = refine_meta(result, cfg, inputs.T_init, init, verification)
     write_pose(output, result.T_cam_from_scan, **meta)
     moved_mm, moved_deg = meta["change_from_init"]["translation_mm"], meta["change_from_init"]["rotation_deg"]
     if report is not None:
         from rgbd_gt.align.report import write_report
 
         write_report(report, result, inputs.camera.size)
-    _summary("refine", [
+    ev = verification.evidence
+    rows = [
+        ("verdict", _verdict_text(verification.verdict)),
+        *[("", reason) for reason in verification.reasons],
         ("moved from init", f"{moved_mm:.2f} mm, {moved_deg:.4f} deg"),
+        ("uncertainty (1 sigma)", f"{ev['uncertainty']['translation_mm']:.3f} mm, {ev['uncertainty']['rotation_deg']:.4f} deg, "
+                                  f"{ev['uncertainty']['image_px']:.3f} px"),
+        ("edges vs chance", f"{ev['edges']['edge_ratio']:.2f} (1.0 = chance)"),
+    ]
+    if "repeatability" in ev:
+        rows.append(("repeat runs", f"{ev['repeatability']['starts']} starts, spread {ev['repeatability']['spread_px']:.3f} px"))
+    if "check" in ev:
+        rows.append(("check pairs", f"{ev['check']['rms_init_px']:.2f} px at the init -> {ev['check']['rms_px']:.2f} px"))
+    rows += [
         ("iterations", str(result.iterations)),
         ("visible points", f"{result.visible_points:,} (inliers {result.inlier_fraction:.0%})"),
-        ("final loss", f"{result.loss:.4f}"),
-        ("aligner time", f"{result.seconds:.2f} s (total {time.perf_counter() - start:.2f} s)"),
-    ], output, report)
+        ("aligner time", f"{result.seconds:.2f} s + verification {verification.seconds:.2f} s (total {time.perf_counter() - start:.2f} s)"),
+    ]
+    _summary("refine", rows, output, report)
+    if strict and verification.verdict == "failed":
+        raise typer.Exit(3)
 
 
 @app.command("export-depth")
@@ -357,19 +390,22 @@ def qa_edges(
     image: Path = typer.Option(..., "--image", help="The photo."),
     camera: Path = typer.Option(..., "--camera", help="Camera file of the photo."),
     pose: Path = typer.Option(..., "--pose", help="The pose to check (T_cam_from_scan)."),
-    output: Path = typer.Option(..., "-o", "--output", help="Overlay PNG: red photo edges, blue scan edges, white both."),
+    output: Path = typer.Option(..., "-o", "--output", help="Overlay PNG (longer side at most 1280 px): red = the photo's strongest gradients, blue = the scan's structural edges, white = both."),
     before: Optional[Path] = typer.Option(None, "--before", help="Another pose (e.g. the initial one): a before/after panel."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the score as JSON."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the scores as JSON."),
 ) -> None:
-    """Canny edges of the photo against edges of the scan rendered at the pose, and how far the
-    scan's edges lie from the photo's (median/mean distance in pixels, fraction within 1 px)."""
+    """How well the scan rendered at the pose lines up with the photo. The structural score: the
+    photo's gradient strength at the scan's structural edges (depth discontinuities, strong color
+    edges) against the same with those edges shifted by 6 px (edge_ratio; 1.0 = no better than
+    chance). The Canny score: how far the scan's Canny edges lie from the photo's (median/mean
+    distance in pixels, fraction within 1 px); on busy real photos it is close to chance."""
     import json
 
     from rgbd_gt.io.scan import scan_colors
     from rgbd_gt.io import atomic_output, check_not_input, load_scan, read_camera, read_pose
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import read_image, write_image
-    from rgbd_gt.qa.edges import qa, side_by_side
+    from rgbd_gt.qa.edges import qa, side_by_side, structural_qa
 
     for p in (output, json_out):
         if p:
@@ -383,16 +419,18 @@ def qa_edges(
     colors = scan_colors(the_scan, scan)
     with _progress() as bar:
         bar.add_task("edges", total=None)
-        img, score = qa(the_scan, colors, photo, cam, T)
+        _, score = qa(the_scan, colors, photo, cam, T)
         if score.scan_edge_pixels == 0:
             raise InputError("no scan edges in view of this pose (no scan points in view?)", pose)
-        result = score.as_dict()
-        rows = [("after" if before else "score", score.summary())]
+        img, structural = structural_qa(the_scan, colors, photo, cam, T)
+        result = {**structural.as_dict(), **score.as_dict()}
+        rows = [("after" if before else "score", f"edges vs chance {structural.ratio:.2f}; Canny {score.summary()}")]
         if T_before is not None:
-            img_b, score_b = qa(the_scan, colors, photo, cam, T_before)
+            _, score_b = qa(the_scan, colors, photo, cam, T_before)
+            img_b, structural_b = structural_qa(the_scan, colors, photo, cam, T_before)
             img = side_by_side(img_b, img)
-            result.update(score_b.as_dict("before_"))
-            rows.insert(0, ("before", score_b.summary()))
+            result.update({**structural_b.as_dict("before_"), **score_b.as_dict("before_")})
+            rows.insert(0, ("before", f"edges vs chance {structural_b.ratio:.2f}; Canny {score_b.summary()}"))
     write_image(output, img)
     if json_out:
         with atomic_output(json_out) as tmp:
@@ -403,14 +441,17 @@ def qa_edges(
 @app.command("run")
 def run_workflow(
     config: Path = typer.Argument(..., help="Workflow config (see configs/example.yaml): scan, camera, board, photos, output."),
+    export_failed: bool = typer.Option(False, "--export-failed", help="Also write depth maps for photos whose pose verdict is 'failed'."),
 ) -> None:
     """The whole workflow for one scan and many photos: init-pose -> refine -> export-depth ->
-    qa-edges per photo. Steps whose outputs exist are skipped (a rerun resumes); a photo that
-    fails is reported and the others go on. Writes OUTPUT/<photo>/... and OUTPUT/summary.csv."""
+    qa-edges per photo. Every refined pose gets a verdict (ok | suspect | failed); depth maps are
+    written for ok and suspect poses only (unless --export-failed). Steps whose outputs exist are
+    skipped (a rerun resumes); a photo that fails is reported and the others go on. Writes
+    OUTPUT/<photo>/... and OUTPUT/summary.csv."""
     from rgbd_gt.config import load_config
     from rgbd_gt.io import load_scan, read_camera
     from rgbd_gt.io.scan import scan_colors
-    from rgbd_gt.workflow import PhotoResult, RunConfig, resolve, run_photo, write_summary
+    from rgbd_gt.workflow import PhotoResult, RunConfig, resolve, run_photo, verdict_counts, write_summary
 
     cfg = load_config(RunConfig, config)
     try:
@@ -428,24 +469,29 @@ def run_workflow(
             bar.update(task, description=photo.name)
             try:
                 results.append(run_photo(photo, scan, colors, camera, cfg, scan_path, out_dir,
-                                         lambda step: bar.update(task, step=step)))
+                                         lambda step: bar.update(task, step=step), export_failed))
             except InputError as exc:
                 results.append(PhotoResult(photo.name, status="failed", error=str(exc)))
                 err.print(f"{photo.name}: failed: {exc}", markup=False, highlight=False)
             bar.advance(task)
     write_summary(out_dir / "summary.csv", results)
     table = Table(title=f"rgbd-gt run: {len(photos)} photo(s)")
-    for col in ("photo", "status", "init rms px", "inliers", "edge mean px before -> after", "within 1 px", "s", "skipped"):
+    for col in ("photo", "status", "verdict", "init rms px", "edges vs chance", "edge mean px before -> after", "within 1 px", "s", "skipped"):
         table.add_column(col)
 
     def f(v, fmt):
         return "-" if v is None else format(v, fmt)
 
     for r in results:
-        table.add_row(r.photo, r.status if not r.error else f"failed: {r.error}", f(r.init_rms_px, ".3f"), f(r.inlier_fraction, ".0%"),
+        table.add_row(r.photo, r.status if not r.error else f"failed: {r.error}", _verdict_text(r.verdict), f(r.init_rms_px, ".3f"),
+                      f(r.edge_ratio, ".2f"),
                       f"{f(r.edge_before_px, '.2f')} -> {f(r.edge_after_px, '.2f')}",
                       f"{f(r.within_1px_before, '.0%')} -> {f(r.within_1px_after, '.0%')}", f(r.seconds, ".1f"), " ".join(r.skipped))
     out.print(table)
+    for r in results:
+        if r.reasons:
+            out.print(f"{r.photo}: {r.verdict}: {r.reasons}", markup=False, highlight=False)
+    out.print(f"verdicts: {verdict_counts(results)}")
     out.print(f"outputs in {out_dir}/<photo>/ (init.yaml, pose.yaml, depth.exr, depth.png, qa.png, qa.json); summary in {out_dir / 'summary.csv'}")
     if all(r.status == "failed" for r in results):
         raise typer.Exit(1)

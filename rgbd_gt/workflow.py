@@ -49,9 +49,12 @@ STEPS = ("init", "refine", "depth", "qa")
 class PhotoResult:
     photo: str
     status: str = "ok"
+    verdict: str | None = None  # the refined pose's: ok | suspect | failed
+    reasons: str = ""
     init_rms_px: float | None = None
     refine_loss: float | None = None
     inlier_fraction: float | None = None
+    edge_ratio: float | None = None  # structural edges against chance (1.0 = chance)
     edge_before_px: float | None = None
     edge_after_px: float | None = None
     within_1px_before: float | None = None
@@ -80,9 +83,10 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[Path, Path, list[Path], 
 
 
 def run_photo(photo: Path, scan, colors: np.ndarray, camera, cfg: RunConfig, scan_path: Path, out: Path,
-              progress: Callable[[str], None]) -> PhotoResult:
-    """The four steps for one photo into out/<photo stem>/."""
-    from rgbd_gt.align.refine import RefineInputs, refine_meta, run_refine
+              progress: Callable[[str], None], export_failed: bool = False) -> PhotoResult:
+    """The four steps for one photo into out/<photo stem>/. The depth map is written only for a
+    pose whose verdict is ok or suspect, unless export_failed."""
+    from rgbd_gt.align.refine import RefineInputs, refine_meta, refine_verified
     from rgbd_gt.init.detect import BoardSpec
     from rgbd_gt.init.run import init_from_board, read_csv_rows
     from rgbd_gt.io import read_pose, write_pose
@@ -117,14 +121,19 @@ def run_photo(photo: Path, scan, colors: np.ndarray, camera, cfg: RunConfig, sca
     if files["refine"].exists():
         res.skipped.append("refine")
     else:
-        r = run_refine(RefineInputs(scan.xyz, colors, image, camera, T_init, None), cfg.refine, cfg.device)
-        write_pose(files["refine"], r.T_cam_from_scan, **refine_meta(r, cfg.refine, T_init, files["init"]))
+        inputs = RefineInputs(scan.xyz, colors, image, camera, T_init, None, scan, init_meta)
+        r, verification = refine_verified(inputs, cfg.refine, cfg.device)
+        write_pose(files["refine"], r.T_cam_from_scan, **refine_meta(r, cfg.refine, T_init, files["init"], verification))
     T, meta = read_pose(files["refine"])
     res.refine_loss, res.inlier_fraction = meta.get("final_loss"), meta.get("inlier_fraction")
+    res.verdict, res.reasons = meta.get("verdict"), "; ".join(meta.get("reasons") or [])
+    res.edge_ratio = (meta.get("evidence") or {}).get("edges", {}).get("edge_ratio")
 
     progress("export-depth")
     if files["depth"].exists():
         res.skipped.append("depth")
+    elif res.verdict == "failed" and not export_failed:
+        res.skipped.append("depth (failed)")
     else:
         depth = render_depth(scan, camera, T, cfg.max_depth)
         write_depth_png16(d / "depth.png", depth.z)
@@ -149,8 +158,8 @@ def run_photo(photo: Path, scan, colors: np.ndarray, camera, cfg: RunConfig, sca
 def write_summary(path: Path, results: list[PhotoResult]) -> None:
     from rgbd_gt.io.atomic import atomic_output
 
-    cols = ["photo", "status", "init_rms_px", "refine_loss", "inlier_fraction", "edge_before_px", "edge_after_px",
-            "within_1px_before", "within_1px_after", "seconds", "skipped", "error"]
+    cols = ["photo", "status", "verdict", "init_rms_px", "refine_loss", "inlier_fraction", "edge_ratio", "edge_before_px",
+            "edge_after_px", "within_1px_before", "within_1px_after", "seconds", "skipped", "reasons", "error"]
     with atomic_output(path) as tmp, open(tmp, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(cols)
@@ -158,3 +167,13 @@ def write_summary(path: Path, results: list[PhotoResult]) -> None:
             row = [getattr(r, c) for c in cols]
             row[cols.index("skipped")] = " ".join(r.skipped)
             w.writerow(["" if v is None else (f"{v:.6g}" if isinstance(v, float) else v) for v in row])
+        # the count, in a last row that no photo name can take
+        w.writerow(["# verdicts", "", verdict_counts(results)] + [""] * (len(cols) - 3))
+
+
+def verdict_counts(results: list[PhotoResult]) -> str:
+    """'2 ok, 1 suspect, 0 failed' (photos whose steps failed before a verdict count as failed)."""
+    from rgbd_gt.align.verify import VERDICTS
+
+    n = {v: sum((r.verdict or "failed") == v for r in results) for v in VERDICTS}
+    return ", ".join(f"{n[v]} {v}" for v in VERDICTS)

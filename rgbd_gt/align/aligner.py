@@ -27,7 +27,7 @@ from rgbd_gt.align.robust import student_t_loss, student_t_weights
 from rgbd_gt.align.sampling import bilinear_with_gradient, central_gradients
 from rgbd_gt.errors import InputError
 from rgbd_gt.pose import apply_update
-from rgbd_gt.render.project import project_pinhole
+from rgbd_gt.render.project import project_pinhole, projection_jacobian
 from rgbd_gt.render.zbuffer import cell_size_for, estimate_spacing, visible_points
 
 
@@ -41,6 +41,14 @@ class RefineResult:
     visible_points: int
     seconds: float
     history: list[dict] = field(default_factory=list)
+    # per level, coarse to fine: {level, iterations, stop: converged | iteration cap | damping ran away}
+    levels: list[dict] = field(default_factory=list)
+    level_poses: list[np.ndarray] = field(default_factory=list)  # the pose after each level, coarse to fine
+    # at the result, on the finest level: J^T W J (6, 6) of (rotation vector, translation) in the
+    # camera frame, the weighted residual energy sum(w r^2) and the number of residuals
+    normal_matrix: np.ndarray | None = None
+    weighted_residual_energy: float = 0.0
+    residual_count: int = 0
     start_residuals: tuple[np.ndarray, np.ndarray] | None = None  # (uv (N, 2), |r| (N,)) at full resolution
     end_residuals: tuple[np.ndarray, np.ndarray] | None = None
 
@@ -68,6 +76,8 @@ class _State:
     err: torch.Tensor  # |r| per visible point
     H: np.ndarray | None = None  # (6, 6) Gauss-Newton matrix J^T W J
     g: np.ndarray | None = None  # (6,) gradient J^T W r
+    wrr: float = 0.0  # sum of w r^2 over points and channels (the weighted residual energy)
+    n_residuals: int = 0  # points x channels
 
 
 def texture_score(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cell: int,
@@ -123,6 +133,7 @@ class Aligner:
         c = torch.as_tensor(colors, device=self.device)
         c = c.to(self.dtype) / 255.0 if colors.dtype == np.uint8 else c.to(self.dtype)
         self.target = self.model.target(c.reshape(len(points), -1))
+        self._prepared: tuple[np.ndarray, list[_LevelData]] | None = None
 
     # -- pose conversion between the scan frame and the local frame ---------------------------
     def _to_local(self, T: np.ndarray) -> np.ndarray:
@@ -230,42 +241,54 @@ class Aligner:
         # dr/du = D (dK/dI . dI/du), likewise for v: (n, m)
         a = self.model.kernel_derivative(I, Iu) @ D.T
         b = self.model.kernel_derivative(I, Iv) @ D.T
-        x, y, zz = p.unbind(1)
-        iz = 1.0 / zz
-        K = lv.photo.K
-        fx, fy = K[0, 0], K[1, 1]
-        # d(u, v)/d(rotation vector, translation) for p' = exp(w) p + v at w = v = 0: (n, 6)
-        du = torch.stack([-fx * x * y * iz**2, fx * (1 + x * x * iz**2), -fx * y * iz,
-                          fx * iz, torch.zeros_like(x), -fx * x * iz**2], 1).double()
-        dv = torch.stack([-fy * (1 + y * y * iz**2), fy * x * y * iz**2, fy * x * iz,
-                          torch.zeros_like(x), fy * iz, -fy * y * iz**2], 1).double()
+        du, dv = projection_jacobian(p, lv.photo.K[0, 0], lv.photo.K[1, 1])
+        du, dv = du.double(), dv.double()
         # J_nm = a_nm du_n + b_nm dv_n, so sum_nm w J J^T needs only 2x2 sums over the channels
         saa, sab, sbb = ((w * a * a).sum(1), (w * a * b).sum(1), (w * b * b).sum(1))
         sar, sbr = (w * a * r).sum(1), (w * b * r).sum(1)
         cross = du.T @ (sab.double()[:, None] * dv)
         state.H = (du.T @ (saa.double()[:, None] * du) + cross + cross.T + dv.T @ (sbb.double()[:, None] * dv)).cpu().numpy()
         state.g = (du.T @ sar.double() + dv.T @ sbr.double()).cpu().numpy()
+        state.wrr = float((w * r * r).sum())
+        state.n_residuals = int(r.numel())
         return state
 
     # -- optimisation ----------------------------------------------------------------------------
+    def prepared_levels(self, T_init: np.ndarray) -> list[_LevelData]:
+        """The per-level points for T_init, made once: later calls (the verification's repeat
+        runs from nearby starts) reuse the first call's, so that every run sees the same points."""
+        if self._prepared is None:
+            self._prepared = (np.asarray(T_init, np.float64), self._levels(self._to_local(T_init)))
+        return self._prepared[1]
+
     def refine(self, T_init: np.ndarray, progress: Callable[[dict], None] | None = None,
-               keep_residuals: bool = False) -> RefineResult:
-        """Refine T_init (4x4 T_cam_from_scan). progress(record) is called after each iteration."""
+               keep_residuals: bool = False, finest: int = 0, coarsest: int | None = None,
+               iterations: int | None = None) -> RefineResult:
+        """Refine T_init (4x4 T_cam_from_scan). progress(record) is called after each iteration.
+
+        finest, coarsest: the pyramid levels to run (0 = full resolution; default all);
+        iterations: another cap per level than the config's (the verification's cheap repeat
+        runs use all three)."""
         start = time.perf_counter()
         cfg = self.cfg
-        T = self._to_local(np.asarray(T_init, np.float64))
-        levels = self._levels(T)
+        T_init = np.asarray(T_init, np.float64)
+        levels = self.prepared_levels(T_init)
+        T = self._to_local(T_init)
         history: list[dict] = []
         start_res = None
         if keep_residuals:
             s0 = self._evaluate(levels[0], T, None, jacobian=False)
             start_res = (levels[0].photo.to_photo_pixels(s0.uv).cpu().numpy(), s0.err.cpu().numpy())
         total_iterations = 0
+        level_info, level_poses = [], []
         step = self._lm_level if cfg.optimizer == "lm" else self._adam_level
-        for level in reversed(range(len(levels))):
-            T, n_it = step(levels[level], level, T, history, progress)
+        top = len(levels) - 1 if coarsest is None else min(coarsest, len(levels) - 1)
+        for level in range(top, finest - 1, -1):
+            T, n_it, stop = step(levels[level], level, T, history, progress, iterations)
             total_iterations += n_it
-        final = self._evaluate(levels[0], T, None, jacobian=False)
+            level_info.append({"level": level, "iterations": n_it, "stop": stop})
+            level_poses.append(self._to_scan(T))
+        final = self._evaluate(levels[finest], T, None, jacobian=finest == 0)
         end_res = (levels[0].photo.to_photo_pixels(final.uv).cpu().numpy(), final.err.cpu().numpy()) if keep_residuals else None
         return RefineResult(
             T_cam_from_scan=self._to_scan(T),
@@ -276,9 +299,30 @@ class Aligner:
             visible_points=final.visible,
             seconds=time.perf_counter() - start,
             history=history,
+            levels=level_info,
+            level_poses=level_poses,
+            normal_matrix=final.H,
+            weighted_residual_energy=final.wrr,
+            residual_count=final.n_residuals,
             start_residuals=start_res,
             end_residuals=end_res,
         )
+
+    # -- what the verification (align/verify.py) asks of a result ---------------------------------
+    def visible_scan_points(self, T: np.ndarray) -> np.ndarray:
+        """(n, 3) float64 scan-frame points of the finest level that are visible at pose T."""
+        lv = self._prepared[1][0]
+        idx = self._visible(lv, self._to_local(T))
+        return lv.points[idx].double().cpu().numpy() + self.centre
+
+    def loss_profile(self, T: np.ndarray, deltas: np.ndarray, level: int = 0) -> tuple[float, np.ndarray]:
+        """The robust loss at pose T and at T moved by each update of deltas (k, 6) (`apply_update`),
+        on a pyramid level with the points, color fit and scale of T: how clear a minimum T is."""
+        levels = self._prepared[1]
+        lv = levels[min(level, len(levels) - 1)]
+        T_local = self._to_local(T)
+        state = self._evaluate(lv, T_local, None, jacobian=False)
+        return state.own_loss, np.array([self._loss_at(lv, apply_update(T_local, d), state) for d in deltas])
 
     def _record(self, history, progress, level, iteration, state: _State, delta: np.ndarray, accepted: bool):
         rec = {
@@ -292,18 +336,22 @@ class Aligner:
         if progress is not None:
             progress(rec)
 
-    def _converged(self, delta: np.ndarray) -> bool:
-        return (np.degrees(np.linalg.norm(delta[:3])) < self.cfg.stop_rotation_deg
-                and np.linalg.norm(delta[3:]) < self.cfg.stop_translation_m)
+    def _converged(self, delta: np.ndarray, level: int = 0) -> bool:
+        """The update is below the stop thresholds, scaled by the level's pixel size (2^level):
+        a coarse level only hands its pose on to a finer one."""
+        scale = 2.0**level
+        return (np.degrees(np.linalg.norm(delta[:3])) < self.cfg.stop_rotation_deg * scale
+                and np.linalg.norm(delta[3:]) < self.cfg.stop_translation_m * scale)
 
-    def _lm_level(self, lv, level, T, history, progress):
+    def _lm_level(self, lv, level, T, history, progress, iterations=None):
         """Levenberg-Marquardt on the 6 pose parameters. Visibility, D and sigma are re-fitted at
         every accepted pose; a step is accepted when the robust loss on the same points with the
-        same D and sigma decreases."""
+        same D and sigma decreases. Returns (T, iterations, why it stopped)."""
         state = self._evaluate(lv, T, None, jacobian=True)
         lam = 1e-4
         it = 0
-        for it in range(1, self.cfg.iterations + 1):
+        stop = "iteration cap"
+        for it in range(1, (iterations or self.cfg.iterations) + 1):
             A = state.H + lam * np.diag(np.diag(state.H) + 1e-12)
             delta = -np.linalg.solve(A, state.g)
             T_new = apply_update(T, delta)
@@ -315,11 +363,15 @@ class Aligner:
             else:
                 lam *= 8
             self._record(history, progress, level, it, state, delta, accepted)
-            if (accepted and self._converged(delta)) or lam > 1e6:
+            if accepted and self._converged(delta, level):
+                stop = "converged"
                 break
-        return T, it
+            if lam > 1e6:  # no step lowers the loss: a minimum at this level's precision, or a broken one
+                stop = "damping ran away"
+                break
+        return T, it, stop
 
-    def _adam_level(self, lv, level, T, history, progress):
+    def _adam_level(self, lv, level, T, history, progress, iterations=None):
         """Adam on the 6 pose parameters (the paper's optimiser), separate step sizes for
         rotation and translation."""
         cfg = self.cfg
@@ -328,7 +380,7 @@ class Aligner:
         b1, b2, eps = 0.9, 0.999, 1e-12
         state = None
         it = 0
-        for it in range(1, cfg.adam_iterations + 1):
+        for it in range(1, (iterations or cfg.adam_iterations) + 1):
             state = self._evaluate(lv, T, state, jacobian=True)
             g = state.g / max(state.visible, 1)
             m1 = b1 * m1 + (1 - b1) * g
@@ -336,4 +388,4 @@ class Aligner:
             delta = -lr * (m1 / (1 - b1**it)) / (np.sqrt(m2 / (1 - b2**it)) + eps)
             T = apply_update(T, delta)
             self._record(history, progress, level, it, state, delta, True)
-        return T, it
+        return T, it, "converged" if self._converged(delta, level) else "iteration cap"

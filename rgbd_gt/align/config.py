@@ -2,9 +2,49 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields
 
 from rgbd_gt.align.color_models import MODELS
+
+
+@dataclass
+class VerifyConfig:
+    """The evidence behind a refined pose's verdict and the thresholds that turn it into one
+    (align/verify.py; docs/trust.md says how they were chosen)."""
+
+    repeats: int = 4  # refine again from this many starts around the init (0: no repeatability check)
+    repeat_coarsest: int = 9  # the repeat runs' pyramid levels, coarse (9: the coarsest there is) ...
+    repeat_finest: int = 2  # ... to fine (compared with the result's pose after that level)
+    repeat_iterations: int = 15  # per level of a repeat run
+    start_floor_px: float = 2.0  # the starts move the image at least this much
+    sharpness_step_px: float = 1.5  # the image motion of the sharpness probes (photo pixels) ...
+    sharpness_level: int = 1  # ... on this pyramid level
+    edge_max_side: int = 1280  # the structural edge check renders at most this size (longer side)
+    edge_shift_px: int = 6  # ... and measures chance with its edges shifted this far
+    min_edge_pixels: int = 200  # fewer structural edges than this cannot confirm a pose
+    # thresholds: failed beyond the first of each pair, suspect beyond the second
+    edge_ratio_failed: float = 1.1
+    edge_ratio_ok: float = 1.25
+    spread_failed_px: float = 2.0
+    spread_ok_px: float = 0.5
+    sharpness_failed: float = 0.0
+    sharpness_ok: float = 0.0
+    sigma_failed_px: float = 1.0
+    sigma_ok_px: float = 0.2
+    check_failed_px: float = 5.0
+    check_ok_px: float = 2.0
+    change_max_sigmas: float = 10.0
+
+    def check(self) -> "VerifyConfig":
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if not (v == v and abs(v) != float("inf")):
+                raise ValueError(f"verify.{f.name} must be a finite number, got {v}")
+        if self.repeats < 0 or self.repeat_iterations < 1 or self.repeat_finest < 0 or self.sharpness_level < 0 or self.repeat_coarsest < self.repeat_finest:
+            raise ValueError("verify: repeats >= 0, repeat_iterations >= 1 and 0 <= repeat_finest <= repeat_coarsest")
+        if self.edge_max_side < 64 or self.edge_shift_px < 1 or self.sharpness_step_px <= 0 or self.start_floor_px < 0:
+            raise ValueError("verify: edge_max_side >= 64, edge_shift_px >= 1, sharpness_step_px > 0, start_floor_px >= 0")
+        return self
 
 
 @dataclass
@@ -29,6 +69,7 @@ class RefineConfig:
     min_visible: int = 200  # fewer visible points than this at the start is an error
     seed: int = 0  # point subsampling
     texture_floor: float = 0.1  # points are drawn with probability ~ local scan contrast + this x its mean
+    verify: VerifyConfig = field(default_factory=VerifyConfig)  # the verdict's evidence and thresholds
 
     def check(self) -> "RefineConfig":
         if self.color_model not in MODELS:
@@ -39,4 +80,5 @@ class RefineConfig:
             raise ValueError(f"optimizer must be 'lm' or 'adam', got {self.optimizer!r}")
         if self.levels < 1 or self.iterations < 1 or self.max_points < 10 or self.upsample < 1:
             raise ValueError("levels, upsample, iterations and max_points must be positive")
+        self.verify.check()
         return self

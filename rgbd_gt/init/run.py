@@ -102,11 +102,13 @@ def read_csv_rows(path: Path, fields: str) -> np.ndarray:
     return data
 
 
-def read_correspondences(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """CSV rows u,v,x,y,z -> (img (n, 2), obj (n, 3)); at least 6 rows."""
+def read_correspondences(path: Path, minimum: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """CSV rows u,v,x,y,z -> (img (n, 2), obj (n, 3)); at least `minimum` rows, all finite."""
     data = read_csv_rows(path, "u,v,x,y,z")
-    if len(data) < 6:
-        raise InputError(f"need at least 6 rows of u,v,x,y,z, got {len(data)}", path)
+    if len(data) < minimum:
+        raise InputError(f"need at least {minimum} rows of u,v,x,y,z, got {len(data)}", path)
+    if not np.isfinite(data).all():
+        raise InputError(f"row {int(np.nonzero(~np.isfinite(data).all(1))[0][0]) + 1} has a value that is not a finite number", path)
     return data[:, :2], data[:, 2:]
 
 

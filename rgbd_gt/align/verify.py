@@ -1,0 +1,239 @@
+"""A verdict on a refined pose, from evidence that does not trust the optimiser's own loss.
+
+The loss and the inlier fraction of a wrong pose can equal those of a right one (a color
+transform refitted at every pose fits noise too), so the verdict rests on other questions:
+- how well the data fix the pose (uncertainty from the Gauss-Newton normal matrix);
+- whether each pyramid level converged;
+- whether nearby starts reproduce the result (repeatability);
+- whether the result is a clear minimum of the objective (sharpness);
+- whether the scan's structure lands on the photo's strongest gradients, better than chance
+  (an image check independent of the color model: `qa.edges.structural_qa`);
+- with held-out picked points, their reprojection error; with an init that states its own
+  uncertainty, how far refine moved in units of it.
+Distances between poses are also given as the photo pixels they move the visible scan points,
+so that one threshold serves a room 3 m across and a street 50 m deep.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from rgbd_gt.align.aligner import Aligner, RefineResult
+from rgbd_gt.align.config import VerifyConfig
+from rgbd_gt.camera import Camera, project, without_distortion
+from rgbd_gt.pose import apply_update, rotation_error_deg, transform_points, translation_error_m
+
+VERDICTS = ("ok", "suspect", "failed")
+
+
+@dataclass
+class Verification:
+    verdict: str  # ok | suspect | failed
+    reasons: list[str]  # short sentences, empty when ok
+    evidence: dict  # the numbers (docs/trust.md says what each means)
+    seconds: float = 0.0
+
+
+@dataclass
+class _View:
+    """The visible scan points at the result and the undistorted photo camera, for measuring
+    pose differences in pixels."""
+
+    points: np.ndarray  # (n, 3) scan frame
+    camera: Camera
+
+    def motion_px(self, Ta: np.ndarray, Tb: np.ndarray) -> float:
+        """RMS image motion (photo pixels) of the points between poses Ta and Tb."""
+        ua, za = project(self.camera, transform_points(Ta, self.points))
+        ub, zb = project(self.camera, transform_points(Tb, self.points))
+        ok = (za > 0) & (zb > 0)
+        if not ok.any():
+            return float("inf")
+        return float(np.sqrt(np.mean(np.sum((ua[ok] - ub[ok]) ** 2, axis=1))))
+
+    def pixel_jacobian(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(du, dv) (n, 6) each: photo-pixel motion per unit of (rotation vector, translation)."""
+        import torch
+
+        from rgbd_gt.render.project import projection_jacobian
+
+        p = torch.as_tensor(transform_points(T, self.points))
+        du, dv = projection_jacobian(p, self.camera.fx, self.camera.fy)
+        return du.numpy(), dv.numpy()
+
+    def median_depth(self, T: np.ndarray) -> float:
+        return float(np.median(transform_points(T, self.points)[:, 2]))
+
+
+def uncertainty(result: RefineResult, view: _View) -> dict:
+    """1-sigma pose uncertainty from the final normal matrix H = J^T W J scaled by the residual
+    variance s^2 = sum(w r^2) / (n - 6): covariance s^2 H^-1 of (rotation vector, translation).
+    Returns the worst-determined direction's sigma for rotation (deg), camera position (mm) and
+    image motion (px), and the condition number of H with its parameters scaled to unit diagonal.
+    These treat residuals as independent; neighbouring points share photo pixels, so they are a
+    lower bound, compared against thresholds measured on cases with known truth."""
+    H = result.normal_matrix
+    n = max(result.residual_count - 6, 1)
+    s = 1.0 / np.sqrt(np.clip(np.diag(H), 1e-30, None))
+    Hs = H * s[:, None] * s[None, :]
+    eig = np.linalg.eigvalsh(Hs)
+    if eig[0] <= eig[-1] * 1e-12:
+        return {"rotation_deg": float("inf"), "translation_mm": float("inf"), "image_px": float("inf"), "condition": float("inf")}
+    cov = result.weighted_residual_energy / n * (s[:, None] * np.linalg.inv(Hs) * s[None, :])
+    # the camera centre moves by -R^T v for an update (w, v): the translation block's eigenvalues
+    sig_r = np.sqrt(np.linalg.eigvalsh(cov[:3, :3])[-1])
+    sig_t = np.sqrt(np.linalg.eigvalsh(cov[3:, 3:])[-1])
+    du, dv = view.pixel_jacobian(result.T_cam_from_scan)
+    M = (du.T @ du + dv.T @ dv) / len(du)
+    L = np.linalg.cholesky(cov + 1e-30 * np.eye(6))
+    sig_px = np.sqrt(max(np.linalg.eigvalsh(L.T @ M @ L)[-1], 0.0))
+    return {"rotation_deg": float(np.degrees(sig_r)), "translation_mm": float(sig_t * 1e3), "image_px": float(sig_px),
+            "condition": float(eig[-1] / eig[0])}
+
+
+def start_size(T_init: np.ndarray, T: np.ndarray, init_sigma: dict | None, view: _View, floor_px: float) -> tuple[float, float]:
+    """(rotation rad, translation m) of the starts drawn around the init: the init's own stated
+    uncertainty, else a quarter of the change refine made from it (a start as far from the init
+    as the result is would be a harder problem than the one refine solved); at least what moves
+    the image floor_px."""
+    if init_sigma:
+        rot, trans = np.radians(float(init_sigma["rotation_deg"])), float(init_sigma["translation_mm"]) / 1e3
+    else:
+        rot, trans = 0.25 * np.radians(rotation_error_deg(T, T_init)), 0.25 * translation_error_m(T, T_init)
+    return max(rot, floor_px / view.camera.fx), max(trans, floor_px * view.median_depth(T) / view.camera.fx)
+
+
+def random_starts(T_init: np.ndarray, count: int, rot: float, trans: float, seed: int) -> list[np.ndarray]:
+    """`count` poses around T_init, each turned by `rot` radians about a random axis and moved by
+    `trans` metres in a random direction (camera frame)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(count):
+        a, b = rng.normal(size=3), rng.normal(size=3)
+        out.append(apply_update(T_init, np.r_[a / np.linalg.norm(a) * rot, b / np.linalg.norm(b) * trans]))
+    return out
+
+
+def repeatability(aligner: Aligner, result: RefineResult, T_init: np.ndarray, view: _View, cfg: VerifyConfig,
+                  init_sigma: dict | None, seed: int) -> dict:
+    """Refine again from cfg.repeats starts around the init, on the coarse levels down to
+    cfg.repeat_finest (reusing the prepared points), and compare with the result's own pose
+    after that level. Returns the largest distance (px, mm, deg) and the start size."""
+    n_levels = len(result.levels)
+    finest = min(cfg.repeat_finest, n_levels - 1)
+    reference = result.level_poses[n_levels - 1 - finest]
+    rot, trans = start_size(T_init, result.T_cam_from_scan, init_sigma, view, cfg.start_floor_px)
+    worst = {"px": 0.0, "mm": 0.0, "deg": 0.0}
+    for T0 in random_starts(T_init, cfg.repeats, rot, trans, seed):
+        T = aligner.refine(T0, finest=finest, coarsest=cfg.repeat_coarsest, iterations=cfg.repeat_iterations).T_cam_from_scan
+        worst["px"] = max(worst["px"], view.motion_px(T, reference))
+        worst["mm"] = max(worst["mm"], translation_error_m(T, reference) * 1e3)
+        worst["deg"] = max(worst["deg"], rotation_error_deg(T, reference))
+    return {"spread_px": worst["px"], "spread_mm": worst["mm"], "spread_deg": worst["deg"], "starts": cfg.repeats,
+            "start_rotation_deg": float(np.degrees(rot)), "start_translation_mm": trans * 1e3}
+
+
+def sharpness(aligner: Aligner, T: np.ndarray, view: _View, step_px: float, level: int) -> dict:
+    """The robust loss at the result against the same at the 12 poses that move the image by
+    +-step_px (RMS, photo pixels) along each pose parameter, on one pyramid level: the relative
+    rise (L_k - L_0) / L_0, smallest and median. A right pose is a clear minimum: every rise is
+    positive. (Level 1 sees a 1.5 px motion as well as level 0 does, at a quarter of the cost.)"""
+    du, dv = view.pixel_jacobian(T)
+    per_unit = np.sqrt(np.mean(du**2 + dv**2, axis=0))  # (6,) px per unit parameter
+    steps = np.diag(step_px / np.maximum(per_unit, 1e-12))
+    loss0, losses = aligner.loss_profile(T, np.concatenate([steps, -steps]), level)
+    rise = (losses - loss0) / max(loss0, 1e-12)
+    return {"min_rise": float(rise.min()), "median_rise": float(np.median(rise)), "step_px": step_px}
+
+
+def check_pairs(pairs: tuple[np.ndarray, np.ndarray], camera: Camera, T_init: np.ndarray, T: np.ndarray) -> dict:
+    """RMS reprojection error (px) of held-out picked pairs (img (n, 2), scan points (n, 3)) at the
+    init and at the result."""
+    from rgbd_gt.init.pnp import reprojection_rms
+
+    img, obj = pairs
+    return {"pairs": len(img), "rms_init_px": reprojection_rms(T_init, obj, img, camera),
+            "rms_px": reprojection_rms(T, obj, img, camera)}
+
+
+def decide(ev: dict, cfg: VerifyConfig) -> tuple[str, list[str]]:
+    """The verdict and its reasons from the evidence, by the thresholds in cfg (docs/trust.md)."""
+    failed, suspect = [], []
+    edges = ev.get("edges")
+    if edges is not None:
+        if edges["structural_edge_pixels"] < cfg.min_edge_pixels:
+            suspect.append(f"too few structural edges to check against the photo ({edges['structural_edge_pixels']})")
+        elif not edges["edge_ratio"] >= cfg.edge_ratio_failed:
+            failed.append(f"the scan's edges fit the photo no better than chance (ratio {edges['edge_ratio']:.2f})")
+        elif edges["edge_ratio"] < cfg.edge_ratio_ok:
+            suspect.append(f"the scan's edges fit the photo weakly (ratio {edges['edge_ratio']:.2f})")
+    rep = ev.get("repeatability")
+    if rep is not None:
+        if rep["spread_px"] > cfg.spread_failed_px:
+            failed.append(f"nearby starts end elsewhere ({rep['spread_px']:.1f} px, {rep['spread_mm']:.0f} mm apart)")
+        elif rep["spread_px"] > cfg.spread_ok_px:
+            suspect.append(f"nearby starts disagree by {rep['spread_px']:.2f} px")
+    sh = ev.get("sharpness")
+    if sh is not None:
+        if sh["median_rise"] < cfg.sharpness_failed:
+            failed.append(f"the objective has no clear minimum here (median rise {sh['median_rise']:.3f} at {sh['step_px']} px)")
+        elif sh["min_rise"] < cfg.sharpness_ok:
+            suspect.append(f"the objective is flat in some direction (smallest rise {sh['min_rise']:.3f} at {sh['step_px']} px)")
+    unc = ev["uncertainty"]
+    if not unc["image_px"] <= cfg.sigma_failed_px:
+        failed.append(f"the data do not fix the pose (1-sigma {unc['image_px']:.2f} px)")
+    elif unc["image_px"] > cfg.sigma_ok_px:
+        suspect.append(f"the pose is weakly determined (1-sigma {unc['image_px']:.2f} px, {unc['translation_mm']:.1f} mm)")
+    finest = ev["convergence"]["levels"][-1]
+    if finest["stop"] != "converged":
+        suspect.append(f"the finest level stopped on its {finest['stop']}")
+    chk = ev.get("check")
+    if chk is not None:
+        if chk["rms_px"] > cfg.check_failed_px:
+            failed.append(f"the check points are {chk['rms_px']:.1f} px off")
+        elif chk["rms_px"] > max(cfg.check_ok_px, chk["rms_init_px"]):
+            suspect.append(f"the check points are {chk['rms_px']:.1f} px off ({chk['rms_init_px']:.1f} px at the init)")
+    ch = ev.get("change_in_init_sigmas")
+    if ch is not None and ch > cfg.change_max_sigmas:
+        suspect.append(f"refine moved {ch:.1f} times the init's own uncertainty")
+    if failed:
+        return "failed", failed + suspect
+    return ("suspect", suspect) if suspect else ("ok", [])
+
+
+def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: Camera, photo: np.ndarray,
+           scan, colors: np.ndarray, cfg: VerifyConfig, seed: int = 0, init_meta: dict | None = None,
+           check: tuple[np.ndarray, np.ndarray] | None = None) -> Verification:
+    """The evidence on `result` (refined from T_init by `aligner`) and the verdict.
+
+    camera, photo: the photo's own (distorted) camera and image (H, W, 3) uint8; scan, colors:
+    the scan (`io.Scan`) and its `scan_colors`, for the structural image check; init_meta: the
+    init pose file's other keys (its `uncertainty`, when it states one); check: held-out pairs
+    (img (n, 2) px, scan points (n, 3)).
+    """
+    from rgbd_gt.qa.edges import structural_qa
+
+    start = time.perf_counter()
+    T = result.T_cam_from_scan
+    view = _View(aligner.visible_scan_points(T), without_distortion(camera))
+    ev: dict = {"uncertainty": uncertainty(result, view)}
+    ev["convergence"] = {"levels": result.levels,
+                         "damping_ran_away": any(lv["stop"] == "damping ran away" for lv in result.levels)}
+    init_sigma = (init_meta or {}).get("uncertainty")
+    if cfg.repeats > 0:
+        ev["repeatability"] = repeatability(aligner, result, T_init, view, cfg, init_sigma, seed)
+    ev["sharpness"] = sharpness(aligner, T, view, cfg.sharpness_step_px, cfg.sharpness_level)
+    _, score = structural_qa(scan, colors, photo, camera, T, cfg.edge_max_side, cfg.edge_shift_px)
+    ev["edges"] = score.as_dict()
+    if check is not None:
+        ev["check"] = check_pairs(check, camera, T_init, T)
+    moved_mm, moved_deg = translation_error_m(T, T_init) * 1e3, rotation_error_deg(T, T_init)
+    ev["change_from_init"] = {"translation_mm": moved_mm, "rotation_deg": moved_deg, "image_px": view.motion_px(T, T_init)}
+    if init_sigma:
+        ev["change_in_init_sigmas"] = max(moved_mm / max(float(init_sigma["translation_mm"]), 1e-9),
+                                          moved_deg / max(float(init_sigma["rotation_deg"]), 1e-9))
+    verdict, reasons = decide(ev, cfg)
+    return Verification(verdict, reasons, ev, time.perf_counter() - start)
