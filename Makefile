@@ -26,3 +26,4 @@ bench: $(STAMP)
 	$(PY) benchmarks/export_depth.py
 	$(PY) benchmarks/init_pose.py
 	$(PY) benchmarks/load_large_scan.py
+	$(PY) benchmarks/trust.py

@@ -24,9 +24,13 @@ def test_run_two_photos_then_resume(tmp_path):
     assert "photo_blank.png: failed" in proc.stderr  # reported, and the others went on
     rows = {r["photo"]: r for r in csv.DictReader(open(tmp_path / "out" / "summary.csv"))}
     assert rows["photo_blank.png"]["status"] == "failed" and "checkerboard" in rows["photo_blank.png"]["error"]
+    assert rows["# verdicts"]["verdict"] == "2 ok, 0 suspect, 1 failed"  # the blank photo failed before refine
+    assert "verdicts: 2 ok, 0 suspect, 1 failed" in proc.stdout
     for photo, truth in (("photo", "gt_pose.yaml"), ("photo_1", "gt_pose_1.yaml")):
         r = rows[f"{photo}.png"]
-        assert r["status"] == "ok"
+        assert r["status"] == "ok" and r["verdict"] == "ok", r
+        assert float(r["edge_ratio"]) > 1.25
+        assert yaml.safe_load((tmp_path / "out" / photo / "pose.yaml").read_text())["verdict"] == "ok"
         assert float(r["edge_after_px"]) < float(r["edge_before_px"])
         gt = read_pose(scene / truth)[0]
         T = read_pose(tmp_path / "out" / photo / "pose.yaml")[0]

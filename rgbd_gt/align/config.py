@@ -28,9 +28,9 @@ class VerifyConfig:
     spread_failed_px: float = 2.0
     spread_ok_px: float = 0.5
     sharpness_failed: float = 0.0
-    sharpness_ok: float = 0.0
+    sharpness_ok: float = 0.01
     sigma_failed_px: float = 1.0
-    sigma_ok_px: float = 0.2
+    sigma_ok_px: float = 0.1
     check_failed_px: float = 5.0
     check_ok_px: float = 2.0
     change_max_sigmas: float = 10.0

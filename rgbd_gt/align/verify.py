@@ -164,7 +164,9 @@ def decide(ev: dict, cfg: VerifyConfig) -> tuple[str, list[str]]:
     failed, suspect = [], []
     edges = ev.get("edges")
     if edges is not None:
-        if edges["structural_edge_pixels"] < cfg.min_edge_pixels:
+        if not edges["edge_check_usable"]:
+            suspect.append(f"the scan is too sparse to check against the photo's edges (splats of {edges['splat_radius_px']} px)")
+        elif edges["structural_edge_pixels"] < cfg.min_edge_pixels:
             suspect.append(f"too few structural edges to check against the photo ({edges['structural_edge_pixels']})")
         elif not edges["edge_ratio"] >= cfg.edge_ratio_failed:
             failed.append(f"the scan's edges fit the photo no better than chance (ratio {edges['edge_ratio']:.2f})")
@@ -217,16 +219,24 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
     from rgbd_gt.qa.edges import structural_qa
 
     start = time.perf_counter()
+    seconds: dict[str, float] = {}
+
+    def timed(name, fn, *args):
+        t = time.perf_counter()
+        out = fn(*args)
+        seconds[name] = round(time.perf_counter() - t, 3)
+        return out
+
     T = result.T_cam_from_scan
     view = _View(aligner.visible_scan_points(T), without_distortion(camera))
-    ev: dict = {"uncertainty": uncertainty(result, view)}
+    ev: dict = {"uncertainty": timed("uncertainty", uncertainty, result, view)}
     ev["convergence"] = {"levels": result.levels,
                          "damping_ran_away": any(lv["stop"] == "damping ran away" for lv in result.levels)}
     init_sigma = (init_meta or {}).get("uncertainty")
     if cfg.repeats > 0:
-        ev["repeatability"] = repeatability(aligner, result, T_init, view, cfg, init_sigma, seed)
-    ev["sharpness"] = sharpness(aligner, T, view, cfg.sharpness_step_px, cfg.sharpness_level)
-    _, score = structural_qa(scan, colors, photo, camera, T, cfg.edge_max_side, cfg.edge_shift_px)
+        ev["repeatability"] = timed("repeatability", repeatability, aligner, result, T_init, view, cfg, init_sigma, seed)
+    ev["sharpness"] = timed("sharpness", sharpness, aligner, T, view, cfg.sharpness_step_px, cfg.sharpness_level)
+    _, score = timed("edges", structural_qa, scan, colors, photo, camera, T, cfg.edge_max_side, cfg.edge_shift_px)
     ev["edges"] = score.as_dict()
     if check is not None:
         ev["check"] = check_pairs(check, camera, T_init, T)
@@ -235,5 +245,6 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
     if init_sigma:
         ev["change_in_init_sigmas"] = max(moved_mm / max(float(init_sigma["translation_mm"]), 1e-9),
                                           moved_deg / max(float(init_sigma["rotation_deg"]), 1e-9))
+    ev["seconds"] = seconds
     verdict, reasons = decide(ev, cfg)
     return Verification(verdict, reasons, ev, time.perf_counter() - start)

@@ -8,7 +8,7 @@ import numpy as np
 
 from rgbd_gt.camera import Camera, project
 from rgbd_gt.errors import InputError
-from rgbd_gt.pose import rigid, transform_points
+from rgbd_gt.pose import apply_update, rigid, transform_points
 
 
 def _to_T(rvec, tvec) -> np.ndarray:
@@ -18,6 +18,29 @@ def _to_T(rvec, tvec) -> np.ndarray:
 def reprojection_rms(T: np.ndarray, obj: np.ndarray, img: np.ndarray, camera: Camera) -> float:
     uv, _ = project(camera, transform_points(T, obj))
     return float(np.sqrt(np.mean(np.sum((uv - img) ** 2, axis=1))))
+
+
+def pose_uncertainty(T: np.ndarray, obj: np.ndarray, img: np.ndarray, camera: Camera,
+                     floor_px: float = 0.1) -> dict | None:
+    """1-sigma uncertainty of a PnP pose from its n >= 4 correspondences: covariance
+    s^2 (J^T J)^-1 of the update (rotation vector, translation) in the camera frame, J the
+    reprojection Jacobian (numerical), s^2 = sum(r^2) / (2n - 6) but at least floor_px^2 (a
+    perfect fit does not make a pose exact). The worst direction's sigma for rotation (deg) and
+    camera position (mm), or None when the points do not fix the pose."""
+    n = len(obj)
+    if n < 4:
+        return None
+    def residual(delta):
+        return (project(camera, transform_points(apply_update(T, delta), obj))[0] - img).ravel()
+    r0 = residual(np.zeros(6))
+    h = 1e-6
+    J = np.stack([(residual(h * e) - residual(-h * e)) / (2 * h) for e in np.eye(6)], 1)
+    if not np.isfinite(J).all() or np.linalg.matrix_rank(J) < 6:
+        return None
+    s2 = max(float(r0 @ r0) / max(2 * n - 6, 1), floor_px**2)
+    cov = s2 * np.linalg.inv(J.T @ J)
+    return {"rotation_deg": float(np.degrees(np.sqrt(np.linalg.eigvalsh(cov[:3, :3])[-1]))),
+            "translation_mm": float(np.sqrt(np.linalg.eigvalsh(cov[3:, 3:])[-1]) * 1e3)}
 
 
 def pnp(obj: np.ndarray, img: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
@@ -60,10 +83,10 @@ def color_agreement(T: np.ndarray, points: np.ndarray, gray_scan: np.ndarray, ph
 
 def board_pose(img_corners: np.ndarray, img_ids: np.ndarray, scan_corners: np.ndarray, scan_ids: np.ndarray,
                n_corners: int, camera: Camera, board_points: np.ndarray, board_gray: np.ndarray,
-               photo_gray: np.ndarray, symmetric: bool) -> tuple[np.ndarray, float, float]:
+               photo_gray: np.ndarray, symmetric: bool) -> tuple[np.ndarray, float, float, dict | None]:
     """PnP between photo corners and scan corners matched by id. For chessboards (symmetric)
     the scan's ids may be the photo's turned by 180 degrees; both are solved and the one whose
-    colors agree is kept. Returns (T, reprojection rms px, color correlation)."""
+    colors agree is kept. Returns (T, reprojection rms px, color correlation, `pose_uncertainty`)."""
     orders = [np.arange(n_corners)]
     if symmetric:
         orders.append(np.arange(n_corners)[::-1])
@@ -78,7 +101,7 @@ def board_pose(img_corners: np.ndarray, img_ids: np.ndarray, scan_corners: np.nd
         rms = reprojection_rms(T, scan_corners[b][keep], img_corners[a][keep], camera)
         corr = color_agreement(T, board_points, board_gray, photo_gray, camera)
         if best is None or corr > best[2]:
-            best = (T, rms, corr)
+            best = (T, rms, corr, pose_uncertainty(T, scan_corners[b][keep], img_corners[a][keep], camera))
     if best is None:
         raise InputError("fewer than 6 board corners are common to the photo and the scan")
     return best

@@ -12,7 +12,7 @@ import numpy as np
 from rgbd_gt.camera import Camera, project
 from rgbd_gt.errors import InputError, require_file
 from rgbd_gt.init.detect import BoardSpec, detect_corners
-from rgbd_gt.init.pnp import board_pose, estimate_focal, pnp_ransac, reprojection_rms
+from rgbd_gt.init.pnp import board_pose, estimate_focal, pnp_ransac, pose_uncertainty, reprojection_rms
 from rgbd_gt.init.scan_board import ScanBoard, angular_step, find_board_in_scan, in_convex_polygon
 from rgbd_gt.io.scan import Scan, colors_to_gray, scan_colors
 from rgbd_gt.pose import transform_points
@@ -31,11 +31,16 @@ class InitResult:
     scan_board: ScanBoard | None = None
     seconds: float = 0.0
     extra: dict = field(default_factory=dict)
+    # 1-sigma {rotation_deg, translation_mm} of the pose (refine's verification draws its repeat
+    # starts at this size and compares its change with it)
+    uncertainty: dict | None = None
 
     def pose_meta(self) -> dict:
         """The keys an initial pose file records besides the pose."""
         meta = {"method": self.method, "reprojection_rms_px": self.reprojection_rms_px,
                 "points_used": self.n_points, "seconds": round(self.seconds, 3)}
+        if self.uncertainty is not None:
+            meta["uncertainty"] = self.uncertainty
         if self.color_agreement is not None:
             meta["color_agreement"] = self.color_agreement
         meta.update({k: v for k, v in self.extra.items() if v is not None})
@@ -81,11 +86,11 @@ def init_from_board(scan: Scan, photo: np.ndarray, camera: Camera, spec: BoardSp
         sb = find_board_in_scan(scan.xyz, colors, origin, spec, angular_step(scan.xyz, origin, median_spacing(scan)))
         scan_corners, scan_ids, method = sb.corners, sb.ids, "board found in the scan's virtual views"
     near = board_neighbourhood(scan, scan_corners, spec.square)
-    T, rms, corr = board_pose(img_corners, img_ids, scan_corners, scan_ids, spec.cols * spec.rows, camera,
+    T, rms, corr, sigma = board_pose(img_corners, img_ids, scan_corners, scan_ids, spec.cols * spec.rows, camera,
                               scan.xyz[near], colors_to_gray(colors[near]), photo_gray, symmetric=spec.charuco is None)
     return InitResult(T, f"{'charuco' if spec.charuco else 'checkerboard'} PnP ({method})", rms, len(img_ids), camera,
                       corr, img_corners, scan_corners, sb, time.perf_counter() - start,
-                      {"board_plane_rms_mm": sb.plane_rms_m * 1e3 if sb else None})
+                      {"board_plane_rms_mm": sb.plane_rms_m * 1e3 if sb else None}, sigma)
 
 
 def read_csv_rows(path: Path, fields: str) -> np.ndarray:
@@ -122,7 +127,8 @@ def init_from_correspondences(img: np.ndarray, obj: np.ndarray, camera: Camera, 
     return InitResult(T, "RANSAC PnP on hand-picked correspondences" + (" (focal estimated)" if focal else ""), rms,
                       int(mask.sum()), camera, photo_corners=img, scan_corners=obj, seconds=time.perf_counter() - start,
                       extra={"inliers": int(mask.sum()), "correspondences": len(mask),
-                             "estimated_focal_px": camera.fx if focal else None})
+                             "estimated_focal_px": camera.fx if focal else None},
+                      uncertainty=pose_uncertainty(T, obj[mask], img[mask], camera))
 
 
 def write_report(out_dir: Path, result: InitResult, photo: np.ndarray) -> None:

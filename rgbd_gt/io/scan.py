@@ -11,7 +11,7 @@ import numpy as np
 
 from rgbd_gt.errors import InputError, require_file
 
-SCAN_SUFFIXES = (".e57", ".ply")
+SCAN_SUFFIXES = (".e57", ".ply", ".pcd")
 
 
 @dataclass
@@ -93,7 +93,7 @@ def merge_scans(scans: list[Scan]) -> Scan:
 
 def load_scan(path: str | os.PathLike, scan_index: int | None = None, progress=None,
               require_points: bool = False) -> Scan:
-    """Load an `.e57` or `.ply` scan file.
+    """Load an `.e57`, `.ply` or `.pcd` scan file.
 
     Args:
         path: the file.
@@ -120,6 +120,12 @@ def _load(path: Path, scan_index: int | None, progress) -> Scan:
         if scan_index is not None:
             raise InputError("--scan-index applies to E57 files only", path)
         return read_ply(path)
+    if suffix == ".pcd":
+        from rgbd_gt.io.pcd import read_pcd
+
+        if scan_index is not None:
+            raise InputError("--scan-index applies to E57 files only", path)
+        return read_pcd(path)
     raise InputError(f"unknown scan format '{path.suffix}' (expected one of {', '.join(SCAN_SUFFIXES)})", path)
 
 

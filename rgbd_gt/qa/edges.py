@@ -9,6 +9,7 @@ by several pixels: 1.0 means no better than chance."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import cv2
@@ -49,11 +50,11 @@ def auto_canny(gray: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
     return edges
 
 
-def scan_view(scan: Scan, colors: np.ndarray, camera: Camera, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The scan as the camera sees it: gray values (H, W) float32 0..255 and z-depth (H, W)
-    metres (0 where it sees no scan)."""
+def scan_view(scan: Scan, colors: np.ndarray, camera: Camera, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """The scan as the camera sees it: gray values (H, W) float32 0..255, z-depth (H, W) metres
+    (0 where it sees no scan) and the splat radius in pixels (0 for a mesh)."""
     out = render_depth(scan, camera, T, values=colors_to_gray(colors).reshape(-1, 1))
-    return out.colors[..., 0], out.z
+    return out.colors[..., 0], out.z, out.splat_radius
 
 
 def edge_score(photo_edges: np.ndarray, scan_edges: np.ndarray) -> EdgeScore:
@@ -82,7 +83,7 @@ def side_by_side(before: np.ndarray, after: np.ndarray) -> np.ndarray:
 def qa(scan: Scan, colors: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray) -> tuple[np.ndarray, EdgeScore]:
     """(overlay image, score) for one pose."""
     photo_edges = auto_canny(cv2.cvtColor(photo, cv2.COLOR_RGB2GRAY))
-    gray, z = scan_view(scan, colors, camera, T)
+    gray, z, _ = scan_view(scan, colors, camera, T)
     scan_edges = auto_canny(gray, z > 0)
     return overlay(photo, photo_edges, scan_edges), edge_score(photo_edges, scan_edges)
 
@@ -92,16 +93,22 @@ class StructuralScore:
     """ratio: score / chance (1.0 = no better than chance; nan without structural edges);
     score: mean photo gradient strength (0..1) at the scan's structural edge pixels;
     chance: the same with those edges shifted by a few pixels in 8 directions (mean);
-    edge_pixels: how many structural edge pixels were scored (at the working resolution)."""
+    edge_pixels: how many structural edge pixels were scored (at the working resolution);
+    splat_radius: pixels of the splats a scan without a grid was drawn with (0: a mesh). Splats
+    much wider than the chance shift draw their own squares and rings as edges: the score then
+    says nothing (`usable` is False)."""
 
     ratio: float
     score: float
     chance: float
     edge_pixels: int
+    splat_radius: int = 0
+    usable: bool = True
 
     def as_dict(self, prefix: str = "") -> dict:
         return {f"{prefix}edge_ratio": self.ratio, f"{prefix}edge_strength": self.score,
-                f"{prefix}edge_strength_chance": self.chance, f"{prefix}structural_edge_pixels": self.edge_pixels}
+                f"{prefix}edge_strength_chance": self.chance, f"{prefix}structural_edge_pixels": self.edge_pixels,
+                f"{prefix}splat_radius_px": self.splat_radius, f"{prefix}edge_check_usable": self.usable}
 
 
 def photo_strength(gray: np.ndarray) -> np.ndarray:
@@ -167,11 +174,12 @@ def structural_qa(scan: Scan, colors: np.ndarray, photo: np.ndarray, camera: Cam
                   max_side: int = 1280, shift_px: int = 6) -> tuple[np.ndarray, StructuralScore]:
     """(overlay at the working resolution: red = the photo's strongest gradients, blue = the
     scan's structural edges that were scored, white = both; the chance-relative score) for one
-    pose. shift_px is in working-resolution pixels."""
+    pose. shift_px is in working-resolution pixels; splats wider than it make the score unusable."""
     cam = working_camera(camera, max_side)
     small = photo if cam.size == camera.size else cv2.resize(photo, cam.size, interpolation=cv2.INTER_AREA)
     strength = photo_strength(cv2.cvtColor(small, cv2.COLOR_RGB2GRAY))
-    gray, z = scan_view(scan, colors, cam, T)
+    gray, z, radius = scan_view(scan, colors, cam, T)
     edges = structural_edges(z, gray)
     strong = cv2.erode((strength > 0.5).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0  # undo the 3x3 maximum
-    return overlay(small, strong, edges), chance_relative(strength, edges, shift_px)
+    score = dataclasses.replace(chance_relative(strength, edges, shift_px), splat_radius=radius, usable=radius <= shift_px)
+    return overlay(small, strong, edges), score

@@ -20,6 +20,7 @@ class DepthMap:
     normals: np.ndarray
     method: str
     colors: np.ndarray | None = None  # (H, W, C) the scan's colors where seen (0 elsewhere)
+    splat_radius: int = 0  # pixels, for a scan rendered as splats (0: a mesh, sharp to the pixel)
 
 
 def pixel_rays(camera: Camera) -> np.ndarray:
@@ -92,16 +93,19 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None)
     from rgbd_gt.render.zbuffer import estimate_spacing
 
     p = transform_points(T, scan.xyz)
-    front = p[:, 2] > 1e-3
-    p = p[front]
     uv, z = project(camera, p)
-    if not len(z):
+    # what the camera sees (with a margin for the splats' reach) sizes the splats: the spacing of
+    # the whole scan, or the depth of points behind the image, says nothing about them
+    m = 0.05 * max(camera.size)
+    seen = (z > 1e-3) & (uv[:, 0] > -m) & (uv[:, 1] > -m) & (uv[:, 0] < camera.width + m) & (uv[:, 1] < camera.height + m)
+    uv, z = uv[seen], z[seen]
+    if len(z) < 4:
         zz = np.zeros((camera.height, camera.width), np.float32)
         return DepthMap(zz, np.zeros(zz.shape + (3,), np.float32), "splats (nothing in view)")
-    spacing = estimate_spacing(torch.as_tensor(scan.xyz))
+    spacing = estimate_spacing(torch.as_tensor(p[seen]))
     radius = max(1, int(np.ceil(0.75 * camera.fx * spacing / max(float(np.median(z)), 1e-6))))
-    vals = values[front].astype(np.float32) if values is not None else np.zeros((len(z), 1), np.float32)
+    vals = values[seen].astype(np.float32) if values is not None else np.zeros((len(z), 1), np.float32)
     img, depth, _ = splat(torch.as_tensor(uv), torch.as_tensor(z), torch.as_tensor(vals), camera.size, radius)
     zz = depth.numpy().astype(np.float32)
     return DepthMap(zz, np.zeros(zz.shape + (3,), np.float32), f"splats of radius {radius} px",
-                    img.numpy() if values is not None else None)
+                    img.numpy() if values is not None else None, radius)

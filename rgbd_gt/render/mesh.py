@@ -25,19 +25,28 @@ def grid_triangles(scan: Scan, max_stretch: float = 8.0) -> np.ndarray:
         rows, cols = row.max() - r0 + 1, col.max() - c0 + 1
         grid = np.full((rows, cols), -1, np.int64)
         grid[row - r0, col - c0] = idx
+        origin = origins[min(int(s), len(origins) - 1)]
+        # per grid vertex its point and range, per grid edge its length: each edge serves up to
+        # four triangles, so this is cheaper than measuring every triangle's three edges
+        have = grid >= 0
+        xyz = np.zeros((rows, cols, 3))
+        xyz[have] = scan.xyz[grid[have]]
+        rng = np.where(have, np.linalg.norm(xyz - origin, axis=2), np.inf)
+
+        def length(p, q):
+            return np.linalg.norm(p - q, axis=2)
+
+        ab, cd = length(xyz[:-1, :-1], xyz[:-1, 1:]), length(xyz[1:, :-1], xyz[1:, 1:])
+        ac, bd = length(xyz[:-1, :-1], xyz[1:, :-1]), length(xyz[:-1, 1:], xyz[1:, 1:])
+        bc = length(xyz[:-1, 1:], xyz[1:, :-1])
+        ra, rb, rc, rd = rng[:-1, :-1], rng[:-1, 1:], rng[1:, :-1], rng[1:, 1:]
+        limit = max_stretch * _angular_step(scan.xyz[idx], row, col, origin)
+        ha, hb, hc, hd = have[:-1, :-1], have[:-1, 1:], have[1:, :-1], have[1:, 1:]
+        keep1 = (ha & hb & hc & (np.maximum(np.maximum(ab, bc), ac) <= limit * np.minimum(np.minimum(ra, rb), rc))).ravel()
+        keep2 = (hc & hb & hd & (np.maximum(np.maximum(bc, bd), cd) <= limit * np.minimum(np.minimum(rc, rb), rd))).ravel()
         a, b = grid[:-1, :-1].ravel(), grid[:-1, 1:].ravel()
         c, d = grid[1:, :-1].ravel(), grid[1:, 1:].ravel()
-        cand = np.concatenate([np.stack([a, b, c], 1), np.stack([c, b, d], 1)])
-        cand = cand[np.all(cand >= 0, axis=1)]
-        if not len(cand):
-            continue
-        origin = origins[min(int(s), len(origins) - 1)]
-        p = scan.xyz[cand]  # (T, 3, 3)
-        rng = np.linalg.norm(p - origin, axis=2)
-        step = _angular_step(scan.xyz[idx], row, col, origin)
-        longest = np.max(np.linalg.norm(p - np.roll(p, 1, axis=1), axis=2), axis=1)
-        keep = longest <= max_stretch * step * rng.min(axis=1)
-        tris.append(cand[keep])
+        tris.append(np.concatenate([np.stack([a, b, c], 1)[keep1], np.stack([c, b, d], 1)[keep2]]))
     return np.concatenate(tris) if tris else np.zeros((0, 3), np.int64)
 
 

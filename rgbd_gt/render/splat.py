@@ -27,20 +27,26 @@ def splat(uv: torch.Tensor, z: torch.Tensor, values: torch.Tensor, size: tuple[i
     ok = (z > 1e-6) & (px[:, 0] >= -radius) & (px[:, 1] >= -radius) & (px[:, 0] < w + radius) & (px[:, 1] < h + radius)
     ids = torch.nonzero(ok).squeeze(1)
     px, z = px[ids], z[ids]
-    keys, zs, owners = [], [], []
-    for dy in range(-radius, radius + 1):
-        for dx in range(-radius, radius + 1):
-            x, y = px[:, 0] + dx, px[:, 1] + dy
-            inside = (x >= 0) & (y >= 0) & (x < w) & (y < h)
-            keys.append((y * w + x)[inside])
-            zs.append(z[inside])
-            owners.append(ids[inside])
-    key, zz, owner = torch.cat(keys), torch.cat(zs), torch.cat(owners)
-    zmin = torch.full((h * w,), float("inf"), dtype=zz.dtype, device=zz.device)
-    zmin = zmin.scatter_reduce(0, key, zz, reduce="amin", include_self=True)
-    win = zz <= zmin[key]
-    index = torch.full((h * w,), -1, dtype=torch.long, device=zz.device)
-    index[key[win]] = owner[win]
+    r = torch.arange(-radius, radius + 1, device=px.device)
+    offsets = torch.stack(torch.meshgrid(r, r, indexing="ij"), -1).reshape(-1, 2)  # (K, 2) as (dy, dx)
+    zmin = torch.full((h * w,), float("inf"), dtype=z.dtype, device=z.device)
+    index = torch.full((h * w,), -1, dtype=torch.long, device=z.device)
+    # every point's footprint at once, in chunks of offsets that keep a pass near 2^22 entries
+    chunk = max(1, (1 << 22) // max(len(ids), 1))
+    passes = []
+    for k in range(0, len(offsets), chunk):
+        off = offsets[k:k + chunk]
+        x = px[None, :, 0] + off[:, None, 1]
+        y = px[None, :, 1] + off[:, None, 0]
+        inside = (x >= 0) & (y >= 0) & (x < w) & (y < h)
+        key = (y * w + x)[inside]
+        zz = z.expand_as(x)[inside]
+        owner = ids.expand_as(x)[inside]
+        zmin.scatter_reduce_(0, key, zz, reduce="amin", include_self=True)
+        passes.append((key, zz, owner))
+    for key, zz, owner in passes:  # the nearest point of each pixel owns it
+        win = zz <= zmin[key]
+        index[key[win]] = owner[win]
     have = index >= 0
     image = torch.zeros(h * w, values.shape[1], dtype=values.dtype, device=values.device)
     image[have] = values[index[have]]

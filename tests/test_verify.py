@@ -1,0 +1,127 @@
+"""The verdict on refined poses: right results are ok, a wrong photo and a mirrored photo are not,
+--strict exits 3 on failed; the evidence's parts against their definitions."""
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from conftest import run_cli
+from rgbd_gt.camera import Camera
+from rgbd_gt.init.pnp import pnp, pose_uncertainty
+from rgbd_gt.io import read_pose
+from rgbd_gt.pose import apply_update, rigid
+from rgbd_gt.qa.edges import chance_relative, photo_strength, structural_edges
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    d = tmp_path_factory.mktemp("verify")
+    assert run_cli("synth", d, "--size", "small", "--seed", 3).returncode == 0
+    return d
+
+
+def _refine(d, photo, out, *extra):
+    return run_cli("refine", "--scan", d / "scan.ply", "--image", photo, "--camera", d / "camera.yaml",
+                   "--init", d / "init_pose.yaml", "-o", out, *extra)
+
+
+def test_right_result_is_ok_and_the_pose_file_carries_the_evidence(scene, tmp_path):
+    proc = _refine(scene, scene / "photo.png", tmp_path / "pose.yaml")
+    assert proc.returncode == 0, proc.stderr
+    doc = yaml.safe_load((tmp_path / "pose.yaml").read_text())
+    assert doc["verdict"] == "ok", doc["reasons"]
+    assert doc["reasons"] == []
+    ev = doc["evidence"]
+    for key in ("uncertainty", "convergence", "repeatability", "sharpness", "edges", "change_from_init"):
+        assert key in ev, key
+    assert ev["edges"]["edge_ratio"] > 1.25  # clearly better than chance
+    assert ev["sharpness"]["min_rise"] > 0  # a minimum in every direction
+    assert ev["repeatability"]["starts"] == 4 and ev["repeatability"]["spread_px"] < 0.5
+    assert 0 < ev["uncertainty"]["translation_mm"] < 5 and ev["uncertainty"]["condition"] >= 1
+    assert ev["convergence"]["levels"][-1]["level"] == 0
+    assert "verdict" in proc.stdout
+
+
+def test_mirrored_photo_is_failed_and_strict_exits_3(scene, tmp_path):
+    photo = cv2.imread(str(scene / "photo.png"))
+    cv2.imwrite(str(tmp_path / "mirrored.png"), photo[:, ::-1])
+    out = tmp_path / "pose.yaml"
+    proc = _refine(scene, tmp_path / "mirrored.png", out, "--strict", "--repeats", "2")
+    doc = yaml.safe_load(out.read_text())  # written even when failed, with the verdict
+    assert doc["verdict"] == "failed", doc
+    assert proc.returncode == 3, (proc.returncode, proc.stderr)
+    assert doc["reasons"] and any("chance" in r for r in doc["reasons"]), doc["reasons"]
+
+
+def test_photo_of_another_scene_is_not_ok(scene, tmp_path_factory, tmp_path):
+    other = tmp_path_factory.mktemp("other")
+    assert run_cli("synth", other, "--size", "small", "--seed", 5).returncode == 0
+    out = tmp_path / "pose.yaml"
+    proc = _refine(scene, other / "photo.png", out, "--repeats", "2")
+    assert proc.returncode == 0, proc.stderr  # without --strict a failed verdict is no error
+    doc = yaml.safe_load(out.read_text())
+    assert doc["verdict"] != "ok", doc["evidence"]
+
+
+def test_check_pairs_enter_the_evidence(scene, tmp_path):
+    """Held-out pairs made from the truth: near 0 px after refine, more at the init."""
+    from rgbd_gt.camera import project
+    from rgbd_gt.io import load_scan, read_camera
+    from rgbd_gt.pose import transform_points
+
+    cam = read_camera(scene / "camera.yaml")
+    gt = read_pose(scene / "gt_pose.yaml")[0]
+    xyz = load_scan(scene / "scan.ply").xyz[::5000][:20]
+    uv, z = project(cam, transform_points(gt, xyz))
+    ok = (z > 0) & (uv[:, 0] > 0) & (uv[:, 1] > 0) & (uv[:, 0] < cam.width) & (uv[:, 1] < cam.height)
+    rows = np.concatenate([uv[ok], xyz[ok]], 1)
+    np.savetxt(tmp_path / "check.csv", rows, delimiter=",", header="u,v,x,y,z", comments="")
+    proc = _refine(scene, scene / "photo.png", tmp_path / "pose.yaml", "--check", tmp_path / "check.csv", "--repeats", "0")
+    assert proc.returncode == 0, proc.stderr
+    chk = yaml.safe_load((tmp_path / "pose.yaml").read_text())["evidence"]["check"]
+    assert chk["pairs"] == int(ok.sum()) and chk["rms_px"] < 0.5 < chk["rms_init_px"]
+    assert "repeatability" not in yaml.safe_load((tmp_path / "pose.yaml").read_text())["evidence"]
+
+
+def test_structural_score_is_one_at_chance_and_high_on_matching_edges():
+    rng = np.random.default_rng(0)
+    img = np.zeros((240, 320), np.float32)
+    for _ in range(25):  # rectangles at two depths: depth and color edges in the same places
+        x, y = rng.integers(0, 280), rng.integers(0, 200)
+        img[y:y + rng.integers(10, 40), x:x + rng.integers(10, 40)] = rng.uniform(50, 250)
+    z = np.where(img > 0, 2.0, 3.0).astype(np.float32)
+    edges = structural_edges(z, img)
+    assert edges.sum() > 500
+    strength = photo_strength(img)
+    matched = chance_relative(strength, edges, 6)
+    assert matched.ratio > 2.0
+    noise = photo_strength(rng.uniform(0, 255, img.shape).astype(np.float32))  # no structure: chance
+    assert abs(chance_relative(noise, edges, 6).ratio - 1.0) < 0.05
+    flat = np.zeros_like(z)  # nothing rendered: no edges, nothing to score
+    assert chance_relative(strength, structural_edges(flat, img), 6).edge_pixels == 0
+
+
+def test_pnp_uncertainty_matches_the_spread_of_noisy_solutions():
+    """The stated 1-sigma against the scatter of PnP on many noisy copies of the same picks."""
+    rng = np.random.default_rng(1)
+    cam = Camera(1280, 960, 1000.0, 1000.0, 639.5, 479.5)
+    T = rigid(cv2.Rodrigues(np.array([0.1, -0.2, 0.05]))[0], [0.1, -0.05, 0.2])
+    obj = rng.uniform([-1.5, -1, 3], [1.5, 1, 6], (30, 3))
+    from rgbd_gt.camera import project
+    from rgbd_gt.pose import camera_centre, invert, transform_points
+
+    obj = transform_points(invert(T), obj)
+    img, _ = project(cam, transform_points(T, obj))
+    noise = 0.7
+    centres = []
+    for _ in range(200):
+        Tk, _ = pnp(obj, img + rng.normal(0, noise, img.shape), cam)
+        centres.append(camera_centre(Tk))
+    spread_mm = np.sqrt(np.linalg.eigvalsh(np.cov(np.array(centres).T))[-1]) * 1e3
+    noisy = img + rng.normal(0, noise, img.shape)
+    stated = pose_uncertainty(pnp(obj, noisy, cam)[0], obj, noisy, cam)
+    assert 0.6 < stated["translation_mm"] / spread_mm < 1.6, (stated, spread_mm)
+    assert pose_uncertainty(T, obj[:3], img[:3], cam) is None  # too few points fix nothing
+    moved = apply_update(T, np.r_[0, 0, 0, 0.01, 0, 0])
+    assert pose_uncertainty(moved, obj, img, cam)["translation_mm"] > stated["translation_mm"]  # bad fit, larger sigma
