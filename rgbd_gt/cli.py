@@ -88,7 +88,7 @@ def _fmt_bounds(b: np.ndarray) -> str:
 
 @app.command()
 def ingest(
-    scans: List[Path] = typer.Argument(..., help="Scan files (.e57 or .ply); several are merged in one world frame."),
+    scans: List[Path] = typer.Argument(..., help="Scan files (.e57, .ply or .pcd); several are merged in one world frame."),
     output: Path = typer.Option(..., "-o", "--output", help="Output PLY (binary little-endian)."),
     scan_index: Optional[int] = typer.Option(None, "--scan-index", help="Read only this scan (0-based) of each E57 file."),
     voxel: Optional[float] = typer.Option(None, "--voxel", help="Voxel size in metres for downsampling (averages colors and intensity)."),
@@ -246,7 +246,7 @@ def init_pose(
 
 @app.command()
 def refine(
-    scan: Path = typer.Option(..., "--scan", help="The colored scan (.ply or .e57), in the scan/world frame."),
+    scan: Path = typer.Option(..., "--scan", help="The colored scan (.ply, .e57 or .pcd), in the scan/world frame."),
     image: Path = typer.Option(..., "--image", help="The photo (its size must match the camera file)."),
     camera: Path = typer.Option(..., "--camera", help="Camera file (YAML or OpenCV calibration), with distortion."),
     init: Path = typer.Option(..., "--init", help="Initial pose file (T_cam_from_scan), e.g. from init-pose."),
@@ -318,7 +318,8 @@ def refine(
         ("moved from init", f"{moved_mm:.2f} mm, {moved_deg:.4f} deg"),
         ("uncertainty (1 sigma)", f"{ev['uncertainty']['translation_mm']:.3f} mm, {ev['uncertainty']['rotation_deg']:.4f} deg, "
                                   f"{ev['uncertainty']['image_px']:.3f} px"),
-        ("edges vs chance", f"{ev['edges']['edge_ratio']:.2f} (1.0 = chance)"),
+        ("edges vs chance", f"{ev['edges']['edge_ratio']:.2f} (1.0 = chance)" if ev["edges"]["edge_check_usable"]
+         else f"not usable: the scan is drawn with {ev['edges']['splat_radius_px']} px splats"),
     ]
     if "repeatability" in ev:
         rows.append(("repeat runs", f"{ev['repeatability']['starts']} starts, spread {ev['repeatability']['spread_px']:.3f} px"))
@@ -336,7 +337,7 @@ def refine(
 
 @app.command("export-depth")
 def export_depth(
-    scan: Path = typer.Option(..., "--scan", help="The scan (.ply or .e57)."),
+    scan: Path = typer.Option(..., "--scan", help="The scan (.ply, .e57 or .pcd)."),
     camera: Path = typer.Option(..., "--camera", help="Camera file of the photo (the depth map has its size and distortion)."),
     pose: Path = typer.Option(..., "--pose", help="Pose file (T_cam_from_scan), e.g. from refine."),
     output: Path = typer.Option(..., "-o", "--output", help="Depth map to write (.exr, channel Z, metres, 0 = no depth)."),
@@ -386,7 +387,7 @@ def export_depth(
 
 @app.command("qa-edges")
 def qa_edges(
-    scan: Path = typer.Option(..., "--scan", help="The scan (.ply or .e57)."),
+    scan: Path = typer.Option(..., "--scan", help="The scan (.ply, .e57 or .pcd)."),
     image: Path = typer.Option(..., "--image", help="The photo."),
     camera: Path = typer.Option(..., "--camera", help="Camera file of the photo."),
     pose: Path = typer.Option(..., "--pose", help="The pose to check (T_cam_from_scan)."),
@@ -434,7 +435,8 @@ def qa_edges(
     write_image(output, img)
     if json_out:
         with atomic_output(json_out) as tmp:
-            tmp.write_text(json.dumps(result, indent=1))
+            # JSON has no NaN: a score without edges to score is null
+            tmp.write_text(json.dumps({k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in result.items()}, indent=1))
     _summary("qa-edges", rows, output, None)
 
 
@@ -520,7 +522,8 @@ def bench(
     for row in summary_rows(report):
         table.add_row(*row)
     out.print(table)
-    out.print(f"refine command: {report['refine_command_s']:.2f} s wall, aligner {report['refine_aligner_s']:.2f} s")
+    out.print(f"refine command: {report['refine_command_s']:.2f} s wall, aligner {report['refine_aligner_s']:.2f} s, "
+              f"verdict {report['refine_verify_s']:.2f} s")
     out.print(f"wrote {out_dir / 'benchmark.md'} and {out_dir / 'benchmark_cumulative.png'}")
 
 

@@ -34,6 +34,9 @@ def test_qa_edges_on_a_synthetic_scene(tmp_path):
     assert score["median_distance_px"] < score["before_median_distance_px"]
     assert score["within_1px"] > score["before_within_1px"] + 0.15
     assert score["mean_distance_px"] < 1.0
+    # the structural score: clearly better than chance at the refined pose, and better than at the init
+    assert score["edge_ratio"] > 1.25 and score["edge_ratio"] > score["before_edge_ratio"]
+    assert score["edge_check_usable"] and score["structural_edge_pixels"] > 1000
     import cv2
 
     assert cv2.imread(str(tmp_path / "qa.png")).shape == (480, 2 * 640 + 8, 3)

@@ -15,10 +15,10 @@ class VerifyConfig:
     repeats: int = 4  # refine again from this many starts around the init (0: no repeatability check)
     repeat_coarsest: int = 9  # the repeat runs' pyramid levels, coarse (9: the coarsest there is) ...
     repeat_finest: int = 2  # ... to fine (compared with the result's pose after that level)
-    repeat_iterations: int = 15  # per level of a repeat run
+    repeat_iterations: int = 10  # per level of a repeat run
     start_floor_px: float = 2.0  # the starts move the image at least this much
     sharpness_step_px: float = 1.5  # the image motion of the sharpness probes (photo pixels) ...
-    sharpness_level: int = 1  # ... on this pyramid level
+    sharpness_level: int = 2  # ... on this pyramid level
     edge_max_side: int = 1280  # the structural edge check renders at most this size (longer side)
     edge_shift_px: int = 6  # ... and measures chance with its edges shifted this far
     min_edge_pixels: int = 200  # fewer structural edges than this cannot confirm a pose

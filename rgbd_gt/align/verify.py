@@ -24,6 +24,7 @@ import numpy as np
 from rgbd_gt.align.aligner import Aligner, RefineResult
 from rgbd_gt.align.config import VerifyConfig
 from rgbd_gt.camera import Camera, project, without_distortion
+from rgbd_gt.errors import InputError
 from rgbd_gt.pose import apply_update, rotation_error_deg, transform_points, translation_error_m
 
 VERDICTS = ("ok", "suspect", "failed")
@@ -127,20 +128,26 @@ def repeatability(aligner: Aligner, result: RefineResult, T_init: np.ndarray, vi
     reference = result.level_poses[n_levels - 1 - finest]
     rot, trans = start_size(T_init, result.T_cam_from_scan, init_sigma, view, cfg.start_floor_px)
     worst = {"px": 0.0, "mm": 0.0, "deg": 0.0}
+    lost = 0
     for T0 in random_starts(T_init, cfg.repeats, rot, trans, seed):
-        T = aligner.refine(T0, finest=finest, coarsest=cfg.repeat_coarsest, iterations=cfg.repeat_iterations).T_cam_from_scan
+        try:
+            T = aligner.refine(T0, finest=finest, coarsest=cfg.repeat_coarsest, iterations=cfg.repeat_iterations).T_cam_from_scan
+        except InputError:  # this start lost the scan: it certainly did not reproduce the result
+            lost += 1
+            worst = {k: float("inf") for k in worst}
+            continue
         worst["px"] = max(worst["px"], view.motion_px(T, reference))
         worst["mm"] = max(worst["mm"], translation_error_m(T, reference) * 1e3)
         worst["deg"] = max(worst["deg"], rotation_error_deg(T, reference))
     return {"spread_px": worst["px"], "spread_mm": worst["mm"], "spread_deg": worst["deg"], "starts": cfg.repeats,
-            "start_rotation_deg": float(np.degrees(rot)), "start_translation_mm": trans * 1e3}
+            "lost_the_scan": lost, "start_rotation_deg": float(np.degrees(rot)), "start_translation_mm": trans * 1e3}
 
 
 def sharpness(aligner: Aligner, T: np.ndarray, view: _View, step_px: float, level: int) -> dict:
     """The robust loss at the result against the same at the 12 poses that move the image by
     +-step_px (RMS, photo pixels) along each pose parameter, on one pyramid level: the relative
     rise (L_k - L_0) / L_0, smallest and median. A right pose is a clear minimum: every rise is
-    positive. (Level 1 sees a 1.5 px motion as well as level 0 does, at a quarter of the cost.)"""
+    positive. (A coarse level sees a 1.5 px motion as well as level 0 does, at a fraction of the cost.)"""
     du, dv = view.pixel_jacobian(T)
     per_unit = np.sqrt(np.mean(du**2 + dv**2, axis=0))  # (6,) px per unit parameter
     steps = np.diag(step_px / np.maximum(per_unit, 1e-12))

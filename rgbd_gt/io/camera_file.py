@@ -75,7 +75,9 @@ def read_camera(path: str | os.PathLike) -> Camera:
 
 
 def camera_to_dict(camera: Camera) -> dict:
-    d = {"width": camera.width, "height": camera.height, "fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy}
+    # plain Python numbers: a camera built from numpy values would not serialise
+    d = {"width": int(camera.width), "height": int(camera.height), "fx": float(camera.fx), "fy": float(camera.fy),
+         "cx": float(camera.cx), "cy": float(camera.cy)}
     if camera.distortion:
         d["distortion"] = [float(x) for x in camera.distortion]
     return d

@@ -1,0 +1,60 @@
+"""PCD scans: the real LiDAR sweeps, every DATA variant written by Open3D, and broken files."""
+
+import numpy as np
+import pytest
+
+from conftest import DATA, assert_one_line_error, run_cli
+from rgbd_gt.errors import InputError
+from rgbd_gt.io import load_scan
+from rgbd_gt.io.pcd import normalise_intensity
+
+
+def test_real_lidar_sweeps():
+    folder = DATA / "lidar_camera"
+    if not folder.exists():
+        pytest.skip(f"real test data not found at {folder}")
+    for k, n in ((1, 101_340), (2, 98_805), (3, 85_546)):
+        s = load_scan(folder / f"pjlab_{k}" / "calib.pcd")
+        assert len(s) == n and s.fields == ["xyz", "intensity"]
+        assert np.isfinite(s.xyz).all() and 0 <= s.intensity.min() and s.intensity.max() <= 1
+        assert 0.2 < np.median(s.intensity) < 0.6  # raw 0-255 returns, median ~50, over their 99th percentile
+        assert np.abs(s.xyz).max() < 300 and np.array_equal(s.origins, [[0, 0, 0]])
+
+
+@pytest.mark.parametrize("ascii, compressed", [(True, False), (False, False), (False, True)])
+def test_written_variants_read_back(tmp_path, ascii, compressed):
+    import open3d as o3d
+
+    rng = np.random.default_rng(0)
+    xyz = rng.uniform(-20, 20, (500, 3)).astype(np.float32)
+    raw = rng.uniform(0, 255, (500, 1)).astype(np.float32)
+    pc = o3d.t.geometry.PointCloud()
+    pc.point.positions = o3d.core.Tensor(xyz)
+    pc.point.intensity = o3d.core.Tensor(raw)
+    path = tmp_path / "sweep.pcd"
+    assert o3d.t.io.write_point_cloud(str(path), pc, write_ascii=ascii, compressed=compressed)
+    assert (b"binary_compressed" in path.read_bytes()[:400]) == compressed
+    s = load_scan(path)
+    np.testing.assert_allclose(s.xyz, xyz, atol=1e-4)
+    np.testing.assert_allclose(s.intensity, normalise_intensity(raw), atol=1e-4)
+
+
+def test_intensity_already_in_unit_range_is_kept():
+    v = np.array([0.0, 0.25, 1.0], np.float32)
+    np.testing.assert_array_equal(normalise_intensity(v), v)
+    assert normalise_intensity(np.array([0, 100, 10_000], np.float32)).max() == 1.0  # a retro-reflector clips
+
+
+def test_broken_pcd_files(tmp_path):
+    (tmp_path / "junk.pcd").write_bytes(b"hello\nworld\n")
+    with pytest.raises(InputError, match="not a PCD file"):
+        load_scan(tmp_path / "junk.pcd")
+    header = "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 100\nHEIGHT 1\nPOINTS 100\nDATA binary\n"
+    (tmp_path / "short.pcd").write_bytes(header.encode() + np.zeros(30, np.float32).tobytes())  # 10 of 100 points
+    with pytest.raises(InputError):
+        load_scan(tmp_path / "short.pcd")
+    (tmp_path / "noxyz.pcd").write_text(header.replace("FIELDS x y z", "FIELDS a b c"))
+    with pytest.raises(InputError, match="no x y z"):
+        load_scan(tmp_path / "noxyz.pcd")
+    assert_one_line_error(run_cli("ingest", tmp_path / "short.pcd", "-o", tmp_path / "out.ply"), "short.pcd")
+    assert not (tmp_path / "out.ply").exists()
