@@ -20,11 +20,11 @@ from typing import Callable
 import numpy as np
 import torch
 
-from rgbd_gt.align.color_models import ColorModel, fit_with_inliers, unclipped
+from rgbd_gt.align.color_models import ColorModel, fit_many_with_inliers, fit_with_inliers, unclipped
 from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.align.pyramid import PhotoLevel
 from rgbd_gt.align.robust import student_t_loss, student_t_weights
-from rgbd_gt.align.sampling import bilinear_with_gradient, central_gradients
+from rgbd_gt.align.sampling import bilinear, bilinear_with_gradient, central_gradients
 from rgbd_gt.errors import InputError
 from rgbd_gt.pose import apply_update
 from rgbd_gt.render.project import project_pinhole, projection_jacobian
@@ -80,6 +80,26 @@ class _State:
     n_residuals: int = 0  # points x channels
 
 
+@dataclass
+class _Many:
+    """One evaluation of several poses at once (the verification's repeat runs): per pose B its
+    visible points, color fit, robust scale, loss and Gauss-Newton system."""
+
+    loss: np.ndarray  # (B,)
+    D: torch.Tensor  # (B, m, k)
+    sigma2: torch.Tensor  # (B, 1, 1)
+    mask: torch.Tensor  # (B, n) the level's points visible on usable pixels
+    H: np.ndarray  # (B, 6, 6)
+    g: np.ndarray  # (B, 6)
+
+    def where(self, keep: np.ndarray, other: "_Many") -> "_Many":
+        """Per pose: this state where keep (B,) is True, else other's."""
+        k = torch.as_tensor(keep, device=self.D.device)
+        return _Many(np.where(keep, self.loss, other.loss), torch.where(k[:, None, None], self.D, other.D),
+                     torch.where(k[:, None, None], self.sigma2, other.sigma2), torch.where(k[:, None], self.mask, other.mask),
+                     np.where(keep[:, None, None], self.H, other.H), np.where(keep[:, None], self.g, other.g))
+
+
 def texture_score(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cell: int,
                   colors: torch.Tensor) -> torch.Tensor:
     """Per point (N,), the local contrast of the scan's own colors as seen from a pose: the
@@ -101,6 +121,16 @@ def texture_score(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cell
     g[1:-1] += torch.where(ok, (img[2:] - img[:-2]).abs(), torch.zeros_like(img[1:-1]))
     g = torch.nn.functional.max_pool2d(g[None, None], 3, stride=1, padding=1)[0, 0]
     return torch.where(vis, g.reshape(-1)[key], torch.zeros_like(gray))
+
+
+def _thinned(lv: _LevelData, n: int) -> _LevelData:
+    """The level with only its first n points; the Z-buffer cell grows with their spacing
+    (spacing ~ 1 / sqrt(density)), so that background points still cannot show through."""
+    total = lv.points.shape[0]
+    if n >= total:
+        return lv
+    cell = min(int(math.ceil(lv.cell * math.sqrt(total / n))), 16 * lv.photo.zoom)
+    return _LevelData(lv.photo, lv.grads, lv.points[:n], lv.target[:n], max(cell, lv.cell))
 
 
 def _valid_at(valid: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
@@ -307,6 +337,100 @@ class Aligner:
             start_residuals=start_res,
             end_residuals=end_res,
         )
+
+    # -- several poses at once (the verification's repeat runs) ------------------------------------
+    def refine_many(self, starts: list[np.ndarray], finest: int = 0, coarsest: int | None = None,
+                    iterations: int | None = None, max_points: int | None = None) -> list[np.ndarray | None]:
+        """`refine` from each of several starts (4x4 T_cam_from_scan) on the prepared points,
+        Levenberg-Marquardt on all of them in one set of tensor operations (each keeps its own
+        damping, acceptance and stop). max_points: use at most this many of each level's points
+        (their prefix, which favours textured ones). Returns the poses, None for a start that
+        lost the scan."""
+        levels = [_thinned(lv, max_points) for lv in self._prepared[1]] if max_points else self._prepared[1]
+        Ts = [self._to_local(np.asarray(T, np.float64)) for T in starts]
+        lost = np.zeros(len(Ts), bool)
+        top = len(levels) - 1 if coarsest is None else min(coarsest, len(levels) - 1)
+        for level in range(top, finest - 1, -1):
+            Ts, lost = self._lm_many(levels[level], level, Ts, lost, iterations or self.cfg.iterations)
+        return [None if gone else self._to_scan(T) for T, gone in zip(Ts, lost)]
+
+    def _project_many(self, lv: _LevelData, Ts: list[np.ndarray]):
+        """The level's points at each pose: camera-frame (B, n, 3), pixels (B*n, 2), depths (B*n,)."""
+        R = torch.stack([self._pose_tensors(T)[0] for T in Ts])
+        t = torch.stack([self._pose_tensors(T)[1] for T in Ts])
+        p = torch.einsum("bij,nj->bni", R, lv.points) + t[:, None]
+        uv, z = project_pinhole(p.reshape(-1, 3), lv.photo.K)
+        w, h = lv.photo.camera.size
+        return p, uv, z, torch.stack([uv[:, 0].clamp(0, w - 1), uv[:, 1].clamp(0, h - 1)], 1)
+
+    def _evaluate_many(self, lv: _LevelData, Ts: list[np.ndarray], prev: _Many | None) -> _Many:
+        """`_evaluate` (with the Jacobian) at each of several poses."""
+        cfg = self.cfg
+        p, uv, z, uvc = self._project_many(lv, Ts)
+        B, n = p.shape[:2]
+        group = torch.arange(B, device=self.device).repeat_interleave(n)
+        vis = visible_points(uv, z, lv.photo.camera.size, lv.cell, cfg.zbuffer_rel_tol, cfg.zbuffer_abs_tol, group=group)
+        if lv.photo.valid is not None:
+            vis &= _valid_at(lv.photo.valid, uv)
+        vis = vis.reshape(B, n)
+        I, Iu, Iv = bilinear_with_gradient(lv.photo.image, uvc, cfg.gradient, lv.grads)
+        Kk = self.model.kernel(I).reshape(B, n, -1)
+        m, k = lv.target.shape[1], Kk.shape[2]
+        if self.model.fitted:
+            fit = vis & unclipped(I).reshape(B, n)
+            few = fit.sum(1) < torch.clamp(0.05 * vis.sum(1), min=100)  # a photo clipped almost everywhere
+            fit = torch.where(few[:, None], vis, fit)
+            D, _ = fit_many_with_inliers(Kk, lv.target, fit, cfg.beta_max, D0=prev.D if prev is not None else None)
+        else:
+            D = self.model.identity(k, m, Kk).expand(B, m, k)
+        r = (Kk @ D.transpose(1, 2)).clamp(0, 1) - lv.target
+        w, sigma2 = student_t_weights(r, cfg.nu, prev.sigma2 if prev is not None else None, mask=vis)
+        loss = student_t_loss(r, cfg.nu, sigma2, mask=vis)
+        a = self.model.kernel_derivative(I, Iu).reshape(B, n, k) @ D.transpose(1, 2)
+        b = self.model.kernel_derivative(I, Iv).reshape(B, n, k) @ D.transpose(1, 2)
+        du, dv = projection_jacobian(p.reshape(-1, 3), lv.photo.K[0, 0], lv.photo.K[1, 1])
+        du, dv = du.double().reshape(B, n, 6), dv.double().reshape(B, n, 6)
+        w = w * vis[..., None]
+        saa, sab, sbb = ((w * a * a).sum(2).double(), (w * a * b).sum(2).double(), (w * b * b).sum(2).double())
+        sar, sbr = (w * a * r).sum(2).double(), (w * b * r).sum(2).double()
+        duT, dvT = du.transpose(1, 2), dv.transpose(1, 2)
+        cross = duT @ (sab[..., None] * dv)
+        H = duT @ (saa[..., None] * du) + cross + cross.transpose(1, 2) + dvT @ (sbb[..., None] * dv)
+        g = (duT @ sar[..., None] + dvT @ sbr[..., None])[..., 0]
+        return _Many(loss.double().cpu().numpy(), D, sigma2, vis, H.cpu().numpy(), g.cpu().numpy())
+
+    def _loss_many(self, lv: _LevelData, Ts: list[np.ndarray], state: _Many) -> np.ndarray:
+        """`_loss_at` for several poses: (B,) the robust loss on each state's points with its D and sigma."""
+        _, _, _, uvc = self._project_many(lv, Ts)
+        Kk = self.model.kernel(bilinear(lv.photo.image, uvc)).reshape(len(Ts), lv.points.shape[0], -1)
+        r = (Kk @ state.D.transpose(1, 2)).clamp(0, 1) - lv.target
+        return student_t_loss(r, self.cfg.nu, state.sigma2, mask=state.mask).double().cpu().numpy()
+
+    def _lm_many(self, lv, level, Ts, lost, iterations):
+        """`_lm_level` for several poses in lockstep. Returns (poses, lost): a pose that sees fewer
+        than 10 points is lost and no longer moves."""
+        state = self._evaluate_many(lv, Ts, None)
+        lost = lost | (state.mask.sum(1) < 10).cpu().numpy()
+        lam = np.full(len(Ts), 1e-4)
+        active = ~lost
+        for _ in range(iterations):
+            if not active.any():
+                break
+            deltas = np.zeros((len(Ts), 6))
+            for i in np.nonzero(active)[0]:
+                deltas[i] = -np.linalg.solve(state.H[i] + lam[i] * np.diag(np.diag(state.H[i]) + 1e-12), state.g[i])
+            T_new = [apply_update(T, d) if on else T for T, d, on in zip(Ts, deltas, active)]
+            accepted = active & (self._loss_many(lv, T_new, state) <= state.loss)
+            if accepted.any():
+                Ts = [Tn if ok else T for T, Tn, ok in zip(Ts, T_new, accepted)]
+                state = self._evaluate_many(lv, Ts, state).where(accepted, state)
+                gone = accepted & (state.mask.sum(1) < 10).cpu().numpy()
+                lost |= gone
+                active &= ~gone
+            lam = np.where(accepted, np.maximum(lam / 4, 1e-7), np.where(active, lam * 8, lam))
+            done = accepted & np.array([self._converged(d, level) for d in deltas])
+            active &= ~done & (lam <= 1e6)
+        return Ts, lost
 
     # -- what the verification (align/verify.py) asks of a result ---------------------------------
     def visible_scan_points(self, T: np.ndarray) -> np.ndarray:

@@ -100,20 +100,9 @@ def unclipped(I: torch.Tensor, levels: int = 255) -> torch.Tensor:
 
 def fit_transform(K: torch.Tensor, target: torch.Tensor, weights: torch.Tensor | None = None,
                   ridge: float = 1e-10) -> torch.Tensor:
-    """Least-squares D (m, k) minimising sum_i w_i |D K_i - t_i|^2.
-
-    A tiny ridge keeps the solve well posed when a kernel column is constant (a gray photo).
-    Solved in float64: the quadratic kernel's normal matrix is badly conditioned.
-    """
-    Kd, td = K.double(), target.double()
-    if weights is not None:
-        w = weights.double().unsqueeze(1)
-        A, b = Kd.T @ (Kd * w), Kd.T @ (td * w)
-    else:
-        A, b = Kd.T @ Kd, Kd.T @ td
-    scale = A.diagonal().mean().clamp_min(1e-12)
-    A = A + ridge * scale * torch.eye(A.shape[0], dtype=A.dtype, device=A.device)
-    return torch.linalg.solve(A, b).T.to(K.dtype)
+    """Least-squares D (m, k) minimising sum_i w_i |D K_i - t_i|^2 (`fit_transforms` for one pose)."""
+    w = torch.ones(K.shape[0], dtype=K.dtype, device=K.device) if weights is None else weights
+    return fit_transforms(K[None], target, w[None], ridge)[0]
 
 
 def fit_with_inliers(K: torch.Tensor, target: torch.Tensor, beta_max: float, rounds: int = 3,
@@ -123,17 +112,49 @@ def fit_with_inliers(K: torch.Tensor, target: torch.Tensor, beta_max: float, rou
 
     When fewer than `min_fraction` of the points would be inliers (far from alignment), the
     best `min_fraction` by residual are used, so the fit never collapses. Returns (D, inlier mask).
+    (`fit_many_with_inliers` for one pose.)
     """
-    n = K.shape[0]
-    inliers = torch.ones(n, dtype=torch.bool, device=K.device)
-    D = fit_transform(K, target) if D0 is None else D0
+    mask = torch.ones(1, K.shape[0], dtype=torch.bool, device=K.device)
+    D, inliers = fit_many_with_inliers(K[None], target, mask, beta_max, rounds, min_fraction,
+                                       None if D0 is None else D0[None])
+    return D[0], inliers[0]
+
+
+def fit_transforms(K: torch.Tensor, target: torch.Tensor, weights: torch.Tensor, ridge: float = 1e-10) -> torch.Tensor:
+    """Least-squares D (B, m, k) minimising sum_i w_bi |D_b K_bi - t_i|^2 for several poses at once:
+    K (B, n, k) the kernels of each pose's samples, target (n, m) the points' targets, weights
+    (B, n) (a bool mask: the rows each fit uses).
+
+    A tiny ridge keeps the solve well posed when a kernel column is constant (a gray photo).
+    Solved in float64: the quadratic kernel's normal matrix is badly conditioned.
+    """
+    Kd = K.double()
+    Kw = (Kd * weights.double()[..., None]).transpose(1, 2)
+    A, b = Kw @ Kd, Kw @ target.double()
+    scale = A.diagonal(dim1=1, dim2=2).mean(1).clamp_min(1e-12)[:, None, None]
+    A = A + ridge * scale * torch.eye(A.shape[1], dtype=A.dtype, device=A.device)
+    return torch.linalg.solve(A, b).transpose(1, 2).to(K.dtype)
+
+
+def fit_many_with_inliers(K: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, beta_max: float, rounds: int = 3,
+                          min_fraction: float = 0.2, D0: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """`fit_with_inliers` for several poses at once (K (B, n, k), target (n, m), mask (B, n) of
+    the rows each may use, D0 (B, m, k)); the rounds stop when no pose's inliers change.
+    Returns (D (B, m, k), inliers (B, n))."""
+    inliers = mask.clone()
+    D = fit_transforms(K, target, mask) if D0 is None else D0
+    count = mask.sum(1)
     for _ in range(rounds if D0 is None else 1):
-        err = (K @ D.T - target).norm(dim=1)
-        new = err < beta_max
-        if new.sum() < min_fraction * n:
-            new = err <= err.kthvalue(max(1, int(min_fraction * n))).values
+        err = (K @ D.transpose(1, 2) - target).norm(dim=2)
+        new = mask & (err < beta_max)
+        few = new.sum(1) < min_fraction * count
+        if few.any():  # far from alignment: the best min_fraction of that pose's rows
+            ranked = torch.where(mask, err, torch.full_like(err, float("inf"))).sort(dim=1).values
+            k = (min_fraction * count).long().clamp_min(1) - 1
+            kth = ranked.gather(1, k[:, None])
+            new = torch.where(few[:, None], mask & (err <= kth), new)
         if torch.equal(new, inliers):
             break
         inliers = new
-        D = fit_transform(K[inliers], target[inliers])
+        D = fit_transforms(K, target, inliers)
     return D, inliers

@@ -16,6 +16,7 @@ class VerifyConfig:
     repeat_coarsest: int = 9  # the repeat runs' pyramid levels, coarse (9: the coarsest there is) ...
     repeat_finest: int = 2  # ... to fine (compared with the result's pose after that level)
     repeat_iterations: int = 10  # per level of a repeat run
+    repeat_points: int = 2000  # ... on at most this many points per level (0: all the level's)
     start_floor_px: float = 2.0  # the starts move the image at least this much
     sharpness_step_px: float = 1.5  # the image motion of the sharpness probes (photo pixels) ...
     sharpness_level: int = 2  # ... on this pyramid level
@@ -25,10 +26,10 @@ class VerifyConfig:
     # thresholds: failed beyond the first of each pair, suspect beyond the second
     edge_ratio_failed: float = 1.1
     edge_ratio_ok: float = 1.25
-    spread_failed_px: float = 2.0
-    spread_ok_px: float = 0.5
+    spread_failed_px: float = 3.0
+    spread_ok_px: float = 1.0
     sharpness_failed: float = 0.0
-    sharpness_ok: float = 0.01
+    sharpness_ok: float = 0.003
     sigma_failed_px: float = 1.0
     sigma_ok_px: float = 0.1
     check_failed_px: float = 5.0
@@ -40,7 +41,7 @@ class VerifyConfig:
             v = getattr(self, f.name)
             if not (v == v and abs(v) != float("inf")):
                 raise ValueError(f"verify.{f.name} must be a finite number, got {v}")
-        if self.repeats < 0 or self.repeat_iterations < 1 or self.repeat_finest < 0 or self.sharpness_level < 0 or self.repeat_coarsest < self.repeat_finest:
+        if self.repeats < 0 or self.repeat_iterations < 1 or self.repeat_points < 0 or self.repeat_finest < 0 or self.sharpness_level < 0 or self.repeat_coarsest < self.repeat_finest:
             raise ValueError("verify: repeats >= 0, repeat_iterations >= 1 and 0 <= repeat_finest <= repeat_coarsest")
         if self.edge_max_side < 64 or self.edge_shift_px < 1 or self.sharpness_step_px <= 0 or self.start_floor_px < 0:
             raise ValueError("verify: edge_max_side >= 64, edge_shift_px >= 1, sharpness_step_px > 0, start_floor_px >= 0")

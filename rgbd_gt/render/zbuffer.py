@@ -36,7 +36,8 @@ def cell_size_for(spacing_m: float, focal_px: float, median_depth_m: float, mini
 
 
 def visible_points(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cell: int,
-                   rel_tol: float = 0.02, abs_tol: float = 0.01, near: float = 1e-3) -> torch.Tensor:
+                   rel_tol: float = 0.02, abs_tol: float = 0.01, near: float = 1e-3,
+                   group: torch.Tensor | None = None) -> torch.Tensor:
     """Boolean mask (N,) of points that are in the image, in front of the camera and not occluded.
 
     Args:
@@ -44,6 +45,8 @@ def visible_points(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cel
         size: (width, height) of the image.
         cell: Z-buffer cell side in pixels.
         rel_tol, abs_tol: a point is visible when z <= zmin_cell * (1 + rel_tol) + abs_tol.
+        group: (N,) int64, optional: points of different groups (the same points seen from
+            several poses) are in separate Z-buffers.
     """
     w, h = size
     u, v = uv[:, 0], uv[:, 1]
@@ -52,7 +55,11 @@ def visible_points(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cel
     cx = (u.clamp(0, w - 1) / cell).long()
     cy = (v.clamp(0, h - 1) / cell).long()
     key = cy * cw + cx
+    groups = 1
+    if group is not None:
+        groups = int(group.max()) + 1 if group.numel() else 1
+        key = key + group * (ch * cw)
     zz = torch.where(inside, z, torch.full_like(z, float("inf")))
-    zmin = torch.full((ch * cw,), float("inf"), dtype=z.dtype, device=z.device)
+    zmin = torch.full((groups * ch * cw,), float("inf"), dtype=z.dtype, device=z.device)
     zmin = zmin.scatter_reduce(0, key, zz, reduce="amin", include_self=True)
     return inside & (z <= zmin[key] * (1 + rel_tol) + abs_tol)
