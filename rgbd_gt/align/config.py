@@ -15,8 +15,8 @@ class VerifyConfig:
     repeats: int = 4  # refine again from this many starts around the init (0: no repeatability check)
     repeat_coarsest: int = 9  # the repeat runs' pyramid levels, coarse (9: the coarsest there is) ...
     repeat_finest: int = 2  # ... to fine (compared with the result's pose after that level)
-    repeat_iterations: int = 10  # per level of a repeat run
-    repeat_points: int = 2000  # ... on at most this many points per level (0: all the level's)
+    repeat_iterations: int = 6  # per level of a repeat run
+    repeat_points: int = 0  # ... on at most this many points per level (0: all the level's)
     start_floor_px: float = 2.0  # the starts move the image at least this much
     sharpness_step_px: float = 1.5  # the image motion of the sharpness probes (photo pixels) ...
     sharpness_level: int = 2  # ... on this pyramid level
@@ -25,7 +25,7 @@ class VerifyConfig:
     min_edge_pixels: int = 200  # fewer structural edges than this cannot confirm a pose
     # thresholds: failed beyond the first of each pair, suspect beyond the second
     edge_ratio_failed: float = 1.1
-    edge_ratio_ok: float = 1.25
+    edge_ratio_ok: float = 1.2
     spread_failed_px: float = 3.0
     spread_ok_px: float = 1.0
     sharpness_failed: float = 0.0

@@ -139,13 +139,15 @@ def synthetic_cases(folder: Path, seeds: list[int], other_photo: np.ndarray | No
 
     for seed in seeds:
         d = folder / f"seed{seed}"
-        if not (d / "scene.json").exists():
-            generate(d, seed, "small", load_config(SynthConfig, None, "synth.yaml"))
+        if not (d / "photo_1.png").exists():
+            generate(d, seed, "small", load_config(SynthConfig, None, "synth.yaml"), photos=2)
         s = load_scan(d / "scan.ply")
         photo, cam = read_image(d / "photo.png"), read_camera(d / "camera.yaml")
         T_true, T_init = read_pose(d / "gt_pose.yaml")[0], read_pose(d / "init_pose.yaml")[0]
         base = dict(source="synthetic", scan=s, colors=s.rgb, camera=cam, T_init=T_init, T_true=T_true)
         yield TrustCase(f"synthetic {seed}", kind="right", photo=photo, **base)
+        yield TrustCase(f"synthetic {seed} photo_1", kind="right", photo=read_image(d / "photo_1.png"),
+                        **{**base, "T_init": read_pose(d / "init_pose_1.yaml")[0], "T_true": read_pose(d / "gt_pose_1.yaml")[0]})
         variants = [("mirrored", dict(photo=np.ascontiguousarray(photo[:, ::-1]))),
                     ("tiles shuffled", dict(photo=shuffled_tiles(photo, rng))),
                     ("far init", dict(photo=photo, T_init=far_init(T_true, rng))),
