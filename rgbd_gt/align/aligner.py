@@ -123,6 +123,22 @@ def texture_score(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cell
     return torch.where(vis, g.reshape(-1)[key], torch.zeros_like(gray))
 
 
+def _normal_equations(du: torch.Tensor, dv: torch.Tensor, a: torch.Tensor, b: torch.Tensor, r: torch.Tensor,
+                      w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The Gauss-Newton system J^T W J (B, 6, 6) and J^T W r (B, 6), float64, of B poses' residuals
+    r (B, n, m) with weights w (B, n, m) (0 for points not used), where the residual's Jacobian
+    is J_nm = a_nm du_n + b_nm dv_n: a, b (B, n, m) its derivatives along the image axes, du, dv
+    (B, n, 6) the pixel motion per pose parameter. Summed over the channels first, which needs
+    only 2x2 sums per point."""
+    saa, sab, sbb = ((w * a * a).sum(2).double(), (w * a * b).sum(2).double(), (w * b * b).sum(2).double())
+    sar, sbr = (w * a * r).sum(2).double(), (w * b * r).sum(2).double()
+    du, dv = du.double(), dv.double()
+    duT, dvT = du.transpose(1, 2), dv.transpose(1, 2)
+    cross = duT @ (sab[..., None] * dv)
+    H = duT @ (saa[..., None] * du) + cross + cross.transpose(1, 2) + dvT @ (sbb[..., None] * dv)
+    return H, (duT @ sar[..., None] + dvT @ sbr[..., None])[..., 0]
+
+
 def _thinned(lv: _LevelData, n: int) -> _LevelData:
     """The level with only its first n points; the Z-buffer cell grows with their spacing
     (spacing ~ 1 / sqrt(density)), so that background points still cannot show through."""
@@ -272,13 +288,8 @@ class Aligner:
         a = self.model.kernel_derivative(I, Iu) @ D.T
         b = self.model.kernel_derivative(I, Iv) @ D.T
         du, dv = projection_jacobian(p, lv.photo.K[0, 0], lv.photo.K[1, 1])
-        du, dv = du.double(), dv.double()
-        # J_nm = a_nm du_n + b_nm dv_n, so sum_nm w J J^T needs only 2x2 sums over the channels
-        saa, sab, sbb = ((w * a * a).sum(1), (w * a * b).sum(1), (w * b * b).sum(1))
-        sar, sbr = (w * a * r).sum(1), (w * b * r).sum(1)
-        cross = du.T @ (sab.double()[:, None] * dv)
-        state.H = (du.T @ (saa.double()[:, None] * du) + cross + cross.T + dv.T @ (sbb.double()[:, None] * dv)).cpu().numpy()
-        state.g = (du.T @ sar.double() + dv.T @ sbr.double()).cpu().numpy()
+        H, g = _normal_equations(du[None], dv[None], a[None], b[None], r[None], w[None])
+        state.H, state.g = H[0].cpu().numpy(), g[0].cpu().numpy()
         state.wrr = float((w * r * r).sum())
         state.n_residuals = int(r.numel())
         return state
@@ -389,14 +400,7 @@ class Aligner:
         a = self.model.kernel_derivative(I, Iu).reshape(B, n, k) @ D.transpose(1, 2)
         b = self.model.kernel_derivative(I, Iv).reshape(B, n, k) @ D.transpose(1, 2)
         du, dv = projection_jacobian(p.reshape(-1, 3), lv.photo.K[0, 0], lv.photo.K[1, 1])
-        du, dv = du.double().reshape(B, n, 6), dv.double().reshape(B, n, 6)
-        w = w * vis[..., None]
-        saa, sab, sbb = ((w * a * a).sum(2).double(), (w * a * b).sum(2).double(), (w * b * b).sum(2).double())
-        sar, sbr = (w * a * r).sum(2).double(), (w * b * r).sum(2).double()
-        duT, dvT = du.transpose(1, 2), dv.transpose(1, 2)
-        cross = duT @ (sab[..., None] * dv)
-        H = duT @ (saa[..., None] * du) + cross + cross.transpose(1, 2) + dvT @ (sbb[..., None] * dv)
-        g = (duT @ sar[..., None] + dvT @ sbr[..., None])[..., 0]
+        H, g = _normal_equations(du.reshape(B, n, 6), dv.reshape(B, n, 6), a, b, r, w * vis[..., None])
         return _Many(loss.double().cpu().numpy(), D, sigma2, vis, H.cpu().numpy(), g.cpu().numpy())
 
     def _loss_many(self, lv: _LevelData, Ts: list[np.ndarray], state: _Many) -> np.ndarray:
