@@ -68,3 +68,12 @@ def apply_update(T: np.ndarray, delta: np.ndarray) -> np.ndarray:
     """Left-multiply T (4x4) by the update delta = (rotation vector (3,), translation (3,)):
     p' = exp(w) p + v, in the camera frame."""
     return rigid(so3_exp(delta[:3]), delta[3:]) @ T
+
+
+def worst_sigmas(cov: np.ndarray) -> dict:
+    """The 1-sigma of a pose along its worst-determined directions, from the covariance (6, 6)
+    of the update (rotation vector, translation) of `apply_update`: `rotation_deg` and
+    `translation_mm` (the camera centre moves by -R^T v for an update (w, v), so the
+    translation block's eigenvalues are the camera position's)."""
+    return {"rotation_deg": float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3])[-1], 0.0)))),
+            "translation_mm": float(np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:])[-1], 0.0)) * 1e3)}

@@ -43,7 +43,6 @@ class RefineResult:
     history: list[dict] = field(default_factory=list)
     # per level, coarse to fine: {level, iterations, stop: converged | iteration cap | damping ran away}
     levels: list[dict] = field(default_factory=list)
-    level_poses: list[np.ndarray] = field(default_factory=list)  # the pose after each level, coarse to fine
     # at the result, on the finest level: J^T W J (6, 6) of (rotation vector, translation) in the
     # camera frame, the weighted residual energy sum(w r^2) and the number of residuals
     normal_matrix: np.ndarray | None = None
@@ -137,16 +136,6 @@ def _normal_equations(du: torch.Tensor, dv: torch.Tensor, a: torch.Tensor, b: to
     cross = duT @ (sab[..., None] * dv)
     H = duT @ (saa[..., None] * du) + cross + cross.transpose(1, 2) + dvT @ (sbb[..., None] * dv)
     return H, (duT @ sar[..., None] + dvT @ sbr[..., None])[..., 0]
-
-
-def _thinned(lv: _LevelData, n: int) -> _LevelData:
-    """The level with only its first n points; the Z-buffer cell grows with their spacing
-    (spacing ~ 1 / sqrt(density)), so that background points still cannot show through."""
-    total = lv.points.shape[0]
-    if n >= total:
-        return lv
-    cell = min(int(math.ceil(lv.cell * math.sqrt(total / n))), 16 * lv.photo.zoom)
-    return _LevelData(lv.photo, lv.grads, lv.points[:n], lv.target[:n], max(cell, lv.cell))
 
 
 def _valid_at(valid: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
@@ -321,14 +310,13 @@ class Aligner:
             s0 = self._evaluate(levels[0], T, None, jacobian=False)
             start_res = (levels[0].photo.to_photo_pixels(s0.uv).cpu().numpy(), s0.err.cpu().numpy())
         total_iterations = 0
-        level_info, level_poses = [], []
+        level_info = []
         step = self._lm_level if cfg.optimizer == "lm" else self._adam_level
         top = len(levels) - 1 if coarsest is None else min(coarsest, len(levels) - 1)
         for level in range(top, finest - 1, -1):
             T, n_it, stop = step(levels[level], level, T, history, progress, iterations)
             total_iterations += n_it
             level_info.append({"level": level, "iterations": n_it, "stop": stop})
-            level_poses.append(self._to_scan(T))
         final = self._evaluate(levels[finest], T, None, jacobian=finest == 0)
         end_res = (levels[0].photo.to_photo_pixels(final.uv).cpu().numpy(), final.err.cpu().numpy()) if keep_residuals else None
         return RefineResult(
@@ -341,7 +329,6 @@ class Aligner:
             seconds=time.perf_counter() - start,
             history=history,
             levels=level_info,
-            level_poses=level_poses,
             normal_matrix=final.H,
             weighted_residual_energy=final.wrr,
             residual_count=final.n_residuals,
@@ -351,13 +338,11 @@ class Aligner:
 
     # -- several poses at once (the verification's repeat runs) ------------------------------------
     def refine_many(self, starts: list[np.ndarray], finest: int = 0, coarsest: int | None = None,
-                    iterations: int | None = None, max_points: int | None = None) -> list[np.ndarray | None]:
+                    iterations: int | None = None) -> list[np.ndarray | None]:
         """`refine` from each of several starts (4x4 T_cam_from_scan) on the prepared points,
         Levenberg-Marquardt on all of them in one set of tensor operations (each keeps its own
-        damping, acceptance and stop). max_points: use at most this many of each level's points
-        (their prefix, which favours textured ones). Returns the poses, None for a start that
-        lost the scan."""
-        levels = [_thinned(lv, max_points) for lv in self._prepared[1]] if max_points else self._prepared[1]
+        damping, acceptance and stop). Returns the poses, None for a start that lost the scan."""
+        levels = self._prepared[1]
         Ts = [self._to_local(np.asarray(T, np.float64)) for T in starts]
         lost = np.zeros(len(Ts), bool)
         top = len(levels) - 1 if coarsest is None else min(coarsest, len(levels) - 1)

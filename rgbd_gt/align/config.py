@@ -16,7 +16,6 @@ class VerifyConfig:
     repeat_coarsest: int = 9  # the repeat runs' pyramid levels, coarse (9: the coarsest there is) ...
     repeat_finest: int = 2  # ... to fine (compared with the result's pose after that level)
     repeat_iterations: int = 6  # per level of a repeat run
-    repeat_points: int = 0  # ... on at most this many points per level (0: all the level's)
     start_floor_px: float = 2.0  # the starts move the image at least this much
     sharpness_step_px: float = 1.5  # the image motion of the sharpness probes (photo pixels) ...
     sharpness_level: int = 2  # ... on this pyramid level
@@ -41,7 +40,7 @@ class VerifyConfig:
             v = getattr(self, f.name)
             if not (v == v and abs(v) != float("inf")):
                 raise ValueError(f"verify.{f.name} must be a finite number, got {v}")
-        if self.repeats < 0 or self.repeat_iterations < 1 or self.repeat_points < 0 or self.repeat_finest < 0 or self.sharpness_level < 0 or self.repeat_coarsest < self.repeat_finest:
+        if self.repeats < 0 or self.repeat_iterations < 1 or self.repeat_finest < 0 or self.sharpness_level < 0 or self.repeat_coarsest < self.repeat_finest:
             raise ValueError("verify: repeats >= 0, repeat_iterations >= 1 and 0 <= repeat_finest <= repeat_coarsest")
         if self.edge_max_side < 64 or self.edge_shift_px < 1 or self.sharpness_step_px <= 0 or self.start_floor_px < 0:
             raise ValueError("verify: edge_max_side >= 64, edge_shift_px >= 1, sharpness_step_px > 0, start_floor_px >= 0")

@@ -17,7 +17,7 @@ so that one threshold serves a room 3 m across and a street 50 m deep.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -25,7 +25,7 @@ from rgbd_gt.align.aligner import Aligner, RefineResult
 from rgbd_gt.align.config import VerifyConfig
 from rgbd_gt.camera import Camera, project, without_distortion
 from rgbd_gt.errors import InputError
-from rgbd_gt.pose import apply_update, rotation_error_deg, transform_points, translation_error_m
+from rgbd_gt.pose import apply_update, rotation_error_deg, transform_points, translation_error_m, worst_sigmas
 
 VERDICTS = ("ok", "suspect", "failed")
 
@@ -55,25 +55,26 @@ class _View:
             return float("inf")
         return float(np.sqrt(np.mean(np.sum((ua[ok] - ub[ok]) ** 2, axis=1))))
 
-    def pixel_jacobian(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(du, dv) (n, 6) each: photo-pixel motion per unit of (rotation vector, translation)."""
+    def motion_metric(self, T: np.ndarray) -> np.ndarray:
+        """M (6, 6) with d^T M d = the mean squared image motion (photo px^2) of the points for a
+        small update d = (rotation vector, translation) at pose T."""
         import torch
 
         from rgbd_gt.render.project import projection_jacobian
 
-        p = torch.as_tensor(transform_points(T, self.points))
-        du, dv = projection_jacobian(p, self.camera.fx, self.camera.fy)
-        return du.numpy(), dv.numpy()
+        du, dv = projection_jacobian(torch.as_tensor(transform_points(T, self.points)), self.camera.fx, self.camera.fy)
+        return ((du.T @ du + dv.T @ dv) / du.shape[0]).numpy()
 
     def median_depth(self, T: np.ndarray) -> float:
         return float(np.median(transform_points(T, self.points)[:, 2]))
 
 
-def uncertainty(result: RefineResult, view: _View) -> dict:
+def uncertainty(result: RefineResult, M: np.ndarray) -> dict:
     """1-sigma pose uncertainty from the final normal matrix H = J^T W J scaled by the residual
     variance s^2 = sum(w r^2) / (n - 6): covariance s^2 H^-1 of (rotation vector, translation).
     Returns the worst-determined direction's sigma for rotation (deg), camera position (mm) and
-    image motion (px), and the condition number of H with its parameters scaled to unit diagonal.
+    image motion (px; M: `_View.motion_metric` at the result), and the condition number of H with
+    its parameters scaled to unit diagonal.
     These treat residuals as independent; neighbouring points share photo pixels, so they are a
     lower bound, compared against thresholds measured on cases with known truth."""
     H = result.normal_matrix
@@ -84,15 +85,9 @@ def uncertainty(result: RefineResult, view: _View) -> dict:
     if eig[0] <= eig[-1] * 1e-12:
         return {"rotation_deg": float("inf"), "translation_mm": float("inf"), "image_px": float("inf"), "condition": float("inf")}
     cov = result.weighted_residual_energy / n * (s[:, None] * np.linalg.inv(Hs) * s[None, :])
-    # the camera centre moves by -R^T v for an update (w, v): the translation block's eigenvalues
-    sig_r = np.sqrt(np.linalg.eigvalsh(cov[:3, :3])[-1])
-    sig_t = np.sqrt(np.linalg.eigvalsh(cov[3:, 3:])[-1])
-    du, dv = view.pixel_jacobian(result.T_cam_from_scan)
-    M = (du.T @ du + dv.T @ dv) / len(du)
     L = np.linalg.cholesky(cov + 1e-30 * np.eye(6))
     sig_px = np.sqrt(max(np.linalg.eigvalsh(L.T @ M @ L)[-1], 0.0))
-    return {"rotation_deg": float(np.degrees(sig_r)), "translation_mm": float(sig_t * 1e3), "image_px": float(sig_px),
-            "condition": float(eig[-1] / eig[0])}
+    return {**worst_sigmas(cov), "image_px": float(sig_px), "condition": float(eig[-1] / eig[0])}
 
 
 def start_size(T_init: np.ndarray, T: np.ndarray, init_sigma: dict | None, view: _View, floor_px: float) -> tuple[float, float]:
@@ -121,15 +116,15 @@ def random_starts(T_init: np.ndarray, count: int, rot: float, trans: float, seed
 def repeatability(aligner: Aligner, result: RefineResult, T_init: np.ndarray, view: _View, cfg: VerifyConfig,
                   init_sigma: dict | None, seed: int) -> dict:
     """Refine again from the init and from cfg.repeats starts around it, all at once
-    (`Aligner.refine_many`) on the coarse levels down to cfg.repeat_finest with at most
-    cfg.repeat_points points per level; the largest distance (px, mm, deg) of the starts' results
-    from the init's. (A run on fewer points has its own optimum, a fraction of a pixel from the
-    full run's, so the runs are compared among themselves, on the same points.)"""
+    (`Aligner.refine_many`) on the coarse levels down to cfg.repeat_finest, with at most
+    cfg.repeat_iterations a level; the largest distance (px, mm, deg) of the starts' results from
+    the init's. (The runs stop at a coarser level than the result, so they are compared among
+    themselves, on the same levels.)"""
     finest = min(cfg.repeat_finest, len(result.levels) - 1)
     rot, trans = start_size(T_init, result.T_cam_from_scan, init_sigma, view, cfg.start_floor_px)
     starts = [T_init] + random_starts(T_init, cfg.repeats, rot, trans, seed)
     if aligner.cfg.optimizer == "lm":
-        ends = aligner.refine_many(starts, finest, cfg.repeat_coarsest, cfg.repeat_iterations, cfg.repeat_points)
+        ends = aligner.refine_many(starts, finest, cfg.repeat_coarsest, cfg.repeat_iterations)
     else:  # the paper's Adam has no batched form here: one run after another, on all the points
         ends = []
         for T0 in starts:
@@ -150,13 +145,12 @@ def repeatability(aligner: Aligner, result: RefineResult, T_init: np.ndarray, vi
             "lost_the_scan": lost, "start_rotation_deg": float(np.degrees(rot)), "start_translation_mm": trans * 1e3}
 
 
-def sharpness(aligner: Aligner, T: np.ndarray, view: _View, step_px: float, level: int) -> dict:
+def sharpness(aligner: Aligner, T: np.ndarray, M: np.ndarray, step_px: float, level: int) -> dict:
     """The robust loss at the result against the same at the 12 poses that move the image by
     +-step_px (RMS, photo pixels) along each pose parameter, on one pyramid level: the relative
     rise (L_k - L_0) / L_0, smallest and median. A right pose is a clear minimum: every rise is
     positive. (A coarse level sees a 1.5 px motion as well as level 0 does, at a fraction of the cost.)"""
-    du, dv = view.pixel_jacobian(T)
-    per_unit = np.sqrt(np.mean(du**2 + dv**2, axis=0))  # (6,) px per unit parameter
+    per_unit = np.sqrt(np.diag(M))  # (6,) RMS px per unit of each parameter
     steps = np.diag(step_px / np.maximum(per_unit, 1e-12))
     loss0, losses = aligner.loss_profile(T, np.concatenate([steps, -steps]), level)
     rise = (losses - loss0) / max(loss0, 1e-12)
@@ -243,13 +237,14 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
 
     T = result.T_cam_from_scan
     view = _View(aligner.visible_scan_points(T), without_distortion(camera))
-    ev: dict = {"uncertainty": timed("uncertainty", uncertainty, result, view)}
+    M = view.motion_metric(T)
+    ev: dict = {"uncertainty": timed("uncertainty", uncertainty, result, M)}
     ev["convergence"] = {"levels": result.levels,
                          "damping_ran_away": any(lv["stop"] == "damping ran away" for lv in result.levels)}
     init_sigma = (init_meta or {}).get("uncertainty")
     if cfg.repeats > 0:
         ev["repeatability"] = timed("repeatability", repeatability, aligner, result, T_init, view, cfg, init_sigma, seed)
-    ev["sharpness"] = timed("sharpness", sharpness, aligner, T, view, cfg.sharpness_step_px, cfg.sharpness_level)
+    ev["sharpness"] = timed("sharpness", sharpness, aligner, T, M, cfg.sharpness_step_px, cfg.sharpness_level)
     _, score = timed("edges", structural_qa, scan, colors, photo, camera, T, cfg.edge_max_side, cfg.edge_shift_px)
     ev["edges"] = score.as_dict()
     if check is not None:

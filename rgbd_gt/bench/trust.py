@@ -11,9 +11,7 @@ out. Every third case is held out of the threshold choice and reported apart.
 
 from __future__ import annotations
 
-import dataclasses
 import json
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -130,17 +128,24 @@ def icl_cases(folder: Path, other_photo: np.ndarray | None, rng: np.random.Gener
             yield TrustCase(f"icl {c.name} {kind}", kind=kind, **args)
 
 
-def synthetic_cases(folder: Path, seeds: list[int], other_photo: np.ndarray | None,
-                    rng: np.random.Generator) -> Iterator[TrustCase]:
+def synthetic_scene(folder: Path, seed: int) -> Path:
+    """The small synthetic scene of `seed` with two photos, made once into folder/seed<seed>."""
     from rgbd_gt.config import load_config
-    from rgbd_gt.io import load_scan, read_camera, read_pose
-    from rgbd_gt.io.image import read_image
     from rgbd_gt.synth.generate import SynthConfig, generate
 
+    d = folder / f"seed{seed}"
+    if not (d / "photo_1.png").exists():
+        generate(d, seed, "small", load_config(SynthConfig, None, "synth.yaml"), photos=2)
+    return d
+
+
+def synthetic_cases(folder: Path, seeds: list[int], other_photo: np.ndarray | None,
+                    rng: np.random.Generator) -> Iterator[TrustCase]:
+    from rgbd_gt.io import load_scan, read_camera, read_pose
+    from rgbd_gt.io.image import read_image
+
     for seed in seeds:
-        d = folder / f"seed{seed}"
-        if not (d / "photo_1.png").exists():
-            generate(d, seed, "small", load_config(SynthConfig, None, "synth.yaml"), photos=2)
+        d = synthetic_scene(folder, seed)
         s = load_scan(d / "scan.ply")
         photo, cam = read_image(d / "photo.png"), read_camera(d / "camera.yaml")
         T_true, T_init = read_pose(d / "gt_pose.yaml")[0], read_pose(d / "init_pose.yaml")[0]
@@ -214,8 +219,7 @@ def collect(data: Path, work: Path, log: Callable[[str], None] = print, seeds=(0
     cfg = cfg or RefineConfig()
     rng = np.random.default_rng(2026)
     synth_dir = work / "synthetic"
-    list(synthetic_cases(synth_dir, [seeds[0]], None, rng))  # make the first scene: its photo is ICL's "other scene"
-    other_for_icl = read_image(synth_dir / f"seed{seeds[0]}" / "photo.png")
+    other_for_icl = read_image(synthetic_scene(synth_dir, seeds[0]) / "photo.png")  # ICL's "other scene"
     icl = data / "icl_nuim_livingroom1"
     other_for_synth = cv2.imread(str(icl / "color_00004.jpg"))[:, :, ::-1].copy() if icl.is_dir() else None
     sources = []

@@ -8,7 +8,7 @@ import numpy as np
 
 from rgbd_gt.camera import Camera, project
 from rgbd_gt.errors import InputError
-from rgbd_gt.pose import apply_update, rigid, transform_points
+from rgbd_gt.pose import apply_update, rigid, transform_points, worst_sigmas
 
 
 def _to_T(rvec, tvec) -> np.ndarray:
@@ -39,8 +39,7 @@ def pose_uncertainty(T: np.ndarray, obj: np.ndarray, img: np.ndarray, camera: Ca
         return None
     s2 = max(float(r0 @ r0) / max(2 * n - 6, 1), floor_px**2)
     cov = s2 * np.linalg.inv(J.T @ J)
-    return {"rotation_deg": float(np.degrees(np.sqrt(np.linalg.eigvalsh(cov[:3, :3])[-1]))),
-            "translation_mm": float(np.sqrt(np.linalg.eigvalsh(cov[3:, 3:])[-1]) * 1e3)}
+    return worst_sigmas(cov)
 
 
 def pnp(obj: np.ndarray, img: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
