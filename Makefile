@@ -27,3 +27,4 @@ bench: $(STAMP)
 	$(PY) benchmarks/init_pose.py
 	$(PY) benchmarks/load_large_scan.py
 	$(PY) benchmarks/trust.py
+	$(PY) benchmarks/lidar.py

@@ -218,8 +218,8 @@ def init_pose(
             raise InputError(f"--charuco: unknown ArUco dictionary '{charuco}' (e.g. DICT_5X5_100)")
     if estimate_focal and correspondences is None:
         raise InputError("--estimate-focal needs --correspondences")
-    cam = read_camera(camera)
     photo = read_image(image)
+    cam = read_camera(camera, (photo.shape[1], photo.shape[0]))
     check_image_matches(cam, photo.shape, image, camera)
     with _progress() as bar:
         bar.add_task("init-pose", total=None)
@@ -246,11 +246,15 @@ def init_pose(
 
 @app.command()
 def refine(
-    scan: Path = typer.Option(..., "--scan", help="The colored scan (.ply, .e57 or .pcd), in the scan/world frame."),
-    image: Path = typer.Option(..., "--image", help="The photo (its size must match the camera file)."),
-    camera: Path = typer.Option(..., "--camera", help="Camera file (YAML or OpenCV calibration), with distortion."),
-    init: Path = typer.Option(..., "--init", help="Initial pose file (T_cam_from_scan), e.g. from init-pose."),
+    scan: Optional[Path] = typer.Option(None, "--scan", help="The scan (.ply, .e57 or .pcd; colored, or with intensity only), in the scan/world frame. Required unless --pairs lists the pairs."),
+    image: Optional[Path] = typer.Option(None, "--image", help="The photo (its size must match the camera file). Required with --scan."),
+    camera: Path = typer.Option(..., "--camera", help="Camera file: YAML, OpenCV calibration, or a calibration text file with K and D lines (PJLab, KITTI P2)."),
+    init: Path = typer.Option(..., "--init", help="Initial pose file (T_cam_from_scan), e.g. from init-pose, or a calibration text file with a T / Tr_velo_to_cam line."),
     output: Path = typer.Option(..., "-o", "--output", help="Refined pose file to write."),
+    objective: Optional[str] = typer.Option(None, "--objective", help="photometric (the colored-scan aligner), nid (normalised information distance of intensity or gray against the photo's gray, for scans whose values relate to the photo only statistically: intensity-only LiDAR and laser scans) or auto (default: nid for intensity-only scans)."),
+    pairs: Optional[Path] = typer.Option(None, "--pairs", help="YAML listing further (scan, image[, camera]) pairs that share the one pose (a LiDAR-camera rig over several frames): `pairs: [{scan: a.pcd, image: a.jpg}, ...]`, paths relative to the file. Solved jointly (nid)."),
+    max_depth: Optional[float] = typer.Option(None, "--max-depth", help="Leave out scan points farther than this from the initial camera (metres; 0 = none)."),
+    search_starts: Optional[int] = typer.Option(None, "--search-starts", help="nid: before the coarsest level, also run it from this many random starts around the init and go on from the lowest NID (default 8; 0 = none)."),
     config: Optional[Path] = typer.Option(None, "--config", help="Aligner settings (default: configs/refine.yaml)."),
     device: str = typer.Option("auto", "--device", help="auto (CUDA when present), cpu or cuda."),
     report: Optional[Path] = typer.Option(None, "--report", help="Folder for a convergence plot and color-difference images."),
@@ -267,8 +271,10 @@ def refine(
     repeats: Optional[int] = typer.Option(None, "--repeats", help="Refine again from this many starts around the init to check the result is reproduced (default 4; 0 skips it)."),
     strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when the verdict is 'failed' (the pose file is still written, with the verdict)."),
 ) -> None:
-    """Refine a photo's pose against the colored scan by multimodal photometric alignment, then
-    judge the result: the pose file gets `verdict` (ok | suspect | failed), `reasons` and
+    """Refine a photo's pose against the scan, then judge the result. Colored scans: multimodal
+    photometric alignment; intensity-only scans (LiDAR sweeps, laser scans without color): NID
+    between intensity and gray (--objective; docs/lidar.md measures both); several frames of
+    one rig: --pairs. The verdict: the pose file gets `verdict` (ok | suspect | failed), `reasons` and
     `evidence` (uncertainty, convergence, repeatability, sharpness, a structural edge check
     against chance, and the --check pairs). See docs/trust.md."""
     import dataclasses
@@ -280,10 +286,19 @@ def refine(
     from rgbd_gt.io import check_not_input, write_pose
 
     start = time.perf_counter()
-    check_not_input(output, [p for p in (scan, image, camera, init, mask, check, config) if p])
+    from rgbd_gt.align.refine import read_pairs
+
+    if (scan is None) != (image is None):
+        raise InputError("--scan and --image go together" + ("" if pairs else " (or list the pairs in --pairs)"))
+    if scan is None and pairs is None:
+        raise InputError("give --scan and --image, or --pairs")
+    listed = read_pairs(pairs, camera) if pairs is not None else []
+    check_not_input(output, [p for p in (scan, image, camera, init, mask, check, config, pairs) if p]
+                    + [p for pair in listed for p in pair.values()])
     cfg = load_config(RefineConfig, config, "refine.yaml")
     flags = dict(color_model=color_model, gradient=gradient, optimizer=optimizer, levels=levels,
-                 upsample=upsample, iterations=iterations, max_points=max_points, beta_max=beta_max)
+                 upsample=upsample, iterations=iterations, max_points=max_points, beta_max=beta_max,
+                 objective=objective, max_depth=max_depth, search_starts=search_starts)
     cfg = dataclasses.replace(cfg, **{k: v for k, v in flags.items() if v is not None})
     if optimizer == "adam" and iterations is not None:
         cfg = dataclasses.replace(cfg, adam_iterations=iterations)
@@ -293,8 +308,9 @@ def refine(
         cfg.check()
     except ValueError as exc:
         raise InputError(str(exc)) from None
-    inputs = load_inputs(scan, image, camera, init, mask)
-    pairs = read_correspondences(check, minimum=1) if check is not None else None
+    everything = ([dict(scan=scan, image=image, camera=camera)] if scan is not None else []) + listed
+    inputs = [load_inputs(p["scan"], p["image"], p["camera"], init, mask if k == 0 else None) for k, p in enumerate(everything)]
+    held_out = read_correspondences(check, minimum=1) if check is not None else None
     with _progress(TextColumn("{task.fields[info]}")) as bar:
         task = bar.add_task("refine", total=None, info="")
 
@@ -302,15 +318,15 @@ def refine(
             bar.update(task, description=f"level {rec['level']} iteration {rec['iteration']}",
                        info=f"loss {rec['loss']:.4f}  step {rec['rotation_update_deg']:.1e} deg {rec['translation_update_m'] * 1e3:.1e} mm")
 
-        result, verification = refine_verified(inputs, cfg, device, progress, keep_residuals=report is not None,
-                                               check=pairs)
-    meta = refine_meta(result, cfg, inputs.T_init, init, verification)
+        result, verification = refine_verified(inputs[0], cfg, device, progress, keep_residuals=report is not None,
+                                               check=held_out, more=inputs[1:])
+    meta = refine_meta(result, cfg, inputs[0].T_init, init, verification, pairs=len(inputs))
     write_pose(output, result.T_cam_from_scan, **meta)
     moved_mm, moved_deg = meta["change_from_init"]["translation_mm"], meta["change_from_init"]["rotation_deg"]
     if report is not None:
         from rgbd_gt.align.report import write_report
 
-        write_report(report, result, inputs.camera.size)
+        write_report(report, result, inputs[0].camera.size)
     ev = verification.evidence
     rows = [
         ("verdict", _verdict_text(verification.verdict)),
@@ -327,7 +343,8 @@ def refine(
         rows.append(("check pairs", f"{ev['check']['rms_init_px']:.2f} px at the init -> {ev['check']['rms_px']:.2f} px"))
     rows += [
         ("iterations", str(result.iterations)),
-        ("visible points", f"{result.visible_points:,} (inliers {result.inlier_fraction:.0%})"),
+        ("visible points", f"{result.visible_points:,} (inliers {result.inlier_fraction:.0%})" if result.objective == "photometric"
+         else f"{result.visible_points:,} over {len(inputs)} pair(s), NID {result.loss:.4f}"),
         ("aligner time", f"{result.seconds:.2f} s + verification {verification.seconds:.2f} s (total {time.perf_counter() - start:.2f} s)"),
     ]
     _summary("refine", rows, output, report)
@@ -411,8 +428,8 @@ def qa_edges(
     for p in (output, json_out):
         if p:
             check_not_input(p, [scan, image, camera, pose] + ([before] if before else []))
-    cam = read_camera(camera)
     photo = read_image(image)
+    cam = read_camera(camera, (photo.shape[1], photo.shape[0]))
     check_image_matches(cam, photo.shape, image, camera)
     T, _ = read_pose(pose)
     T_before = read_pose(before)[0] if before else None

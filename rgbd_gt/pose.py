@@ -49,6 +49,25 @@ def invert(T: np.ndarray) -> np.ndarray:
     return rigid(R.T, -R.T @ t)
 
 
+def translated(T: np.ndarray, c) -> np.ndarray:
+    """T (4x4) applied after a shift by c (3,): p -> T (p + c). With c the centre of a scan,
+    it is the pose in the scan's local frame (float32 stays exact there); with -c, back."""
+    out = np.array(T, np.float64)
+    out[:3, 3] = out[:3, :3] @ np.asarray(c, np.float64) + out[:3, 3]
+    return out
+
+
+def random_starts(T: np.ndarray, count: int, rot: float, trans: float, seed: int) -> list[np.ndarray]:
+    """`count` poses around T, each turned by `rot` radians about a random axis and moved by
+    `trans` metres in a random direction (camera frame)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(count):
+        a, b = rng.normal(size=3), rng.normal(size=3)
+        out.append(apply_update(T, np.r_[a / np.linalg.norm(a) * rot, b / np.linalg.norm(b) * trans]))
+    return out
+
+
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply a 4x4 transform to (N, 3) points."""
     return points @ T[:3, :3].T + T[:3, 3]

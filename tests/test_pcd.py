@@ -58,3 +58,23 @@ def test_broken_pcd_files(tmp_path):
         load_scan(tmp_path / "noxyz.pcd")
     assert_one_line_error(run_cli("ingest", tmp_path / "short.pcd", "-o", tmp_path / "out.ply"), "short.pcd")
     assert not (tmp_path / "out.ply").exists()
+
+
+def test_extra_fields_and_colors_are_read(tmp_path):
+    """Fields as LiDAR drivers write them (ring uint16, timestamp float64) beside x y z, and colors."""
+    import open3d as o3d
+
+    rng = np.random.default_rng(1)
+    xyz = rng.uniform(-20, 20, (300, 3)).astype(np.float32)
+    pc = o3d.t.geometry.PointCloud()
+    pc.point.positions = o3d.core.Tensor(xyz)
+    pc.point.reflectivity = o3d.core.Tensor(rng.uniform(0, 65535, (300, 1)).astype(np.float32))
+    pc.point.ring = o3d.core.Tensor(rng.integers(0, 64, (300, 1)).astype(np.uint16))
+    pc.point.timestamp = o3d.core.Tensor(1.6e9 + rng.uniform(0, 0.1, (300, 1)))
+    pc.point.colors = o3d.core.Tensor(rng.uniform(0, 1, (300, 3)).astype(np.float32))
+    path = tmp_path / "driver.pcd"
+    assert o3d.t.io.write_point_cloud(str(path), pc, compressed=True)
+    s = load_scan(path)
+    np.testing.assert_allclose(s.xyz, xyz, atol=1e-4)
+    assert s.rgb is not None and s.rgb.dtype == np.uint8 and s.intensity is not None
+    assert 0 <= s.intensity.min() and s.intensity.max() <= 1 and np.median(s.intensity) > 0.3

@@ -26,7 +26,7 @@ from rgbd_gt.align.pyramid import PhotoLevel
 from rgbd_gt.align.robust import student_t_loss, student_t_weights
 from rgbd_gt.align.sampling import bilinear, bilinear_with_gradient, central_gradients
 from rgbd_gt.errors import InputError
-from rgbd_gt.pose import apply_update
+from rgbd_gt.pose import apply_update, translated
 from rgbd_gt.render.project import project_pinhole, projection_jacobian
 from rgbd_gt.render.zbuffer import cell_size_for, estimate_spacing, visible_points
 
@@ -43,11 +43,10 @@ class RefineResult:
     history: list[dict] = field(default_factory=list)
     # per level, coarse to fine: {level, iterations, stop: converged | iteration cap | damping ran away}
     levels: list[dict] = field(default_factory=list)
-    # at the result, on the finest level: J^T W J (6, 6) of (rotation vector, translation) in the
-    # camera frame, the weighted residual energy sum(w r^2) and the number of residuals
-    normal_matrix: np.ndarray | None = None
-    weighted_residual_energy: float = 0.0
-    residual_count: int = 0
+    # at the result, on the finest level: the 1-sigma covariance (6, 6) of the update
+    # (rotation vector, translation) in the camera frame (`apply_update`); inf where undetermined
+    covariance: np.ndarray | None = None
+    objective: str = "photometric"  # or "nid" (align/nid_aligner.py); loss is then the mean NID
     start_residuals: tuple[np.ndarray, np.ndarray] | None = None  # (uv (N, 2), |r| (N,)) at full resolution
     end_residuals: tuple[np.ndarray, np.ndarray] | None = None
 
@@ -138,6 +137,20 @@ def _normal_equations(du: torch.Tensor, dv: torch.Tensor, a: torch.Tensor, b: to
     return H, (duT @ sar[..., None] + dvT @ sbr[..., None])[..., 0]
 
 
+def covariance(H: np.ndarray, energy: float, count: int) -> np.ndarray:
+    """The pose covariance (6, 6) from a Gauss-Newton matrix H = J^T W J, scaled by the residual
+    variance energy / (count - 6) (energy = sum w r^2), or all inf where H is singular. Inverted
+    with its parameters scaled to unit diagonal (rotation and translation differ by orders of
+    magnitude). Residuals are treated as independent: neighbouring points share photo pixels, so
+    this is a lower bound."""
+    s = 1.0 / np.sqrt(np.clip(np.diag(H), 1e-30, None))
+    Hs = H * s[:, None] * s[None, :]
+    eig = np.linalg.eigvalsh(Hs)
+    if eig[0] <= eig[-1] * 1e-12:
+        return np.full((6, 6), np.inf)
+    return energy / max(count - 6, 1) * (s[:, None] * np.linalg.inv(Hs) * s[None, :])
+
+
 def _valid_at(valid: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     """All four bilinear neighbours of uv (N, 2) are usable pixels."""
     h, w = valid.shape
@@ -172,14 +185,10 @@ class Aligner:
 
     # -- pose conversion between the scan frame and the local frame ---------------------------
     def _to_local(self, T: np.ndarray) -> np.ndarray:
-        L = T.copy()
-        L[:3, 3] = T[:3, :3] @ self.centre + T[:3, 3]
-        return L
+        return translated(T, self.centre)
 
     def _to_scan(self, L: np.ndarray) -> np.ndarray:
-        T = L.copy()
-        T[:3, 3] = L[:3, 3] - L[:3, :3] @ self.centre
-        return T
+        return translated(L, -self.centre)
 
     # -- set-up of each level ----------------------------------------------------------------
     def _levels(self, T_local: np.ndarray) -> list[_LevelData]:
@@ -191,6 +200,8 @@ class Aligner:
         w, h = finest.camera.size
         m = 0.15 * w  # margin: the pose will move
         near = (z > 1e-3) & (uv[:, 0] > -m) & (uv[:, 1] > -m) & (uv[:, 0] < w + m) & (uv[:, 1] < h + m)
+        if self.cfg.max_depth > 0:
+            near &= z < self.cfg.max_depth
         idx = torch.nonzero(near).squeeze(1)
         visible = visible_points(uv[idx], z[idx], (w, h), 1)
         if int(visible.sum()) < self.cfg.min_visible:
@@ -329,9 +340,7 @@ class Aligner:
             seconds=time.perf_counter() - start,
             history=history,
             levels=level_info,
-            normal_matrix=final.H,
-            weighted_residual_energy=final.wrr,
-            residual_count=final.n_residuals,
+            covariance=covariance(final.H, final.wrr, final.n_residuals) if final.H is not None else None,
             start_residuals=start_res,
             end_residuals=end_res,
         )
@@ -341,7 +350,16 @@ class Aligner:
                     iterations: int | None = None) -> list[np.ndarray | None]:
         """`refine` from each of several starts (4x4 T_cam_from_scan) on the prepared points,
         Levenberg-Marquardt on all of them in one set of tensor operations (each keeps its own
-        damping, acceptance and stop). Returns the poses, None for a start that lost the scan."""
+        damping, acceptance and stop). Returns the poses, None for a start that lost the scan.
+        (The paper's Adam has no batched form here: one run after another.)"""
+        if self.cfg.optimizer != "lm":
+            out = []
+            for T0 in starts:
+                try:
+                    out.append(self.refine(T0, finest=finest, coarsest=coarsest, iterations=iterations).T_cam_from_scan)
+                except InputError:
+                    out.append(None)
+            return out
         levels = self._prepared[1]
         Ts = [self._to_local(np.asarray(T, np.float64)) for T in starts]
         lost = np.zeros(len(Ts), bool)

@@ -6,6 +6,8 @@ from dataclasses import dataclass, field, fields
 
 from rgbd_gt.align.color_models import MODELS
 
+OBJECTIVES = ("auto", "photometric", "nid")
+
 
 @dataclass
 class VerifyConfig:
@@ -49,6 +51,7 @@ class VerifyConfig:
 
 @dataclass
 class RefineConfig:
+    objective: str = "auto"  # photometric | nid | auto (nid for scans with intensity only, else photometric)
     color_model: str = "quadratic"  # one of color_models.MODELS
     gradient: str = "direct"  # 'direct' (strategy A) or 'central' (strategy B)
     optimizer: str = "lm"  # 'lm' (Levenberg-Marquardt on the 6 pose parameters) or 'adam' (the paper's)
@@ -69,6 +72,13 @@ class RefineConfig:
     min_visible: int = 200  # fewer visible points than this at the start is an error
     seed: int = 0  # point subsampling
     texture_floor: float = 0.1  # points are drawn with probability ~ local scan contrast + this x its mean
+    max_depth: float = 0.0  # metres: points farther from the initial camera are not used (0: all)
+    nid_bins: int = 16  # nid: bins per axis of the joint histogram
+    nid_edges: bool = False  # nid: also NID of depth discontinuities against the photo's gradient magnitude
+    search_starts: int = 8  # nid: before the coarsest level, also run it from this many starts (0: none) ...
+    search_rotation_deg: float = 3.0  # ... turned this much ...
+    search_translation_m: float = 0.2  # ... and moved this much from the init
+    search_iterations: int = 10  # ... for at most this many iterations each; the lowest NID goes on
     verify: VerifyConfig = field(default_factory=VerifyConfig)  # the verdict's evidence and thresholds
 
     def check(self) -> "RefineConfig":
@@ -78,6 +88,10 @@ class RefineConfig:
             raise ValueError(f"gradient must be 'direct' or 'central', got {self.gradient!r}")
         if self.optimizer not in ("lm", "adam"):
             raise ValueError(f"optimizer must be 'lm' or 'adam', got {self.optimizer!r}")
+        if self.objective not in OBJECTIVES:
+            raise ValueError(f"objective must be one of {', '.join(OBJECTIVES)}, got {self.objective!r}")
+        if self.nid_bins < 6 or self.search_starts < 0 or self.search_iterations < 1 or self.max_depth < 0:
+            raise ValueError("nid_bins >= 6, search_starts >= 0, search_iterations >= 1 and max_depth >= 0")
         if self.levels < 1 or self.iterations < 1 or self.max_points < 10 or self.upsample < 1:
             raise ValueError("levels, upsample, iterations and max_points must be positive")
         self.verify.check()

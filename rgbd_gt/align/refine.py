@@ -51,8 +51,8 @@ def load_inputs(scan_path: Path, image_path: Path, camera_path: Path, init_path:
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import read_image, read_mask
 
-    camera = read_camera(camera_path)
     photo = read_image(image_path)
+    camera = read_camera(camera_path, (photo.shape[1], photo.shape[0]))
     check_image_matches(camera, photo.shape, image_path, camera_path)
     T_init, init_meta = read_pose(init_path)
     ignore = read_mask(mask_path, photo.shape[:2]) if mask_path is not None else None
@@ -60,19 +60,57 @@ def load_inputs(scan_path: Path, image_path: Path, camera_path: Path, init_path:
     return RefineInputs(scan.xyz, scan_colors(scan, scan_path), photo, camera, T_init, ignore, scan, init_meta)
 
 
+def read_pairs(path: Path, camera: Path) -> list[dict[str, Path]]:
+    """The (scan, image, camera) paths of a --pairs YAML (`pairs:` a list of mappings with scan,
+    image and optionally camera, which defaults to `camera`), relative to the file's folder."""
+    import yaml
+
+    from rgbd_gt.errors import require_file
+
+    path = require_file(path)
+    try:
+        data = yaml.safe_load(path.read_text(errors="replace"))
+    except yaml.YAMLError as exc:
+        raise InputError(f"invalid YAML ({str(exc).splitlines()[0]})", path) from None
+    items = data.get("pairs") if isinstance(data, dict) else None
+    if not isinstance(items, list) or not items:
+        raise InputError("needs `pairs:`, a list of {scan, image[, camera]}", path)
+    out = []
+    for k, item in enumerate(items, 1):
+        if not isinstance(item, dict) or not all(isinstance(item.get(key), str) for key in ("scan", "image")):
+            raise InputError(f"pair {k}: needs scan and image paths", path)
+        if "camera" in item and not isinstance(item["camera"], str):
+            raise InputError(f"pair {k}: camera must be a path", path)
+        out.append({key: path.parent / item[key] for key in ("scan", "image", "camera") if key in item})
+        out[-1].setdefault("camera", Path(camera))
+    return out
+
+
+def objective_of(cfg: RefineConfig, colors: np.ndarray) -> str:
+    """The objective that runs: cfg.objective, where 'auto' means nid for a scan with intensity
+    only ((N, 1) colors) and photometric for a colored one (docs/lidar.md measures both)."""
+    if cfg.objective != "auto":
+        return cfg.objective
+    return "nid" if colors.shape[1] == 1 else "photometric"
+
+
 def refine_meta(result: RefineResult, cfg: RefineConfig, T_init: np.ndarray, init_path,
-                verification: Verification | None = None) -> dict:
+                verification: Verification | None = None, pairs: int = 1) -> dict:
     """The keys a refined pose file records besides the pose: the verdict first."""
     from rgbd_gt.pose import rotation_error_deg, translation_error_m
 
     meta = {}
     if verification is not None:
         meta = dict(verdict=verification.verdict, reasons=verification.reasons, evidence=verification.evidence)
+    meta.update(method=f"rgbd-gt refine ({result.objective})", init=str(init_path), objective=result.objective)
+    if result.objective == "nid":
+        meta.update(nid_bins=cfg.nid_bins, nid_edges=cfg.nid_edges, pairs=pairs)
+    else:
+        meta.update(color_model=cfg.color_model, gradient=cfg.gradient, optimizer=cfg.optimizer,
+                    color_transform=result.color_transform.tolist())
     meta.update(
-        method="rgbd-gt refine (photometric)", init=str(init_path), color_model=cfg.color_model,
-        gradient=cfg.gradient, optimizer=cfg.optimizer, color_transform=result.color_transform.tolist(),
-        iterations=result.iterations, final_loss=result.loss, inlier_fraction=result.inlier_fraction,
-        visible_points=result.visible_points, seconds=round(result.seconds, 3),
+        final_loss=result.loss, inlier_fraction=result.inlier_fraction,
+        iterations=result.iterations, visible_points=result.visible_points, seconds=round(result.seconds, 3),
         change_from_init={"translation_mm": translation_error_m(result.T_cam_from_scan, T_init) * 1e3,
                           "rotation_deg": rotation_error_deg(result.T_cam_from_scan, T_init)},
     )
@@ -81,26 +119,39 @@ def refine_meta(result: RefineResult, cfg: RefineConfig, T_init: np.ndarray, ini
     return meta
 
 
-def _aligner(inputs: RefineInputs, cfg: RefineConfig, device: str) -> Aligner:
+def make_aligner(inputs: RefineInputs, cfg: RefineConfig, device: str, more: list[RefineInputs] = ()):
+    """The aligner of cfg's objective for inputs (and the further pairs `more` that share its
+    pose: nid only)."""
+    from rgbd_gt.align.nid_aligner import Frame, NidAligner
     from rgbd_gt.align.pyramid import photo_pyramid
+    from rgbd_gt.io.scan import colors_to_gray
 
-    pyramid = photo_pyramid(inputs.photo, inputs.camera, cfg.levels, resolve_device(device), inputs.ignore,
-                            cfg.upsample)
-    return Aligner(inputs.points, inputs.colors, pyramid, cfg)
+    dev = resolve_device(device)
+    if objective_of(cfg, inputs.colors) == "photometric":
+        if more:
+            raise InputError("several pairs are solved jointly with --objective nid only")
+        pyramid = photo_pyramid(inputs.photo, inputs.camera, cfg.levels, dev, inputs.ignore, cfg.upsample)
+        return Aligner(inputs.points, inputs.colors, pyramid, cfg)
+    # NID compares value distributions: an enlarged photo adds pixels, not information
+    frames = [Frame(i.points, colors_to_gray(i.colors) / 255.0, photo_pyramid(i.photo, i.camera, cfg.levels, dev, i.ignore))
+              for i in [inputs, *more]]
+    return NidAligner(frames, cfg)
 
 
 def run_refine(inputs: RefineInputs, cfg: RefineConfig, device: str = "auto",
                progress: Callable[[dict], None] | None = None, keep_residuals: bool = False) -> RefineResult:
     """Refine inputs.T_init; raises InputError when no scan points are in view."""
-    return _aligner(inputs, cfg, device).refine(inputs.T_init, progress=progress, keep_residuals=keep_residuals)
+    return make_aligner(inputs, cfg, device).refine(inputs.T_init, progress=progress, keep_residuals=keep_residuals)
 
 
 def refine_verified(inputs: RefineInputs, cfg: RefineConfig, device: str = "auto",
                     progress: Callable[[dict], None] | None = None, keep_residuals: bool = False,
-                    check: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[RefineResult, Verification]:
+                    check: tuple[np.ndarray, np.ndarray] | None = None,
+                    more: list[RefineInputs] = ()) -> tuple[RefineResult, Verification]:
     """`run_refine`, then the verdict on its result (align/verify.py); the repeat runs reuse the
-    photo pyramid and the prepared points. check: held-out pairs (img (n, 2), scan points (n, 3))."""
-    aligner = _aligner(inputs, cfg, device)
+    photo pyramid and the prepared points. check: held-out pairs (img (n, 2), scan points (n, 3));
+    more: further pairs that share the pose (solved jointly; the image check uses the first)."""
+    aligner = make_aligner(inputs, cfg, device, more)
     result = aligner.refine(inputs.T_init, progress=progress, keep_residuals=keep_residuals)
     verification = verify(aligner, result, inputs.T_init, inputs.camera, inputs.photo, inputs.the_scan(),
                           inputs.colors, cfg.verify, cfg.seed, inputs.init_meta, check)

@@ -24,8 +24,7 @@ import numpy as np
 from rgbd_gt.align.aligner import Aligner, RefineResult
 from rgbd_gt.align.config import VerifyConfig
 from rgbd_gt.camera import Camera, project, without_distortion
-from rgbd_gt.errors import InputError
-from rgbd_gt.pose import apply_update, rotation_error_deg, transform_points, translation_error_m, worst_sigmas
+from rgbd_gt.pose import random_starts, rotation_error_deg, transform_points, translation_error_m, worst_sigmas
 
 VERDICTS = ("ok", "suspect", "failed")
 
@@ -70,24 +69,18 @@ class _View:
 
 
 def uncertainty(result: RefineResult, M: np.ndarray) -> dict:
-    """1-sigma pose uncertainty from the final normal matrix H = J^T W J scaled by the residual
-    variance s^2 = sum(w r^2) / (n - 6): covariance s^2 H^-1 of (rotation vector, translation).
-    Returns the worst-determined direction's sigma for rotation (deg), camera position (mm) and
-    image motion (px; M: `_View.motion_metric` at the result), and the condition number of H with
-    its parameters scaled to unit diagonal.
-    These treat residuals as independent; neighbouring points share photo pixels, so they are a
-    lower bound, compared against thresholds measured on cases with known truth."""
-    H = result.normal_matrix
-    n = max(result.residual_count - 6, 1)
-    s = 1.0 / np.sqrt(np.clip(np.diag(H), 1e-30, None))
-    Hs = H * s[:, None] * s[None, :]
-    eig = np.linalg.eigvalsh(Hs)
-    if eig[0] <= eig[-1] * 1e-12:
+    """The worst-determined direction's 1-sigma of the result's covariance (the aligner's; a lower
+    bound, compared against thresholds measured on cases with known truth) for rotation (deg),
+    camera position (mm) and image motion (px; M: `_View.motion_metric` at the result), and the
+    condition number of the covariance with its parameters scaled to unit diagonal."""
+    cov = result.covariance
+    if cov is None or not np.isfinite(cov).all():
         return {"rotation_deg": float("inf"), "translation_mm": float("inf"), "image_px": float("inf"), "condition": float("inf")}
-    cov = result.weighted_residual_energy / n * (s[:, None] * np.linalg.inv(Hs) * s[None, :])
+    s = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    eig = np.linalg.eigvalsh(cov / s[:, None] / s[None, :])
     L = np.linalg.cholesky(cov + 1e-30 * np.eye(6))
     sig_px = np.sqrt(max(np.linalg.eigvalsh(L.T @ M @ L)[-1], 0.0))
-    return {**worst_sigmas(cov), "image_px": float(sig_px), "condition": float(eig[-1] / eig[0])}
+    return {**worst_sigmas(cov), "image_px": float(sig_px), "condition": float(eig[-1] / max(eig[0], 1e-300))}
 
 
 def start_size(T_init: np.ndarray, T: np.ndarray, init_sigma: dict | None, view: _View, floor_px: float) -> tuple[float, float]:
@@ -102,17 +95,6 @@ def start_size(T_init: np.ndarray, T: np.ndarray, init_sigma: dict | None, view:
     return max(rot, floor_px / view.camera.fx), max(trans, floor_px * view.median_depth(T) / view.camera.fx)
 
 
-def random_starts(T_init: np.ndarray, count: int, rot: float, trans: float, seed: int) -> list[np.ndarray]:
-    """`count` poses around T_init, each turned by `rot` radians about a random axis and moved by
-    `trans` metres in a random direction (camera frame)."""
-    rng = np.random.default_rng(seed)
-    out = []
-    for _ in range(count):
-        a, b = rng.normal(size=3), rng.normal(size=3)
-        out.append(apply_update(T_init, np.r_[a / np.linalg.norm(a) * rot, b / np.linalg.norm(b) * trans]))
-    return out
-
-
 def repeatability(aligner: Aligner, result: RefineResult, T_init: np.ndarray, view: _View, cfg: VerifyConfig,
                   init_sigma: dict | None, seed: int) -> dict:
     """Refine again from the init and from cfg.repeats starts around it, all at once
@@ -123,16 +105,7 @@ def repeatability(aligner: Aligner, result: RefineResult, T_init: np.ndarray, vi
     finest = min(cfg.repeat_finest, len(result.levels) - 1)
     rot, trans = start_size(T_init, result.T_cam_from_scan, init_sigma, view, cfg.start_floor_px)
     starts = [T_init] + random_starts(T_init, cfg.repeats, rot, trans, seed)
-    if aligner.cfg.optimizer == "lm":
-        ends = aligner.refine_many(starts, finest, cfg.repeat_coarsest, cfg.repeat_iterations)
-    else:  # the paper's Adam has no batched form here: one run after another, on all the points
-        ends = []
-        for T0 in starts:
-            try:
-                ends.append(aligner.refine(T0, finest=finest, coarsest=cfg.repeat_coarsest,
-                                           iterations=cfg.repeat_iterations).T_cam_from_scan)
-            except InputError:
-                ends.append(None)
+    ends = aligner.refine_many(starts, finest, cfg.repeat_coarsest, cfg.repeat_iterations)
     reference, others = ends[0], ends[1:]
     lost = sum(T is None for T in ends)
     if reference is None or lost:  # a run that lost the scan certainly did not reproduce the result

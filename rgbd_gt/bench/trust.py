@@ -167,29 +167,13 @@ def synthetic_cases(folder: Path, seeds: list[int], other_photo: np.ndarray | No
             yield TrustCase(f"synthetic {seed} {kind}", kind=kind, **args)
 
 
-def read_pjlab_calib(path: Path, size: tuple[int, int]) -> tuple[Camera, np.ndarray]:
-    """calib.txt of a PJLab scene (K, D, T lines) -> (camera of the photo's size, T_cam_from_scan)."""
-    rows = {}
-    for line in path.read_text().splitlines():
-        if ":" in line:
-            key, values = line.split(":", 1)
-            rows[key.strip()] = np.array(values.split(), float)
-    K, T = rows["K"].reshape(3, 3), np.vstack([rows["T"].reshape(3, 4), [0, 0, 0, 1]])
-    return Camera(size[0], size[1], K[0, 0], K[1, 1], K[0, 2], K[1, 2], tuple(rows["D"])), T
-
-
 def lidar_cases(folder: Path, rng: np.random.Generator, per_scene: int = 3) -> Iterator[TrustCase]:
-    from rgbd_gt.io import load_scan
-    from rgbd_gt.io.image import read_image
-    from rgbd_gt.io.scan import scan_colors
+    from rgbd_gt.bench.lidar import pjlab_scenes
 
-    for scene in sorted(folder.glob("pjlab_*")):
-        s = load_scan(scene / "calib.pcd")
-        photo = read_image(next(p for p in scene.glob("calib.*") if p.suffix in (".jpg", ".png")))
-        cam, T_ref = read_pjlab_calib(scene / "calib.txt", (photo.shape[1], photo.shape[0]))
+    for sc in pjlab_scenes(folder):
         for k in range(per_scene):
-            yield TrustCase(f"lidar {scene.name} #{k}", "lidar", "lidar", s, scan_colors(s), photo, cam,
-                            perturbed(T_ref, rng, 1.0, 0.10), T_ref)
+            yield TrustCase(f"lidar {sc.name} #{k}", "lidar", "lidar", sc.scan, sc.colors, sc.photo, sc.camera,
+                            perturbed(sc.T_ref, rng, 1.0, 0.10), sc.T_ref)
 
 
 # -- running and judging -----------------------------------------------------------------------------

@@ -15,7 +15,7 @@ from rgbd_gt.io.atomic import atomic_output
 VALID_DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
 
 
-def _camera_from_values(path: Path, width, height, K: np.ndarray, dist) -> Camera:
+def camera_from_values(path: Path, width, height, K: np.ndarray, dist) -> Camera:
     dist = tuple(float(d) for d in np.asarray(dist if dist is not None else [], float).ravel())
     if len(dist) not in VALID_DISTORTION_LENGTHS:
         raise InputError(f"distortion must have 4, 5, 8, 12 or 14 coefficients, got {len(dist)}", path)
@@ -45,16 +45,25 @@ def _read_opencv(path: Path) -> Camera:
             raise InputError("OpenCV calibration file has no 3x3 'camera_matrix'", path)
         if w.empty() or h.empty():
             raise InputError("OpenCV calibration file has no 'image_width'/'image_height'", path)
-        return _camera_from_values(path, w.real(), h.real(), K, dist)
+        return camera_from_values(path, w.real(), h.real(), K, dist)
     finally:
         fs.release()
 
 
-def read_camera(path: str | os.PathLike) -> Camera:
-    """Read a camera file: the project's YAML (width, height, fx, fy, cx, cy[, distortion])
-    or an OpenCV calibration file (camera_matrix, distortion_coefficients, image_width, image_height).
+def read_camera(path: str | os.PathLike, size: tuple[int, int] | None = None) -> Camera:
+    """Read a camera file: the project's YAML (width, height, fx, fy, cx, cy[, distortion]),
+    an OpenCV calibration file (camera_matrix, distortion_coefficients, image_width, image_height)
+    or a calibration text file (`io.calib_txt`: K and D lines), which needs `size` (width,
+    height) from the photo.
     """
+    from rgbd_gt.io.calib_txt import is_calib_txt, read_calib_camera
+
     path = require_file(path)
+    if is_calib_txt(path):
+        if size is None:
+            raise InputError("a calibration text file has no image size: use it where the photo is given, "
+                             "or write a camera YAML", path)
+        return read_calib_camera(path, size)
     text = path.read_text(errors="replace")
     if text.lstrip().startswith("%YAML:1.0") or "opencv-matrix" in text or path.suffix.lower() == ".xml":
         return _read_opencv(path)
@@ -71,7 +80,7 @@ def read_camera(path: str | os.PathLike) -> Camera:
         K = np.array([[data["fx"], 0, data["cx"]], [0, data["fy"], data["cy"]], [0, 0, 1]], float)
     except (TypeError, ValueError):
         raise InputError("fx, fy, cx, cy must be numbers", path) from None
-    return _camera_from_values(path, data["width"], data["height"], K, data.get("distortion"))
+    return camera_from_values(path, data["width"], data["height"], K, data.get("distortion"))
 
 
 def camera_to_dict(camera: Camera) -> dict:

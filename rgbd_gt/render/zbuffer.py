@@ -63,3 +63,46 @@ def visible_points(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cel
     zmin = torch.full((groups * ch * cw,), float("inf"), dtype=z.dtype, device=z.device)
     zmin = zmin.scatter_reduce(0, key, zz, reduce="amin", include_self=True)
     return inside & (z <= zmin[key] * (1 + rel_tol) + abs_tol)
+
+
+def cell_for_density(uv: torch.Tensor, size: tuple[int, int], per_cell: int = 3, largest: int = 64) -> int:
+    """Cell side (pixels, a power of 2) at which the occupied cells of a projection uv (N, 2)
+    hold at least `per_cell` points at the median: the projected spacing, measured in the image.
+
+    `cell_size_for` derives it from the 3D spacing at the median depth, which fits dense scans;
+    a LiDAR sweep has rings with large vertical gaps, points from 2 to 100 m and nothing on the
+    sky, so its spacing is best measured where it lands."""
+    w, h = size
+    inside = (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)
+    uv = uv[inside]
+    cell = 1
+    while cell < largest and uv.shape[0]:
+        cw = (w + cell - 1) // cell
+        key = (uv[:, 1] / cell).long() * cw + (uv[:, 0] / cell).long()
+        if float(torch.unique(key, return_counts=True)[1].float().median()) >= per_cell:
+            break
+        cell *= 2
+    return cell
+
+
+def depth_edges(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cell: int, ratio: float = 0.5) -> torch.Tensor:
+    """Per point (N,) in [0, 1]: how far the point stands in front of what lies beside it in the
+    image, from a Z-buffer of `cell`-pixel cells: (z_side / z - 1) / ratio, clipped, where z_side
+    is the larger of the nearest depths in the cells to its left and right; 1 where a side cell
+    is empty (a silhouette against the sky or a gap). 0 off the image or at its border.
+
+    Only left and right: a ring-structured sweep leaves empty rows between rings, so vertical
+    neighbours say nothing; the rings resolve vertical edges (poles, car sides, trunks) best."""
+    w, h = size
+    u, v = uv[:, 0], uv[:, 1]
+    inside = (z > 1e-3) & (u >= 0) & (v >= 0) & (u <= w - 1) & (v <= h - 1)
+    cw, ch = (w + cell - 1) // cell, (h + cell - 1) // cell
+    cx, cy = (u.clamp(0, w - 1) / cell).long(), (v.clamp(0, h - 1) / cell).long()
+    zz = torch.where(inside, z, torch.full_like(z, float("inf")))
+    zmin = torch.full((ch * cw,), float("inf"), dtype=z.dtype, device=z.device)
+    zmin = zmin.scatter_reduce(0, cy * cw + cx, zz, reduce="amin", include_self=True).reshape(ch, cw)
+    side = torch.full_like(zmin, 0.0)
+    side[:, 1:-1] = torch.maximum(zmin[:, :-2], zmin[:, 2:])
+    far = side[cy, cx]
+    e = ((far / z.clamp_min(1e-6) - 1) / ratio).clamp(0, 1)
+    return torch.where(inside & torch.isfinite(e), e, torch.where(inside & torch.isinf(far), torch.ones_like(e), torch.zeros_like(e)))

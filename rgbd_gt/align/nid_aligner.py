@@ -1,0 +1,340 @@
+"""The aligner for weak correspondence: refine T_cam_from_scan by minimising the NID between the
+scan's values (laser intensity, or the gray of colors) and the photo's gray levels at the
+projected points (align/nid.py), over one or several (scan, photo) pairs that share the pose
+(a LiDAR-camera rig over several frames).
+
+Per pyramid level, coarse to fine: the level's points (a random subset of those in view of the
+initial pose) are Z-buffered at the level's start pose with a cell sized for their density in
+the image, and L-BFGS (strong Wolfe line search) minimises NID over the 6 pose parameters, in
+units of one level pixel of image motion; the gradient is exact (autograd through the bilinear
+interpolant and the B-spline histogram). Before the coarsest level, an optional search runs that
+level from random starts around the init and keeps the lowest NID: a wider basin for poor inits.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+
+from rgbd_gt.align.aligner import RefineResult
+from rgbd_gt.align.config import RefineConfig
+from rgbd_gt.align.nid import joint_entropy, nid
+from rgbd_gt.align.pyramid import PhotoLevel
+from rgbd_gt.align.sampling import bilinear, central_gradients
+from rgbd_gt.errors import InputError
+from rgbd_gt.pose import apply_update, random_starts, translated
+from rgbd_gt.render.project import project_pinhole, projection_jacobian
+from rgbd_gt.render.zbuffer import cell_for_density, depth_edges, visible_points
+
+GRAY = (0.299, 0.587, 0.114)
+# A level moves each pose parameter by at most this many of its pixels and at most the search
+# size (smoothly, through tanh): NID has spurious minima far away, where other structure lines
+# up by chance, and a line search reaches them in one step; in a street scene one pixel of a
+# coarse level is a metre of camera motion.
+STEP_CAP_PX = 16.0
+
+
+@dataclass
+class Frame:
+    """One (scan, photo) pair of the pose being refined."""
+
+    points: np.ndarray  # (N, 3) float64, scan frame, metres
+    values: np.ndarray  # (N,) float32 in [0, 1]: intensity, or the gray of the scan's colors
+    pyramid: list[PhotoLevel]  # the photo's, finest first (`photo_pyramid`)
+
+
+@dataclass
+class _Part:
+    """One frame on one level: its points (local frame), their values and the photo's images,
+    as pairs of channels compared by NID: (scan value, gray) and, with cfg.nid_edges, (how far
+    the point stands in front of its sides, gray gradient magnitude)."""
+
+    points: torch.Tensor  # (n, 3) float32
+    values: torch.Tensor  # (n, C)
+    image: torch.Tensor  # (H, W, C)
+    photo: PhotoLevel
+
+
+@dataclass
+class _Evaluation:
+    nid: torch.Tensor  # (F x C,) NID per frame and channel pair, float64
+    counts: list[int]  # per frame and channel pair, the points that entered its histogram
+    entropies: list[float]  # ... and its joint entropy H(A, B) (nats)
+
+    @property
+    def loss(self) -> torch.Tensor:
+        return self.nid.mean()
+
+    def weights(self) -> torch.Tensor:
+        """(F,) n H(A, B) per frame: n H(A, B) NID is, up to a constant, the negative
+        log-likelihood of the n samples under their joint histogram against independence
+        (n I(A; B)); summed with these weights the frames count by their evidence, and the
+        gradient is of order one per pixel of motion (plain NID changes by ~1e-4 per pixel,
+        below what a line search in floating point resolves)."""
+        return torch.tensor([n * h for n, h in zip(self.counts, self.entropies)], dtype=torch.float64,
+                            device=self.nid.device)
+
+
+def so3_exp(w: torch.Tensor) -> torch.Tensor:
+    """Rotation matrix (3, 3) of the rotation vector w (3,), differentiable (also at 0)."""
+    theta2 = (w * w).sum()
+    K = torch.zeros(3, 3, dtype=w.dtype, device=w.device)
+    K[0, 1], K[0, 2], K[1, 0], K[1, 2], K[2, 0], K[2, 1] = -w[2], w[1], w[2], -w[0], -w[1], w[0]
+    small = theta2 < 1e-12
+    theta = torch.sqrt(torch.where(small, torch.ones_like(theta2), theta2))
+    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
+    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta**2)
+    return torch.eye(3, dtype=w.dtype, device=w.device) + a * K + b * (K @ K)
+
+
+def _channels(image: torch.Tensor, edges: bool) -> torch.Tensor:
+    """(H, W, 3) photo -> (H, W, C): its luma and, with edges, the luma's gradient magnitude
+    scaled by its 99th percentile into [0, 1]."""
+    gray = (image * torch.tensor(GRAY, dtype=image.dtype, device=image.device)).sum(2, keepdim=True)
+    if not edges:
+        return gray
+    gu, gv = central_gradients(gray)
+    mag = torch.sqrt(gu * gu + gv * gv)
+    top = torch.quantile(mag.flatten()[:: max(1, mag.numel() // 200_000)], 0.99).clamp_min(1e-6)
+    return torch.cat([gray, (mag / top).clamp(0, 1)], dim=2)
+
+
+class NidAligner:
+    """Refines one pose against one or more frames (`Frame`) by NID.
+
+    The interface is the photometric `Aligner`'s (refine, refine_many, visible_scan_points,
+    loss_profile), so that the verification (align/verify.py) judges either."""
+
+    def __init__(self, frames: list[Frame], cfg: RefineConfig):
+        self.cfg = cfg.check()
+        self.device = frames[0].pyramid[0].image.device
+        self.centre = np.concatenate([f.points for f in frames]).mean(axis=0)
+        self.frames = frames
+        self._points = [torch.as_tensor(f.points - self.centre, dtype=torch.float32, device=self.device) for f in frames]
+        self._values = [torch.as_tensor(f.values, dtype=torch.float32, device=self.device).reshape(-1) for f in frames]
+        self._images = [[_channels(lv.image, cfg.nid_edges) for lv in f.pyramid] for f in frames]
+        self._prepared: list[list[torch.Tensor]] | None = None  # per level, per frame: point indices
+
+    # -- the points of each level (chosen once, at the init) ---------------------------------------
+    def prepared_levels(self, T_init: np.ndarray) -> list[list[torch.Tensor]]:
+        """Per level, per frame: indices of a random subset of the points in view of T_init
+        (within a 15% margin and cfg.max_depth), `max_points` at full resolution and a quarter per
+        coarser level (nested), never fewer than `min_points`."""
+        if self._prepared is not None:
+            return self._prepared
+        cfg = self.cfg
+        R, t = self._pose(translated(T_init, self.centre))
+        per_frame = []
+        for f, pts in zip(self.frames, self._points):
+            finest = f.pyramid[0]
+            uv, z = project_pinhole(pts @ R.T + t, finest.K)
+            w, h = finest.camera.size
+            m = 0.15 * w
+            near = (z > 0.1) & (uv[:, 0] > -m) & (uv[:, 1] > -m) & (uv[:, 0] < w + m) & (uv[:, 1] < h + m)
+            if cfg.max_depth > 0:
+                near &= z < cfg.max_depth
+            idx = torch.nonzero(near).squeeze(1)
+            if int(visible_points(uv[idx], z[idx], (w, h), 1).sum()) < cfg.min_visible:
+                raise InputError(f"fewer than {cfg.min_visible} scan points in view of the initial pose: "
+                                 "check the pose, the camera file and the scan")
+            gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
+            per_frame.append(idx[torch.randperm(idx.numel(), generator=gen).to(self.device)])
+        self._prepared = [[idx[: max(cfg.min_points, cfg.max_points // 4**level)] for idx in per_frame]
+                          for level in range(len(self.frames[0].pyramid))]
+        return self._prepared
+
+    def _pose(self, T_local: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        return (torch.as_tensor(T_local[:3, :3], dtype=torch.float32, device=self.device),
+                torch.as_tensor(T_local[:3, 3], dtype=torch.float32, device=self.device))
+
+    def _parts(self, level: int, T_local: np.ndarray) -> list[_Part]:
+        """The level's points that are visible at T_local (a Z-buffer with cells sized for their
+        density in the image)."""
+        R, t = self._pose(T_local)
+        parts = []
+        for k, idx in enumerate(self._prepared[level]):
+            photo = self.frames[k].pyramid[level]
+            pts = self._points[k][idx]
+            uv, z = project_pinhole(pts @ R.T + t, photo.K)
+            cell = cell_for_density(uv, photo.camera.size)
+            vis = visible_points(uv, z, photo.camera.size, cell, self.cfg.zbuffer_rel_tol, self.cfg.zbuffer_abs_tol)
+            values = self._values[k][idx][:, None]
+            if self.cfg.nid_edges:
+                values = torch.cat([values, depth_edges(uv, z, photo.camera.size, cell)[:, None]], 1)
+            parts.append(_Part(pts[vis], values[vis], self._images[k][level], photo))
+        return parts
+
+    # -- the objective -----------------------------------------------------------------------------
+    def _evaluate(self, parts: list[_Part], T_local: np.ndarray, delta: torch.Tensor) -> _Evaluation:
+        """Mean NID over the frames at apply_update(T_local, delta) (delta (6,) differentiable),
+        on the points that land on usable pixels."""
+        R0, t0 = self._pose(T_local)
+        R = so3_exp(delta[:3]).to(R0.dtype)
+        nids, counts, entropies = [], [], []
+        for part in parts:
+            p = (part.points @ R0.T + t0) @ R.T + delta[3:].to(R0.dtype)
+            uv, z = project_pinhole(p, part.photo.K)
+            w, h = part.photo.camera.size
+            ok = (z > 0.1) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)
+            if part.photo.valid is not None:
+                u0 = uv[:, 0].detach().clamp(0, w - 1).long()
+                v0 = uv[:, 1].detach().clamp(0, h - 1).long()
+                ok &= part.photo.valid[v0, u0]
+            if int(ok.sum()) < 50:
+                raise InputError("the pose left the scan: fewer than 50 points in view")
+            sampled = bilinear(part.image, uv[ok]).double()
+            for c in range(sampled.shape[1]):
+                a, b = part.values[ok, c].double(), sampled[:, c]
+                nids.append(nid(a, b, self.cfg.nid_bins))
+                counts.append(int(ok.sum()))
+                entropies.append(joint_entropy(a.detach(), b.detach(), self.cfg.nid_bins))
+        return _Evaluation(torch.stack(nids), counts, entropies)
+
+    def _units(self, parts: list[_Part], T_local: np.ndarray) -> torch.Tensor:
+        """(6,) size of each pose parameter that moves the level's points by 1 pixel (RMS)."""
+        R, t = self._pose(T_local)
+        sq, n = torch.zeros(6, device=self.device), 0
+        for part in parts:
+            du, dv = projection_jacobian(part.points @ R.T + t, part.photo.K[0, 0], part.photo.K[1, 1])
+            sq += (du * du + dv * dv).sum(0)
+            n += du.shape[0]
+        return (1.0 / torch.sqrt(sq / max(n, 1)).clamp_min(1e-12)).double()
+
+    def _level(self, level: int, T_local: np.ndarray, iterations: int) -> tuple[np.ndarray, float, int, str]:
+        """L-BFGS on one level from T_local. Returns (pose, NID, iterations, why it stopped)."""
+        parts = self._parts(level, T_local)
+        units = self._units(parts, T_local)
+        x = torch.zeros(6, dtype=torch.float64, device=self.device, requires_grad=True)
+        with torch.no_grad():
+            weights = self._evaluate(parts, T_local, x).weights()
+
+        r, m = math.radians(self.cfg.search_rotation_deg), self.cfg.search_translation_m
+        cap = torch.minimum(units * STEP_CAP_PX, torch.tensor([r, r, r, m, m, m], dtype=units.dtype, device=units.device))
+
+        def update(x: torch.Tensor) -> torch.Tensor:  # smoothly at most `cap` per parameter
+            return cap * torch.tanh(units * x / cap)
+
+        opt = torch.optim.LBFGS([x], lr=1, max_iter=iterations, line_search_fn="strong_wolfe",
+                                tolerance_grad=1e-9, tolerance_change=1e-9)
+
+        def closure():
+            opt.zero_grad()
+            loss = (self._evaluate(parts, T_local, update(x)).nid * weights).sum()
+            loss.backward()
+            return loss
+
+        opt.step(closure)
+        n_iter = int(opt.state[x].get("n_iter", 0))
+        T = apply_update(T_local, update(x.detach()).cpu().numpy())
+        with torch.no_grad():
+            loss = float(self._evaluate(parts, T, torch.zeros(6, device=self.device)).loss)
+        return T, loss, n_iter, "iteration cap" if n_iter >= iterations else "converged"
+
+    def _search(self, level: int, T_local: np.ndarray) -> np.ndarray:
+        """The coarsest level from the init and from cfg.search_starts random starts around it;
+        the lowest NID wins (a start that loses the scan drops out)."""
+        cfg = self.cfg
+        starts = [T_local] + random_starts(T_local, cfg.search_starts, math.radians(cfg.search_rotation_deg),
+                                           cfg.search_translation_m, cfg.seed + 1)
+        best, best_loss = T_local, math.inf
+        for T0 in starts:
+            try:
+                T, loss, _, _ = self._level(level, T0, cfg.search_iterations)
+            except InputError:
+                continue
+            if loss < best_loss:
+                best, best_loss = T, loss
+        return best
+
+    # -- refine ------------------------------------------------------------------------------------
+    def refine(self, T_init: np.ndarray, progress: Callable[[dict], None] | None = None,
+               keep_residuals: bool = False, finest: int = 0, coarsest: int | None = None,
+               iterations: int | None = None, search: bool = True) -> RefineResult:
+        """Refine T_init (4x4 T_cam_from_scan) coarse to fine; the arguments are `Aligner.refine`'s
+        (keep_residuals is ignored: NID has no per-point residual). search: run the wide search
+        (cfg.search_starts) first."""
+        start = time.perf_counter()
+        cfg = self.cfg
+        T_init = np.asarray(T_init, np.float64)
+        n_levels = len(self.prepared_levels(T_init))
+        top = n_levels - 1 if coarsest is None else min(coarsest, n_levels - 1)
+        T = translated(T_init, self.centre)
+        if search and cfg.search_starts > 0:
+            T = self._search(top, T)
+        history, level_info, total = [], [], 0
+        for level in range(top, finest - 1, -1):
+            T_before = T
+            T, loss, n_it, stop = self._level(level, T, iterations or cfg.iterations)
+            total += n_it
+            level_info.append({"level": level, "iterations": n_it, "stop": stop})
+            step = T @ np.linalg.inv(T_before)
+            rec = {"level": level, "iteration": n_it, "loss": loss,
+                   "rotation_update_deg": float(np.degrees(np.arccos(np.clip((np.trace(step[:3, :3]) - 1) / 2, -1, 1)))),
+                   "translation_update_m": float(np.linalg.norm(step[:3, 3])), "accepted": True}
+            history.append(rec)
+            if progress is not None:
+                progress(rec)
+        parts = self._parts(finest, T)
+        with torch.no_grad():
+            final = self._evaluate(parts, T, torch.zeros(6, device=self.device))
+        n_candidates = sum(int(idx.numel()) for idx in self._prepared[finest])
+        seen = sum(final.counts[:: 2 if self.cfg.nid_edges else 1])  # per frame, not per channel pair
+        return RefineResult(
+            T_cam_from_scan=translated(T, -self.centre), color_transform=np.zeros((0, 0)), iterations=total,
+            loss=float(final.loss), inlier_fraction=seen / max(n_candidates, 1),
+            visible_points=seen, seconds=time.perf_counter() - start, history=history,
+            levels=level_info, objective="nid", covariance=self._covariance(parts, T, final.weights()) if finest == 0 else None,
+        )
+
+    def _covariance(self, parts: list[_Part], T_local: np.ndarray, weights: torch.Tensor) -> np.ndarray:
+        """Laplace approximation: the inverse Hessian of the negative log-likelihood
+        sum_f n_f H_f NID_f (`_Evaluation.weights`); a lower bound, as neighbouring points share
+        photo pixels. The Hessian comes from central differences of the exact gradient over half a
+        pixel of image motion, which sees the curvature of the interpolated photo. All inf where
+        it is not positive definite: the result is no minimum."""
+        units = self._units(parts, T_local)
+
+        def grad(x: np.ndarray) -> np.ndarray:
+            xt = torch.as_tensor(x, dtype=torch.float64, device=self.device).requires_grad_(True)
+            (self._evaluate(parts, T_local, xt * units).nid * weights).sum().backward()
+            return xt.grad.cpu().numpy()
+
+        h = 0.5
+        H = np.stack([(grad(h * e) - grad(-h * e)) / (2 * h) for e in np.eye(6)])
+        H = 0.5 * (H + H.T)
+        if np.linalg.eigvalsh(H)[0] <= 0:
+            return np.full((6, 6), np.inf)
+        u = units.cpu().numpy()
+        return np.linalg.inv(H) * u[:, None] * u[None, :]
+
+    # -- what the verification asks (see `Aligner`) ---------------------------------------------------
+    def refine_many(self, starts: list[np.ndarray], finest: int = 0, coarsest: int | None = None,
+                    iterations: int | None = None) -> list[np.ndarray | None]:
+        """`refine` (without the search) from each start; None for a start that lost the scan."""
+        out = []
+        for T0 in starts:
+            try:
+                out.append(self.refine(T0, finest=finest, coarsest=coarsest, iterations=iterations, search=False).T_cam_from_scan)
+            except InputError:
+                out.append(None)
+        return out
+
+    def visible_scan_points(self, T: np.ndarray) -> np.ndarray:
+        """(n, 3) float64 scan-frame points of the first frame's finest level visible at T."""
+        part = self._parts(0, translated(T, self.centre))[0]
+        return part.points.double().cpu().numpy() + self.centre
+
+    def loss_profile(self, T: np.ndarray, deltas: np.ndarray, level: int = 0) -> tuple[float, np.ndarray]:
+        """NID at T and at T moved by each update of deltas (k, 6), on the points visible at T."""
+        level = min(level, len(self._prepared) - 1)
+        T_local = translated(T, self.centre)
+        parts = self._parts(level, T_local)
+        with torch.no_grad():
+            at = lambda d: float(self._evaluate(parts, T_local, torch.as_tensor(d, dtype=torch.float64, device=self.device)).loss)  # noqa: E731
+            return at(np.zeros(6)), np.array([at(d) for d in deltas])
+

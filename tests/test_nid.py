@@ -1,0 +1,209 @@
+"""The NID objective for scans whose values relate to the photo only statistically: its value and
+gradient, the aligner on a synthetic intensity-only scan with exact truth and on a real LiDAR
+sweep, the joint solve of several pairs, calibration text files, and the sweep helpers."""
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from conftest import DATA, assert_one_line_error, run_cli
+from rgbd_gt.align.config import RefineConfig
+from rgbd_gt.align.nid import joint_histogram, nid
+from rgbd_gt.align.nid_aligner import Frame, NidAligner, so3_exp
+from rgbd_gt.align.pyramid import photo_pyramid
+from rgbd_gt.io import load_scan, read_camera, read_pose, save_scan
+from rgbd_gt.io.image import read_image
+from rgbd_gt.io.scan import Scan, colors_to_gray
+from rgbd_gt.pose import apply_update, rotation_error_deg, so3_exp as so3_exp_np, translated, translation_error_m
+from rgbd_gt.render.zbuffer import cell_for_density, depth_edges
+
+
+def test_nid_is_zero_for_dependent_values_and_near_one_for_independent_ones():
+    rng = np.random.default_rng(0)
+    a = torch.as_tensor(rng.uniform(0, 1, 20_000))
+    p = joint_histogram(a, a, 16)
+    assert abs(float(p.sum()) - 1) < 1e-9 and float(p.min()) >= 0
+    noise = torch.as_tensor(rng.normal(size=20_000))
+    same, inverted, bent = float(nid(a, a)), float(nid(a, 1 - a)), float(nid(a, (1 - a) ** 2))
+    noisy = float(nid(a, (a + 0.1 * noise).clamp(0, 1)))
+    independent = float(nid(a, torch.as_tensor(rng.uniform(0, 1, 20_000))))
+    # the B-spline windows blur even an exact relation (0.62 with 16 bins), whatever its form
+    assert abs(inverted - same) < 1e-9 and same < bent < noisy < independent
+    assert same < 0.7 and bent < 0.7 and independent > 0.99
+
+
+def test_nid_gradient_matches_finite_differences():
+    rng = np.random.default_rng(1)
+    a = torch.as_tensor(rng.uniform(0, 1, 3000))
+    b0 = (0.3 * a + 0.5 * torch.as_tensor(rng.uniform(0, 1, 3000))).clamp(0, 1)
+    b = b0.clone().requires_grad_(True)
+    nid(a, b).backward()
+    idx = rng.choice(3000, 20, replace=False)
+    h = 1e-6
+    for i in idx:
+        plus, minus = b0.clone(), b0.clone()
+        plus[i] += h
+        minus[i] -= h
+        fd = (float(nid(a, plus)) - float(nid(a, minus))) / (2 * h)
+        assert abs(float(b.grad[i]) - fd) <= 1e-4 * max(abs(fd), 1e-3), (i, float(b.grad[i]), fd)
+
+
+def test_differentiable_rotation_matches_rodrigues():
+    for w in (np.zeros(3), np.array([1e-7, 0, 0]), np.array([0.3, -0.2, 0.9])):
+        np.testing.assert_allclose(so3_exp(torch.as_tensor(w)).numpy(), so3_exp_np(w), atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def intensity_scene(tmp_path_factory):
+    """A synthetic scene whose scan keeps only an 'intensity': a non-monotonic function of its
+    gray, which no per-point regression from the photo's colors recovers, but NID does."""
+    d = tmp_path_factory.mktemp("nid_scene")
+    assert run_cli("synth", d, "--size", "small", "--seed", 2).returncode == 0
+    scan = load_scan(d / "scan.ply")
+    gray = colors_to_gray(scan.rgb) / 255.0
+    save_scan(d / "intensity.ply", Scan(xyz=scan.xyz, intensity=(np.sin(3 * np.pi * gray) ** 2).astype(np.float32),
+                                        origins=scan.origins))
+    return d
+
+
+def test_pose_gradient_matches_finite_differences(intensity_scene):
+    d = intensity_scene
+    scan, photo, camera = load_scan(d / "intensity.ply"), read_image(d / "photo.png"), read_camera(d / "camera.yaml")
+    T = read_pose(d / "init_pose.yaml")[0]
+    cfg = RefineConfig(objective="nid", levels=3)
+    al = NidAligner([Frame(scan.xyz, scan.intensity, photo_pyramid(photo, camera, 3, torch.device("cpu")))], cfg)
+    al.prepared_levels(T)
+    T_local = translated(T, al.centre)
+    parts = al._parts(1, T_local)
+    d0 = torch.tensor([2e-3, -1e-3, 5e-4, 3e-3, -2e-3, 1e-3], dtype=torch.float64, requires_grad=True)
+    al._evaluate(parts, T_local, d0).loss.backward()
+    units = al._units(parts, T_local).numpy()
+    grad = d0.grad.numpy() * units  # per pixel of motion along each parameter
+    # central differences over 0.05 px: the bilinear interpolant is smooth only within a pixel,
+    # and NID in float32 points resolves ~1e-4 of its per-pixel change
+    fd = np.zeros(6)
+    for k in range(6):
+        e = np.zeros(6)
+        e[k] = 0.05 * units[k]
+        f = lambda s: float(al._evaluate(parts, T_local, d0.detach() + torch.as_tensor(s * e)).loss)  # noqa: E731
+        fd[k] = (f(1) - f(-1)) / 0.1
+    assert np.linalg.norm(grad - fd) < 0.1 * np.linalg.norm(grad), (grad, fd)
+
+
+def test_nid_refines_an_intensity_only_scan_where_photometric_cannot(intensity_scene, tmp_path):
+    d = intensity_scene
+    gt, init = read_pose(d / "gt_pose.yaml")[0], read_pose(d / "init_pose.yaml")[0]
+    errs = {}
+    for objective in ("nid", "photometric"):
+        out = tmp_path / f"{objective}.yaml"
+        proc = run_cli("refine", "--scan", d / "intensity.ply", "--image", d / "photo.png", "--camera", d / "camera.yaml",
+                       "--init", d / "init_pose.yaml", "-o", out, "--objective", objective, "--repeats", "0")
+        assert proc.returncode == 0, proc.stderr
+        T, meta = read_pose(out)
+        assert meta["objective"] == objective and meta["verdict"] in ("ok", "suspect", "failed")
+        errs[objective] = (translation_error_m(T, gt) * 1e3, rotation_error_deg(T, gt))
+    init_err = (translation_error_m(init, gt) * 1e3, rotation_error_deg(init, gt))
+    print("synthetic intensity-only (mm, deg): init", init_err, "after", errs)
+    assert errs["nid"][0] < 3.0 and errs["nid"][1] < 0.06, (errs, init_err)  # measured 1.9 mm, 0.031 deg: docs/lidar.md
+    assert errs["photometric"][0] > 2 * errs["nid"][0], errs
+
+
+def _pjlab(k: int):
+    folder = DATA / "lidar_camera" / f"pjlab_{k}"
+    if not folder.exists():
+        pytest.skip(f"real test data not found at {folder}")
+    return folder
+
+
+def test_real_sweep_converges_from_a_one_degree_init(tmp_path):
+    """pjlab_3 (the scene where NID agrees with the reference; docs/lidar.md): 1 degree and 10 cm off.
+    The reference has its own error: NID's minimum lies 2-6 cm from it (docs/lidar.md)."""
+    d = _pjlab(3)
+    T_ref = read_pose(d / "calib.txt")[0]
+    T0 = apply_update(T_ref, np.r_[np.radians(1.0) * np.array([0.6, 0.0, 0.8]), 0.10 * np.array([0.0, 0.6, 0.8])])
+    from rgbd_gt.io import write_pose
+
+    write_pose(tmp_path / "init.yaml", T0)
+    out = tmp_path / "pose.yaml"
+    proc = run_cli("refine", "--scan", d / "calib.pcd", "--image", d / "calib.png", "--camera", d / "calib.txt",
+                   "--init", tmp_path / "init.yaml", "-o", out, "--repeats", "0")
+    assert proc.returncode == 0, proc.stderr
+    T, meta = read_pose(out)
+    assert meta["objective"] == "nid"  # auto: the sweep has intensity only
+    print("pjlab_3 from 1 deg / 10 cm:", rotation_error_deg(T, T_ref), translation_error_m(T, T_ref))
+    assert rotation_error_deg(T, T_ref) < 0.25 and translation_error_m(T, T_ref) < 0.08, (
+        rotation_error_deg(T, T_ref), translation_error_m(T, T_ref))
+    assert meta["verdict"] != "ok"  # a sweep this sparse cannot be checked against the photo's edges
+
+
+def test_joint_solve_of_two_frames_and_calibration_files(tmp_path):
+    d1, d2 = _pjlab(1), _pjlab(2)
+    (tmp_path / "pairs.yaml").write_text(yaml.safe_dump({"pairs": [
+        {"scan": str(d1 / "calib.pcd"), "image": str(d1 / "calib.jpg")},
+        {"scan": str(d2 / "calib.pcd"), "image": str(d2 / "calib.jpg"), "camera": str(d2 / "calib.txt")}]}))
+    out = tmp_path / "rig.yaml"
+    proc = run_cli("refine", "--pairs", tmp_path / "pairs.yaml", "--camera", d1 / "calib.txt", "--init", d1 / "calib.txt",
+                   "-o", out, "--repeats", "0", "--search-starts", "0", "--levels", "1")
+    assert proc.returncode == 0, proc.stderr
+    T, meta = read_pose(out)
+    assert meta["pairs"] == 2 and meta["objective"] == "nid" and meta["visible_points"] > 12_000
+    # from the reference, on full resolution only: the joint minimum lies near it (docs/lidar.md)
+    T_ref = read_pose(d1 / "calib.txt")[0]
+    assert rotation_error_deg(T, T_ref) < 0.3 and translation_error_m(T, T_ref) < 0.1
+    # the photometric objective has no joint form
+    proc = run_cli("refine", "--pairs", tmp_path / "pairs.yaml", "--camera", d1 / "calib.txt", "--init", d1 / "calib.txt",
+                   "-o", tmp_path / "x.yaml", "--objective", "photometric")
+    assert_one_line_error(proc, "jointly")
+
+
+def test_pairs_and_scan_arguments_are_checked(tmp_path):
+    (tmp_path / "bad.yaml").write_text("pairs: [{scan: a.pcd}]\n")
+    cam = tmp_path / "cam.yaml"
+    cam.write_text("width: 10\nheight: 10\nfx: 10\nfy: 10\ncx: 5\ncy: 5\n")
+    pose = tmp_path / "pose.yaml"
+    pose.write_text(yaml.safe_dump({"T_cam_from_scan": np.eye(4).tolist()}))
+    base = ("refine", "--camera", cam, "--init", pose, "-o", tmp_path / "out.yaml")
+    assert_one_line_error(run_cli(*base, "--pairs", tmp_path / "bad.yaml"), "pair 1", "scan and image")
+    assert_one_line_error(run_cli(*base, "--scan", tmp_path / "a.pcd"), "--scan and --image")
+    assert_one_line_error(run_cli(*base), "--pairs")
+    assert_one_line_error(run_cli(*base, "--scan", "a.pcd", "--image", "a.png", "--objective", "mi"), "objective")
+    assert not (tmp_path / "out.yaml").exists()
+
+
+def test_calibration_text_files(tmp_path):
+    R = so3_exp_np(np.array([0.01, -0.02, 1.5]))
+    rows = np.round(np.hstack([R, [[0.1], [-0.4], [0.2]]]), 6)  # printed with 6 digits: not quite orthonormal
+    pjlab = tmp_path / "calib.txt"
+    pjlab.write_text("K: 2000 0 960 0 2010 600 0 0 1\nD: -0.1 0.1 0.001 0.002\nT: " + " ".join(map(str, rows.ravel())) + "\n")
+    cam = read_camera(pjlab, (1920, 1200))
+    assert (cam.width, cam.fx, cam.fy, cam.cy) == (1920, 2000, 2010, 600) and cam.distortion == (-0.1, 0.1, 0.001, 0.002)
+    T, meta = read_pose(pjlab)
+    np.testing.assert_allclose(T[:3], rows, atol=2e-6)
+    assert meta == {}
+    assert abs(np.linalg.det(T[:3, :3]) - 1) < 1e-12
+    kitti = tmp_path / "kitti.txt"
+    kitti.write_text("P2: 700 0 600 45 0 700 180 0.2 0 0 1 0.003\nTr_velo_to_cam: " + " ".join(map(str, rows.ravel())) + "\n")
+    assert read_camera(kitti, (1242, 375)).cx == 600 and read_camera(kitti, (1242, 375)).distortion == ()
+    np.testing.assert_allclose(read_pose(kitti)[0], T)
+    (tmp_path / "nan.txt").write_text("K: nan 0 1 0 1 1 0 0 1\n")
+    (tmp_path / "short.txt").write_text("T: 1 0 0\n")
+    for path, needle in ((tmp_path / "nan.txt", "non-finite"), (tmp_path / "short.txt", "12")):
+        with pytest.raises(Exception, match=needle):
+            read_camera(path, (10, 10)) if "nan" in path.name else read_pose(path)
+    with pytest.raises(Exception, match="no image size"):
+        read_camera(pjlab)
+
+
+def test_sweep_density_cell_and_depth_edges():
+    # rings: rows 16 px apart, points 2 px apart along each row
+    u, v = np.meshgrid(np.arange(0, 640, 2.0), np.arange(8, 480, 16.0))
+    uv = torch.as_tensor(np.stack([u.ravel(), v.ravel()], 1))
+    assert cell_for_density(uv, (640, 480)) == 8  # 4 points share an 8-px cell of a ring; dense clouds get 1
+    dense = torch.as_tensor(np.random.default_rng(0).uniform(0, 100, (40_000, 2)))
+    assert cell_for_density(dense, (100, 100)) == 1
+    # a pole 4 m away in front of a wall 20 m away: its points stand out, the wall's do not
+    z = torch.where((uv[:, 0] >= 300) & (uv[:, 0] < 340), torch.tensor(4.0, dtype=torch.float64), torch.tensor(20.0, dtype=torch.float64))
+    e = depth_edges(uv, z, (640, 480), 8)
+    pole_edge = (z == 4) & ((uv[:, 0] < 304) | (uv[:, 0] >= 336))  # in the cells (8 px) that border the wall's
+    assert bool((e[pole_edge] == 1).all()) and float(e[z == 20].max()) == 0 and float(e[(z == 4) & ~pole_edge].max()) == 0
