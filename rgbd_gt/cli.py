@@ -280,14 +280,12 @@ def refine(
     import dataclasses
 
     from rgbd_gt.align.config import RefineConfig
-    from rgbd_gt.align.refine import load_inputs, refine_meta, refine_verified
+    from rgbd_gt.align.refine import load_inputs, read_pairs, refine_meta, refine_verified
     from rgbd_gt.config import load_config
     from rgbd_gt.init.run import read_correspondences
     from rgbd_gt.io import check_not_input, write_pose
 
     start = time.perf_counter()
-    from rgbd_gt.align.refine import read_pairs
-
     if (scan is None) != (image is None):
         raise InputError("--scan and --image go together" + ("" if pairs else " (or list the pairs in --pairs)"))
     if scan is None and pairs is None:
