@@ -48,13 +48,14 @@ def entropy(p: torch.Tensor) -> torch.Tensor:
     return -(p * torch.log(p.clamp_min(1e-12))).sum()
 
 
-def nid(a: torch.Tensor, b: torch.Tensor, bins: int = 16) -> torch.Tensor:
-    """NID (a scalar in [0, 1]) of paired values a, b (n,) in [0, 1]."""
+def nid_and_entropy(a: torch.Tensor, b: torch.Tensor, bins: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
+    """NID (a scalar in [0, 1]) of paired values a, b (n,) in [0, 1], and their joint entropy
+    H(A, B) in nats (the scale that turns NID into a log-likelihood)."""
     p = joint_histogram(a, b, bins)
     h_ab = entropy(p)
-    return 2.0 - (entropy(p.sum(1)) + entropy(p.sum(0))) / h_ab.clamp_min(1e-12)
+    return 2.0 - (entropy(p.sum(1)) + entropy(p.sum(0))) / h_ab.clamp_min(1e-12), h_ab
 
 
-def joint_entropy(a: torch.Tensor, b: torch.Tensor, bins: int = 16) -> float:
-    """H(A, B) in nats (the scale that turns NID into a log-likelihood, for the covariance)."""
-    return float(entropy(joint_histogram(a, b, bins)))
+def nid(a: torch.Tensor, b: torch.Tensor, bins: int = 16) -> torch.Tensor:
+    """NID (a scalar in [0, 1]) of paired values a, b (n,) in [0, 1]."""
+    return nid_and_entropy(a, b, bins)[0]

@@ -23,7 +23,7 @@ import torch
 
 from rgbd_gt.align.aligner import RefineResult
 from rgbd_gt.align.config import RefineConfig
-from rgbd_gt.align.nid import joint_entropy, nid
+from rgbd_gt.align.nid import nid_and_entropy
 from rgbd_gt.align.pyramid import PhotoLevel
 from rgbd_gt.align.sampling import bilinear, central_gradients
 from rgbd_gt.errors import InputError
@@ -189,10 +189,10 @@ class NidAligner:
                 raise InputError("the pose left the scan: fewer than 50 points in view")
             sampled = bilinear(part.image, uv[ok]).double()
             for c in range(sampled.shape[1]):
-                a, b = part.values[ok, c].double(), sampled[:, c]
-                nids.append(nid(a, b, self.cfg.nid_bins))
+                value, h_ab = nid_and_entropy(part.values[ok, c].double(), sampled[:, c], self.cfg.nid_bins)
+                nids.append(value)
                 counts.append(int(ok.sum()))
-                entropies.append(joint_entropy(a.detach(), b.detach(), self.cfg.nid_bins))
+                entropies.append(float(h_ab.detach()))
         return _Evaluation(torch.stack(nids), counts, entropies)
 
     def _units(self, parts: list[_Part], T_local: np.ndarray) -> torch.Tensor:
