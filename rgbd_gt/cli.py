@@ -63,6 +63,10 @@ def _progress(*extra_columns) -> Progress:
     )
 
 
+def _warn(message: str) -> None:
+    err.print(f"warning: {message}", markup=False, highlight=False, soft_wrap=True)
+
+
 def _summary(title: str, rows: list[tuple[str, str]], output: Path, report: Optional[Path]) -> None:
     """The closing table of a command and where its outputs went."""
     table = Table(title=title, show_header=False)
@@ -195,8 +199,10 @@ def init_pose(
     correspondences: Optional[Path] = typer.Option(None, "--correspondences", help="CSV u,v,x,y,z of hand-picked photo pixels and scan points (>= 6): RANSAC PnP, no board needed."),
     charuco: Optional[str] = typer.Option(None, "--charuco", help="A ChArUco board of this ArUco dictionary (e.g. DICT_5X5_100) instead of a checkerboard."),
     marker: Optional[float] = typer.Option(None, "--marker", help="ChArUco marker side in metres (default 0.75 x square)."),
-    estimate_focal: bool = typer.Option(False, "--estimate-focal", help="With --correspondences: also estimate the focal length (photos without calibration)."),
-    report: Optional[Path] = typer.Option(None, "--report", help="Folder for the photo with detected/reprojected corners and the virtual scan view."),
+    estimate_focal: bool = typer.Option(False, "--estimate-focal", help="With --correspondences: also estimate the focal length (fx = fy; principal point from the camera file, no distortion), for photos without calibration."),
+    camera_out: Optional[Path] = typer.Option(None, "--camera-out", help="With --estimate-focal: write the camera with the estimated focal here (YAML), for refine and export-depth."),
+    ransac_px: float = typer.Option(4.0, "--ransac-px", help="With --correspondences: a pair farther than this (pixels) from where the pose puts its scan point is an outlier."),
+    report: Optional[Path] = typer.Option(None, "--report", help="Folder for the photo with its corners or picks (used / dropped) and their reprojections, and the virtual scan view."),
 ) -> None:
     """Coarse pose of a photo from a checkerboard seen in both the photo and the scan (PnP), or
     from hand-picked correspondences (RANSAC PnP)."""
@@ -207,7 +213,14 @@ def init_pose(
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import read_image
 
-    check_not_input(output, [p for p in (scan, image, camera, board_points, correspondences) if p])
+    inputs = [p for p in (scan, image, camera, board_points, correspondences) if p]
+    check_not_input(output, inputs)
+    if camera_out is not None:
+        if not estimate_focal:
+            raise InputError("--camera-out writes the camera of --estimate-focal: give both")
+        check_not_input(camera_out, inputs + [output])
+    if not (np.isfinite(ransac_px) and ransac_px > 0):
+        raise InputError(f"--ransac-px must be a positive number of pixels, got {ransac_px}")
     cols, rows = _board_shape(board)
     if not square > 0:
         raise InputError(f"--square must be positive, got {square}")
@@ -224,24 +237,36 @@ def init_pose(
     with _progress() as bar:
         bar.add_task("init-pose", total=None)
         if correspondences is not None:
-            img, obj = read_correspondences(correspondences)
-            result = init_from_correspondences(img, obj, cam, estimate_focal)
+            result = init_from_correspondences(read_correspondences(correspondences), cam, estimate_focal, ransac_px)
         else:
             spec = BoardSpec(cols, rows, square, charuco, marker)
             the_scan = load_scan(scan, require_points=True)
             corners = read_csv_rows(board_points, "x,y,z") if board_points else None
             result = init_from_board(the_scan, photo, cam, spec, corners, scan, image)
-    write_pose(output, result.T_cam_from_scan, **result.pose_meta())
+    meta = result.pose_meta()
+    if camera_out is not None:
+        from rgbd_gt.io.camera_file import write_camera
+
+        write_camera(camera_out, result.camera)
+        meta["camera_out"] = str(camera_out)
+    write_pose(output, result.T_cam_from_scan, **meta)
     if report is not None:
         write_report(report, result, photo)
     rows = [("method", result.method), ("points used", str(result.n_points)),
             ("reprojection RMS", f"{result.reprojection_rms_px:.3f} px")]
+    dropped = [p for p in result.extra.get("pairs", []) if not p["inlier"]]
+    if dropped:
+        rows.append((f"dropped ({len(dropped)})", ", ".join(
+            f"{p['label']} ({p['residual_px']:.1f} px)" if p["residual_px"] is not None else p["label"] for p in dropped)))
     if result.color_agreement is not None:
         rows.append(("color agreement", f"{result.color_agreement:.2f}"))
     if result.extra.get("estimated_focal_px"):
-        rows.append(("estimated focal", f"{result.extra['estimated_focal_px']:.1f} px"))
+        sigma = (result.uncertainty or {}).get("focal_px")
+        rows.append(("estimated focal", f"{result.extra['estimated_focal_px']:.1f} px" + (f" (1 sigma {sigma:.1f} px)" if sigma else "")))
     rows.append(("time", f"{result.seconds:.1f} s"))
     _summary("init-pose", rows, output, report)
+    if camera_out is not None:
+        out.print(f"wrote {camera_out}")
 
 
 @app.command()
@@ -280,7 +305,7 @@ def refine(
     import dataclasses
 
     from rgbd_gt.align.config import RefineConfig
-    from rgbd_gt.align.refine import load_inputs, read_pairs, refine_meta, refine_verified
+    from rgbd_gt.align.refine import camera_disagreement, load_inputs, read_pairs, refine_meta, refine_verified
     from rgbd_gt.config import load_config
     from rgbd_gt.init.run import read_correspondences
     from rgbd_gt.io import check_not_input, write_pose
@@ -308,7 +333,13 @@ def refine(
         raise InputError(str(exc)) from None
     everything = ([dict(scan=scan, image=image, camera=camera)] if scan is not None else []) + listed
     inputs = [load_inputs(p["scan"], p["image"], p["camera"], init, mask if k == 0 else None) for k, p in enumerate(everything)]
-    held_out = read_correspondences(check, minimum=1) if check is not None else None
+    warnings = [w for w in [camera_disagreement(inputs[0].camera, inputs[0].init_meta, camera)] if w]
+    for w in warnings:
+        _warn(w)
+    held_out = None
+    if check is not None:
+        picks = read_correspondences(check, minimum=1)
+        held_out = (picks.img, picks.obj)
     with _progress(TextColumn("{task.fields[info]}")) as bar:
         task = bar.add_task("refine", total=None, info="")
 
@@ -319,6 +350,8 @@ def refine(
         result, verification = refine_verified(inputs[0], cfg, device, progress, keep_residuals=report is not None,
                                                check=held_out, more=inputs[1:])
     meta = refine_meta(result, cfg, inputs[0].T_init, init, verification, pairs=len(inputs))
+    if warnings:
+        meta["warnings"] = warnings
     write_pose(output, result.T_cam_from_scan, **meta)
     moved_mm, moved_deg = meta["change_from_init"]["translation_mm"], meta["change_from_init"]["rotation_deg"]
     if report is not None:

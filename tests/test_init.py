@@ -115,11 +115,53 @@ def test_estimate_focal(scenes, tmp_path):
     wrong = dict(width=cam.width, height=cam.height, fx=cam.fx * 1.6, fy=cam.fy * 1.6, cx=cam.cx, cy=cam.cy)
     (tmp_path / "cam.yaml").write_text(yaml.safe_dump(wrong))
     proc = run_cli("init-pose", "--scan", d / "scan.ply", "--image", d / "photo.png", "--camera", tmp_path / "cam.yaml",
-                   "-o", tmp_path / "init.yaml", "--correspondences", tmp_path / "pairs.csv", "--estimate-focal")
+                   "-o", tmp_path / "init.yaml", "--correspondences", tmp_path / "pairs.csv", "--estimate-focal",
+                   "--camera-out", tmp_path / "estimated.yaml")
     assert proc.returncode == 0, proc.stderr
     mm, deg, meta = _err(tmp_path / "init.yaml", d)
     assert abs(meta["estimated_focal_px"] / cam.fx - 1) < 0.02
     assert mm < 20 and deg < 0.5
+    # the camera written is the one the pose was solved with, and the focal's sigma is stated
+    written = read_camera(tmp_path / "estimated.yaml")
+    assert written.fx == pytest.approx(meta["estimated_focal_px"]) and written.cx == cam.cx and not written.distortion
+    sigma = meta["uncertainty"]["focal_px"]
+    assert 0 < sigma < 0.02 * cam.fx and abs(written.fx - cam.fx) < 5 * sigma + 1
+    # refine says so when given a camera file that disagrees with the estimate
+    proc = run_cli("refine", "--scan", d / "scan.ply", "--image", d / "photo.png", "--camera", tmp_path / "cam.yaml",
+                   "--init", tmp_path / "init.yaml", "-o", tmp_path / "refined.yaml", "--levels", "1", "--iterations", "1",
+                   "--repeats", "0")
+    assert "warning: --camera" in proc.stderr and "init-pose estimated" in proc.stderr, proc.stderr
+    assert "init-pose estimated" in read_pose(tmp_path / "refined.yaml")[1]["warnings"][0]
+
+
+def test_labelled_picks_report_each_pair(scenes, tmp_path):
+    """A CSV with a label column (what `pick` writes): every pair's residual and inlier flag in
+    the pose file, the dropped ones named in the summary, --ransac-px honoured."""
+    d = scenes[1]
+    cam = read_camera(d / "camera.yaml")
+    rows = _pairs(d, cam, n=12, outliers=2)
+    rows[2, :2] += 6  # a near-miss: an outlier at 4 px, an inlier at 10 px
+    text = "label,u,v,x,y,z\n" + "".join(f"corner {k},{r[0]},{r[1]},{r[2]},{r[3]},{r[4]}\n" for k, r in enumerate(rows))
+    (tmp_path / "picks.csv").write_text(text)
+    args = ["init-pose", "--scan", d / "scan.ply", "--image", d / "photo.png", "--camera", d / "camera.yaml",
+            "--correspondences", tmp_path / "picks.csv"]
+    proc = run_cli(*args, "-o", tmp_path / "a.yaml", "--report", tmp_path / "rep")
+    assert proc.returncode == 0, proc.stderr
+    pairs = read_pose(tmp_path / "a.yaml")[1]["pairs"]
+    assert [p["label"] for p in pairs] == [f"corner {k}" for k in range(12)]
+    assert [p["inlier"] for p in pairs] == [False, False, False] + [True] * 9
+    assert all(p["residual_px"] > 40 for p in pairs[:2]) and all(p["residual_px"] < 2 for p in pairs[3:])
+    assert "dropped (3)" in proc.stdout and "corner 0" in proc.stdout and "corner 2" in proc.stdout
+    assert (tmp_path / "rep" / "init_photo.png").exists()
+    proc = run_cli(*args, "-o", tmp_path / "b.yaml", "--ransac-px", "10")
+    assert proc.returncode == 0, proc.stderr
+    assert [p["inlier"] for p in read_pose(tmp_path / "b.yaml")[1]["pairs"]] == [False, False] + [True] * 10
+    for bad, what in ((["--ransac-px", "0"], "--ransac-px"), (["--camera-out", tmp_path / "c.yaml"], "--camera-out"),
+                      (["--ransac-px", "nan"], "--ransac-px")):
+        assert_one_line_error(run_cli(*args, "-o", tmp_path / "c.yaml", *bad), what)
+    (tmp_path / "bad.csv").write_text("u,v,x,y\n1,2,3,4\n")
+    assert_one_line_error(run_cli(*args[:-1], tmp_path / "bad.csv", "-o", tmp_path / "c.yaml"), "bad.csv", "no column z")
+    assert not (tmp_path / "c.yaml").exists()
 
 
 def test_no_board_in_photo_or_scan(scenes, tmp_path):

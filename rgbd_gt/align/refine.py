@@ -60,6 +60,16 @@ def load_inputs(scan_path: Path, image_path: Path, camera_path: Path, init_path:
     return RefineInputs(scan.xyz, scan_colors(scan, scan_path), photo, camera, T_init, ignore, scan, init_meta)
 
 
+def camera_disagreement(camera, init_meta: dict, camera_path) -> str | None:
+    """A warning when init-pose estimated another focal length for this photo than the camera
+    file's (more than 1% apart): the pose would absorb the difference."""
+    est = init_meta.get("estimated_focal_px")
+    if not isinstance(est, (int, float)) or not est > 0 or abs(camera.fx / est - 1) <= 0.01:
+        return None
+    return (f"--camera {camera_path}: fx is {camera.fx:.1f} px but init-pose estimated {est:.1f} px for this photo "
+            f"(init-pose --camera-out writes that camera)")
+
+
 def read_pairs(path: Path, camera: Path) -> list[dict[str, Path]]:
     """The (scan, image, camera) paths of a --pairs YAML (`pairs:` a list of mappings with scan,
     image and optionally camera, which defaults to `camera`), relative to the file's folder."""

@@ -21,25 +21,34 @@ def reprojection_rms(T: np.ndarray, obj: np.ndarray, img: np.ndarray, camera: Ca
 
 
 def pose_uncertainty(T: np.ndarray, obj: np.ndarray, img: np.ndarray, camera: Camera,
-                     floor_px: float = 0.1) -> dict | None:
+                     floor_px: float = 0.1, focal: bool = False) -> dict | None:
     """1-sigma uncertainty of a PnP pose from its n >= 4 correspondences: covariance
     s^2 (J^T J)^-1 of the update (rotation vector, translation) in the camera frame, J the
     reprojection Jacobian (numerical), s^2 = sum(r^2) / (2n - 6) but at least floor_px^2 (a
     perfect fit does not make a pose exact). The worst direction's sigma for rotation (deg) and
-    camera position (mm), or None when the points do not fix the pose."""
-    n = len(obj)
-    if n < 4:
+    camera position (mm), or None when the points do not fix the pose. With `focal`, the focal
+    length (fx = fy) is a 7th unknown: the pose's sigmas include what it leaves open, and
+    `focal_px` is its own."""
+    import dataclasses
+
+    n, k = len(obj), 7 if focal else 6
+    if n < 4 or (focal and n < 5):
         return None
+
     def residual(delta):
-        return (project(camera, transform_points(apply_update(T, delta), obj))[0] - img).ravel()
-    r0 = residual(np.zeros(6))
+        cam = dataclasses.replace(camera, fx=camera.fx * (1 + delta[6]), fy=camera.fy * (1 + delta[6])) if focal else camera
+        return (project(cam, transform_points(apply_update(T, delta[:6]), obj))[0] - img).ravel()
+    r0 = residual(np.zeros(k))
     h = 1e-6
-    J = np.stack([(residual(h * e) - residual(-h * e)) / (2 * h) for e in np.eye(6)], 1)
-    if not np.isfinite(J).all() or np.linalg.matrix_rank(J) < 6:
+    J = np.stack([(residual(h * e) - residual(-h * e)) / (2 * h) for e in np.eye(k)], 1)
+    if not np.isfinite(J).all() or np.linalg.matrix_rank(J) < k:
         return None
-    s2 = max(float(r0 @ r0) / max(2 * n - 6, 1), floor_px**2)
+    s2 = max(float(r0 @ r0) / max(2 * n - k, 1), floor_px**2)
     cov = s2 * np.linalg.inv(J.T @ J)
-    return worst_sigmas(cov)
+    out = worst_sigmas(cov[:6, :6])
+    if focal:
+        out["focal_px"] = float(np.sqrt(cov[6, 6]) * camera.fx)
+    return out
 
 
 def pnp(obj: np.ndarray, img: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
@@ -120,7 +129,8 @@ def pnp_ransac(obj: np.ndarray, img: np.ndarray, camera: Camera, threshold_px: f
     return _to_T(rvec, tvec), mask
 
 
-def estimate_focal(obj: np.ndarray, img: np.ndarray, camera: Camera) -> tuple[Camera, np.ndarray, np.ndarray]:
+def estimate_focal(obj: np.ndarray, img: np.ndarray, camera: Camera,
+                   threshold_px: float = 4.0) -> tuple[Camera, np.ndarray, np.ndarray]:
     """Search the focal length (fx = fy, principal point from the camera file, no distortion)
     that minimises the RANSAC PnP reprojection error: a coarse log-spaced scan, then golden
     section. Returns (camera with that focal, T, inlier mask)."""
@@ -129,7 +139,7 @@ def estimate_focal(obj: np.ndarray, img: np.ndarray, camera: Camera) -> tuple[Ca
     def cost(f: float):
         cam = dataclasses.replace(camera, fx=f, fy=f, distortion=())
         try:
-            T, mask = pnp_ransac(obj, img, cam)
+            T, mask = pnp_ransac(obj, img, cam, threshold_px)
         except InputError:
             return np.inf, None, None, cam
         err = reprojection_rms(T, obj[mask], img[mask], cam)

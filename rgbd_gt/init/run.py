@@ -34,6 +34,8 @@ class InitResult:
     # 1-sigma {rotation_deg, translation_mm} of the pose (refine's verification draws its repeat
     # starts at this size and compares its change with it)
     uncertainty: dict | None = None
+    inliers: np.ndarray | None = None  # (n,) bool, per photo corner: used by the pose
+    labels: list[str] | None = None  # per photo corner, for hand picks
 
     def pose_meta(self) -> dict:
         """The keys an initial pose file records besides the pose."""
@@ -107,44 +109,111 @@ def read_csv_rows(path: Path, fields: str) -> np.ndarray:
     return data
 
 
-def read_correspondences(path: Path, minimum: int = 6) -> tuple[np.ndarray, np.ndarray]:
-    """CSV rows u,v,x,y,z -> (img (n, 2), obj (n, 3)); at least `minimum` rows, all finite."""
-    data = read_csv_rows(path, "u,v,x,y,z")
+@dataclass
+class Picks:
+    """Hand-picked correspondences: photo pixels img (n, 2) (distorted, as in the photo), scan
+    points obj (n, 3) (scan frame, metres) and a label per pair."""
+
+    img: np.ndarray
+    obj: np.ndarray
+    labels: list[str]
+
+
+PICK_COLUMNS = ("u", "v", "x", "y", "z", "label")
+
+
+def read_correspondences(path: Path, minimum: int = 6) -> Picks:
+    """A CSV of u,v,x,y,z[,label] rows (`rgbd-gt pick` writes them): at least `minimum` rows,
+    all finite. A header line, when there is one, names the columns (any order); without one the
+    columns are in that order. Unlabelled rows are labelled by their row number."""
+    import csv
+
+    require_file(path)
+    rows = [r for r in csv.reader(path.read_text(errors="replace").splitlines()) if r and any(c.strip() for c in r)]
+    rows = [[c.strip() for c in r] for r in rows]
+
+    def numeric(cell: str) -> bool:
+        try:
+            float(cell)
+            return True
+        except ValueError:
+            return False
+
+    order = list(range(6))
+    if rows and not all(numeric(c) for c in rows[0][:5]):
+        names = [c.lower().lstrip("#").strip() for c in rows.pop(0)]
+        missing = [c for c in PICK_COLUMNS[:5] if c not in names]
+        if missing:
+            raise InputError(f"the header names no column {', '.join(missing)} (expected u,v,x,y,z[,label])", path)
+        order = [names.index(c) if c in names else -1 for c in PICK_COLUMNS]
+    elif rows and len(rows[0]) not in (5, 6):
+        raise InputError(f"expected u,v,x,y,z[,label] rows, got {len(rows[0])} values per row", path)
+    values, labels = [], []
+    for k, r in enumerate(rows, 1):
+        if max(order[:5]) >= len(r) or not all(numeric(r[j]) for j in order[:5]):
+            raise InputError(f"row {k}: expected u,v,x,y,z numbers, got '{','.join(r)}'", path)
+        values.append([float(r[j]) for j in order[:5]])
+        labels.append(r[order[5]] if 0 <= order[5] < len(r) and r[order[5]] else str(k))
+    data = np.array(values, np.float64).reshape(-1, 5)
     if len(data) < minimum:
         raise InputError(f"need at least {minimum} rows of u,v,x,y,z, got {len(data)}", path)
     if not np.isfinite(data).all():
         raise InputError(f"row {int(np.nonzero(~np.isfinite(data).all(1))[0][0]) + 1} has a value that is not a finite number", path)
-    return data[:, :2], data[:, 2:]
+    return Picks(data[:, :2], data[:, 2:], labels)
 
 
-def init_from_correspondences(img: np.ndarray, obj: np.ndarray, camera: Camera, focal: bool) -> InitResult:
+def init_from_correspondences(picks: Picks, camera: Camera, focal: bool, ransac_px: float = 4.0) -> InitResult:
+    """RANSAC PnP on hand picks (with the focal length searched when `focal`). The result's
+    extra keys list every pair's reprojection error and inlier flag; with `focal` its
+    uncertainty includes the focal length's."""
     start = time.perf_counter()
+    img, obj = picks.img, picks.obj
     if focal:
-        camera, T, mask = estimate_focal(obj, img, camera)
+        camera, T, mask = estimate_focal(obj, img, camera, ransac_px)
     else:
-        T, mask = pnp_ransac(obj, img, camera)
+        T, mask = pnp_ransac(obj, img, camera, ransac_px)
     rms = reprojection_rms(T, obj[mask], img[mask], camera)
+    uv, _ = project(camera, transform_points(T, obj))
+    err = np.linalg.norm(uv - img, axis=1)
+    pairs = [{"label": lab, "residual_px": round(float(e), 3) if np.isfinite(e) else None, "inlier": bool(m)}
+             for lab, e, m in zip(picks.labels, err, mask)]
     return InitResult(T, "RANSAC PnP on hand-picked correspondences" + (" (focal estimated)" if focal else ""), rms,
                       int(mask.sum()), camera, photo_corners=img, scan_corners=obj, seconds=time.perf_counter() - start,
-                      extra={"inliers": int(mask.sum()), "correspondences": len(mask),
-                             "estimated_focal_px": camera.fx if focal else None},
-                      uncertainty=pose_uncertainty(T, obj[mask], img[mask], camera))
+                      extra={"inliers": int(mask.sum()), "correspondences": len(mask), "ransac_px": ransac_px,
+                             "estimated_focal_px": camera.fx if focal else None, "pairs": pairs},
+                      uncertainty=pose_uncertainty(T, obj[mask], img[mask], camera, focal=focal),
+                      inliers=mask, labels=picks.labels)
 
 
 def write_report(out_dir: Path, result: InitResult, photo: np.ndarray) -> None:
-    """init_photo.png: detected corners (green) and the scan corners reprojected (red);
-    init_scan_view.png: the virtual scan view with the corners found there."""
+    """init_photo.png: the photo's corners or picks (green circles: used; red: dropped as
+    outliers) with a line to where the pose puts their scan points (crosses), labelled for hand
+    picks; init_scan_view.png: the virtual scan view with the corners found there."""
     from rgbd_gt.io.image import write_image
 
     out_dir.mkdir(parents=True, exist_ok=True)
     img = photo.copy()
     uv, _ = project(result.camera, transform_points(result.T_cam_from_scan, result.scan_corners))
+    n = len(result.photo_corners)
+    inliers = result.inliers if result.inliers is not None else np.ones(n, bool)
     r = max(3, photo.shape[1] // 200)
-    for p in result.photo_corners:
-        cv2.circle(img, tuple(int(v) for v in np.round(p)), r, (0, 255, 0), 1, cv2.LINE_AA)
-    for p in uv[np.all(np.isfinite(uv), axis=1)]:
-        q = tuple(int(v) for v in np.round(p))
-        cv2.drawMarker(img, q, (255, 0, 0), cv2.MARKER_CROSS, 2 * r, 1, cv2.LINE_AA)
+    scale = max(0.4, photo.shape[1] / 2000)
+    for k in range(n):
+        color = (0, 220, 0) if inliers[k] else (255, 40, 40)
+        p = tuple(int(v) for v in np.round(result.photo_corners[k]))
+        cv2.circle(img, p, r, color, max(1, r // 3), cv2.LINE_AA)
+        if k < len(uv) and np.all(np.isfinite(uv[k])) and np.all(np.abs(uv[k]) < 1e6):
+            q = tuple(int(v) for v in np.round(uv[k]))
+            cv2.line(img, p, q, color, 1, cv2.LINE_AA)
+            cv2.drawMarker(img, q, color, cv2.MARKER_CROSS, 2 * r, max(1, r // 3), cv2.LINE_AA)
+        if result.labels is not None:
+            cv2.putText(img, result.labels[k], (p[0] + r + 2, p[1] - r - 2), cv2.FONT_HERSHEY_SIMPLEX, scale, color,
+                        max(1, int(2 * scale)), cv2.LINE_AA)
+    legend = "circle: photo, cross: scan point at the pose; green: used, red: dropped as outlier"
+    cv2.putText(img, legend, (10, int(30 * scale) + 5), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255),
+                max(1, int(2 * scale)) + 2, cv2.LINE_AA)
+    cv2.putText(img, legend, (10, int(30 * scale) + 5), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0),
+                max(1, int(2 * scale)), cv2.LINE_AA)
     write_image(out_dir / "init_photo.png", img)
     if result.scan_board is not None:
         view = cv2.cvtColor(result.scan_board.view.image, cv2.COLOR_GRAY2RGB)
