@@ -399,7 +399,7 @@ def export_depth(
     from rgbd_gt.io import check_not_input, load_scan, read_camera, read_pose
     from rgbd_gt.io.depth_file import write_depth_exr, write_depth_png16
     from rgbd_gt.io.image import write_image
-    from rgbd_gt.render.depth import render_depth
+    from rgbd_gt.render.depth import back_facing_fraction, back_facing_warning, render_depth
 
     outputs = [p for p in (output, png16, normals, mask) if p]
     for p in outputs:
@@ -415,7 +415,13 @@ def export_depth(
         depth = render_depth(the_scan, cam, T, max_depth)
     valid = depth.z > 0
     if not valid.any():
+        if depth.back_facing:
+            raise InputError("the camera sees only the back of the scan's surfaces at this pose: the depth map "
+                             "would be empty", pose)
         raise InputError("no scan points in view of this pose: the depth map would be empty", pose)
+    warning = back_facing_warning(depth)
+    if warning:
+        _warn(warning)
     write_depth_exr(output, depth.z, cam, T, scan.name)
     if png16:
         write_depth_png16(png16, depth.z)
@@ -428,6 +434,8 @@ def export_depth(
         ("method", depth.method),
         ("size", f"{cam.width} x {cam.height}"),
         ("pixels with depth", f"{valid.mean():.1%}"),
+        ("seen from behind", "unknown (the scan records no scanner position)" if depth.back_facing is None
+         else f"{depth.back_facing:,} pixels ({back_facing_fraction(depth):.1%} of the scan's view), written as 0"),
         ("depth range", f"{zs.min():.3f} .. {zs.max():.3f} m (median {np.median(zs):.3f})"),
         ("time", f"{time.perf_counter() - start:.1f} s"),
     ], output, None)
@@ -488,6 +496,51 @@ def qa_edges(
     _summary("qa-edges", rows, output, None)
 
 
+def blend_path(output: Path) -> Path:
+    """Where overlay writes its 50% blend, beside the checkerboard: OVERLAY_blend.png."""
+    return output.with_name(f"{output.stem}_blend{output.suffix}")
+
+
+@app.command()
+def overlay(
+    scan: Path = typer.Option(..., "--scan", help="The scan (.ply, .e57 or .pcd)."),
+    image: Path = typer.Option(..., "--image", help="The photo."),
+    camera: Path = typer.Option(..., "--camera", help="Camera file of the photo."),
+    pose: Path = typer.Option(..., "--pose", help="The pose to show (T_cam_from_scan), e.g. from refine."),
+    output: Path = typer.Option(..., "-o", "--output", help="Checkerboard PNG at the photo's resolution: squares alternate between the photo and the scan rendered at the pose (edges must run on across square borders). The 50% blend goes beside it as OVERLAY_blend.png."),
+    max_depth: Optional[float] = typer.Option(None, "--max-depth", help="Leave out scan surfaces farther than this (metres)."),
+) -> None:
+    """The scan rendered at the pose over the photo, as a checkerboard and as a 50% blend, full
+    resolution (crop to inspect): the most direct check of a pose. Surfaces the camera would
+    see from behind are not drawn."""
+    from rgbd_gt.io import check_not_input, load_scan, read_camera, read_pose
+    from rgbd_gt.io.camera_file import check_image_matches
+    from rgbd_gt.io.image import read_image, write_image
+    from rgbd_gt.qa.overlay import overlay as make_overlay
+
+    start = time.perf_counter()
+    blend = blend_path(output)
+    for p in (output, blend):
+        check_not_input(p, [scan, image, camera, pose])
+        if p.suffix.lower() != ".png":
+            raise InputError("overlays are written as .png", p)
+    photo = read_image(image)
+    cam = read_camera(camera, (photo.shape[1], photo.shape[0]))
+    check_image_matches(cam, photo.shape, image, camera)
+    T, _ = read_pose(pose)
+    the_scan = load_scan(scan, require_points=True)
+    with _progress() as bar:
+        bar.add_task("rendering the scan", total=None)
+        checker, mixed, covered = make_overlay(the_scan, photo, cam, T, max_depth)
+    if covered == 0:
+        raise InputError("no scan surface in view of this pose (or only surfaces seen from behind)", pose)
+    write_image(output, checker)
+    write_image(blend, mixed)
+    _summary("overlay", [("size", f"{cam.width} x {cam.height}"), ("scan covers", f"{covered:.1%} of the photo"),
+                         ("time", f"{time.perf_counter() - start:.1f} s")], output, None)
+    out.print(f"wrote {blend}")
+
+
 @app.command("run")
 def run_workflow(
     config: Path = typer.Argument(..., help="Workflow config (see configs/example.yaml): scan, camera, board, photos, output."),
@@ -501,6 +554,7 @@ def run_workflow(
     from rgbd_gt.config import load_config
     from rgbd_gt.io import load_scan, read_camera
     from rgbd_gt.io.scan import scan_colors
+    from rgbd_gt.render.normals import with_normals
     from rgbd_gt.workflow import PhotoResult, RunConfig, resolve, run_photo, verdict_counts, write_summary
 
     cfg = load_config(RunConfig, config)
@@ -510,7 +564,7 @@ def run_workflow(
         raise InputError(f"refine: {exc}", config) from None
     scan_path, camera_path, photos, out_dir = resolve(config, cfg)
     camera = read_camera(camera_path)
-    scan = load_scan(scan_path, require_points=True)
+    scan = with_normals(load_scan(scan_path, require_points=True))  # once, for every photo
     colors = scan_colors(scan, scan_path)
     results = []
     with _progress(TextColumn("{task.fields[step]}")) as bar:

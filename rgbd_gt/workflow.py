@@ -1,5 +1,5 @@
 """`rgbd-gt run CONFIG.yaml`: one scan, many photos; per photo init-pose -> refine ->
-export-depth -> qa-edges, skipping steps whose outputs exist, going on past failures."""
+export-depth -> qa-edges -> overlay, skipping steps whose outputs exist, going on past failures."""
 
 from __future__ import annotations
 
@@ -42,7 +42,7 @@ class RunConfig:
     max_depth: float | None = None
 
 
-STEPS = ("init", "refine", "depth", "qa")
+STEPS = ("init", "refine", "depth", "qa", "overlay")
 
 
 @dataclass
@@ -59,6 +59,7 @@ class PhotoResult:
     edge_after_px: float | None = None
     within_1px_before: float | None = None
     within_1px_after: float | None = None
+    seen_from_behind: float | None = None  # of the depth map's view (`render.depth.back_facing_fraction`)
     seconds: float = 0.0
     skipped: list[str] = field(default_factory=list)
     error: str = ""
@@ -95,13 +96,15 @@ def run_photo(photo: Path, scan, colors: np.ndarray, camera, cfg: RunConfig, sca
     from rgbd_gt.io.depth_file import write_depth_exr, write_depth_png16
     from rgbd_gt.io.image import read_image, write_image
     from rgbd_gt.qa.edges import qa, side_by_side
-    from rgbd_gt.render.depth import render_depth
+    from rgbd_gt.qa.overlay import overlay
+    from rgbd_gt.render.depth import back_facing_fraction, render_depth
 
     start = time.perf_counter()
     res = PhotoResult(photo.name)
     d = out / photo.stem
     d.mkdir(parents=True, exist_ok=True)
-    files = {"init": d / "init.yaml", "refine": d / "pose.yaml", "depth": d / "depth.exr", "qa": d / "qa.json"}
+    files = {"init": d / "init.yaml", "refine": d / "pose.yaml", "depth": d / "depth.exr", "qa": d / "qa.json",
+             "overlay": d / "overlay.png"}
     image = read_image(photo)
     check_image_matches(camera, image.shape, photo, "the camera file")
 
@@ -136,6 +139,7 @@ def run_photo(photo: Path, scan, colors: np.ndarray, camera, cfg: RunConfig, sca
         res.skipped.append("depth (failed)")
     else:
         depth = render_depth(scan, camera, T, cfg.max_depth)
+        res.seen_from_behind = back_facing_fraction(depth)
         write_depth_png16(d / "depth.png", depth.z)
         write_depth_exr(files["depth"], depth.z, camera, T, scan_path.name)
 
@@ -148,6 +152,13 @@ def run_photo(photo: Path, scan, colors: np.ndarray, camera, cfg: RunConfig, sca
         write_image(d / "qa.png", side_by_side(img_b, img_a))
         with atomic_output(files["qa"]) as tmp:
             tmp.write_text(json.dumps({**after.as_dict(), **before.as_dict("before_")}, indent=1))
+    progress("overlay")
+    if files["overlay"].exists():
+        res.skipped.append("overlay")
+    else:  # the blend first: overlay.png's presence says both are there
+        checker, mixed, _ = overlay(scan, image, camera, T, cfg.max_depth)
+        write_image(d / "overlay_blend.png", mixed)
+        write_image(files["overlay"], checker)
     score = json.loads(files["qa"].read_text())
     res.edge_before_px, res.edge_after_px = score["before_mean_distance_px"], score["mean_distance_px"]
     res.within_1px_before, res.within_1px_after = score["before_within_1px"], score["within_1px"]
@@ -159,7 +170,7 @@ def write_summary(path: Path, results: list[PhotoResult]) -> None:
     from rgbd_gt.io.atomic import atomic_output
 
     cols = ["photo", "status", "verdict", "init_rms_px", "refine_loss", "inlier_fraction", "edge_ratio", "edge_before_px",
-            "edge_after_px", "within_1px_before", "within_1px_after", "seconds", "skipped", "reasons", "error"]
+            "edge_after_px", "within_1px_before", "within_1px_after", "seen_from_behind", "seconds", "skipped", "reasons", "error"]
     with atomic_output(path) as tmp, open(tmp, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(cols)

@@ -38,12 +38,15 @@ def test_run_two_photos_then_resume(tmp_path):
         z, header = read_depth_exr(tmp_path / "out" / photo / "depth.exr")
         assert z.shape == (480, 640) and (z > 0).mean() > 0.5
         np.testing.assert_allclose(header["rgbd_gt_T_cam_from_scan"], T)
+        assert float(r["seen_from_behind"]) < 0.03  # the camera is on the scanner's side
+        for name in ("overlay.png", "overlay_blend.png"):
+            assert cv2.imread(str(tmp_path / "out" / photo / name)).shape == (480, 640, 3)
     stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "out").rglob("*") if p.is_file() and p.name != "summary.csv"}
     again = run_cli("run", tmp_path / "run.yaml")
     assert again.returncode == 0, again.stderr
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps  # nothing recomputed
     rows = {r["photo"]: r for r in csv.DictReader(open(tmp_path / "out" / "summary.csv"))}
-    assert rows["photo.png"]["skipped"] == "init refine depth qa"
+    assert rows["photo.png"]["skipped"] == "init refine depth qa overlay"
 
 
 def test_run_bad_config(tmp_path):

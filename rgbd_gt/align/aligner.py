@@ -27,6 +27,7 @@ from rgbd_gt.align.robust import student_t_loss, student_t_weights
 from rgbd_gt.align.sampling import bilinear, bilinear_with_gradient, central_gradients
 from rgbd_gt.errors import InputError
 from rgbd_gt.pose import apply_update, translated
+from rgbd_gt.render.normals import facing_camera
 from rgbd_gt.render.project import project_pinhole, projection_jacobian
 from rgbd_gt.render.zbuffer import cell_size_for, estimate_spacing, visible_points
 
@@ -58,6 +59,7 @@ class _LevelData:
     points: torch.Tensor  # (n, 3) float32, local frame
     target: torch.Tensor  # (n, m)
     cell: int
+    normals: torch.Tensor | None = None  # (n, 3) float32, facing the scanner (render/normals.py)
 
 
 @dataclass
@@ -167,9 +169,12 @@ class Aligner:
         colors: (N, 3) uint8 colors, or (N, 1) intensity in [0, 1] for scans without color.
         pyramid: the photo's pyramid (`photo_pyramid`), finest first.
         cfg: settings.
+        normals: (N, 3) unit normals facing the scanner (`render.normals.scan_normals`), or None:
+            points seen from behind are then not told apart.
     """
 
-    def __init__(self, points: np.ndarray, colors: np.ndarray, pyramid: list[PhotoLevel], cfg: RefineConfig):
+    def __init__(self, points: np.ndarray, colors: np.ndarray, pyramid: list[PhotoLevel], cfg: RefineConfig,
+                 normals: np.ndarray | None = None):
         self.cfg = cfg.check()
         self.pyramid = pyramid
         self.device = pyramid[0].image.device
@@ -181,6 +186,7 @@ class Aligner:
         c = torch.as_tensor(colors, device=self.device)
         c = c.to(self.dtype) / 255.0 if colors.dtype == np.uint8 else c.to(self.dtype)
         self.target = self.model.target(c.reshape(len(points), -1))
+        self.normals = None if normals is None else torch.as_tensor(normals, dtype=self.dtype, device=self.device)
         self._prepared: tuple[np.ndarray, list[_LevelData]] | None = None
 
     # -- pose conversion between the scan frame and the local frame ---------------------------
@@ -203,15 +209,21 @@ class Aligner:
         if self.cfg.max_depth > 0:
             near &= z < self.cfg.max_depth
         idx = torch.nonzero(near).squeeze(1)
-        visible = visible_points(uv[idx], z[idx], (w, h), 1)
-        if int(visible.sum()) < self.cfg.min_visible:
-            raise InputError(f"only {int(visible.sum())} scan points in view of the initial pose "
-                             f"(need {self.cfg.min_visible}): check the pose, the camera file and the scan")
-        spacing = estimate_spacing(self.points[idx])
-        depth = float(z[idx].median())
+        need = self.cfg.min_visible
+        spacing = estimate_spacing(self.points[idx]) if idx.numel() >= need else 0.0
+        depth = float(z[idx].median()) if idx.numel() else 1.0
+        # cells that close the gaps between the points: through them, what a surface hides would count as seen
+        cell = cell_size_for(spacing, finest.camera.fx, depth)
+        facing = None if self.normals is None else facing_camera(self.points[idx] @ R.T + t, self.normals[idx] @ R.T)
+        visible = int(visible_points(uv[idx], z[idx], (w, h), cell, facing=facing).sum())
+        if visible < need:
+            if facing is not None and int(visible_points(uv[idx], z[idx], (w, h), cell).sum()) >= need:
+                raise InputError(f"only {visible} scan points in view of the initial pose face the camera "
+                                 f"(need {need}): the photo sees the back of what the scanner saw")
+            raise InputError(f"only {visible} scan points in view of the initial pose "
+                             f"(need {need}): check the pose, the camera file and the scan")
         # order the points so that every prefix favours textured ones (they carry the pose)
-        score = texture_score(uv[idx], z[idx], (w, h), cell_size_for(spacing, finest.camera.fx, depth),
-                              self.target[idx])
+        score = texture_score(uv[idx], z[idx], (w, h), cell, self.target[idx])
         gen = torch.Generator(device="cpu").manual_seed(self.cfg.seed)
         gumbel = -torch.log(-torch.log(torch.rand(idx.numel(), generator=gen).clamp_min(1e-12))).to(self.device)
         weight = score + self.cfg.texture_floor * score.mean().clamp_min(1e-6)
@@ -222,7 +234,8 @@ class Aligner:
             sub = idx[:n]
             cell = cell_size_for(spacing * math.sqrt(idx.numel() / n), photo.camera.fx, depth)
             grads = central_gradients(photo.image) if self.cfg.gradient == "central" else None
-            out.append(_LevelData(photo, grads, self.points[sub], self.target[sub], min(cell, 16 * photo.zoom)))
+            out.append(_LevelData(photo, grads, self.points[sub], self.target[sub], min(cell, 16 * photo.zoom),
+                                  None if self.normals is None else self.normals[sub]))
         return out
 
     # -- one evaluation ------------------------------------------------------------------------
@@ -234,12 +247,19 @@ class Aligner:
     def _visible(self, lv: _LevelData, T_local: np.ndarray) -> torch.Tensor:
         """Indices (into lv.points) of the points visible at this pose on usable pixels."""
         R, t = self._pose_tensors(T_local)
-        uv, z = project_pinhole(lv.points @ R.T + t, lv.photo.K)
-        vis = visible_points(uv, z, lv.photo.camera.size, lv.cell, self.cfg.zbuffer_rel_tol, self.cfg.zbuffer_abs_tol)
+        p = lv.points @ R.T + t
+        uv, z = project_pinhole(p, lv.photo.K)
+        facing = None if lv.normals is None else facing_camera(p, lv.normals @ R.T)
+        vis = visible_points(uv, z, lv.photo.camera.size, lv.cell, self.cfg.zbuffer_rel_tol, self.cfg.zbuffer_abs_tol,
+                             facing=facing)
         if lv.photo.valid is not None:
             vis &= _valid_at(lv.photo.valid, uv)
         idx = torch.nonzero(vis).squeeze(1)
         if idx.numel() < 10:
+            if facing is not None and int(visible_points(uv, z, lv.photo.camera.size, lv.cell, self.cfg.zbuffer_rel_tol,
+                                                         self.cfg.zbuffer_abs_tol).sum()) >= 10:
+                raise InputError("fewer than 10 scan points in view face the camera: the photo sees the back of "
+                                 "what the scanner saw")
             raise InputError("the pose left the scan: fewer than 10 points in view")
         return idx
 
@@ -383,7 +403,12 @@ class Aligner:
         p, uv, z, uvc = self._project_many(lv, Ts)
         B, n = p.shape[:2]
         group = torch.arange(B, device=self.device).repeat_interleave(n)
-        vis = visible_points(uv, z, lv.photo.camera.size, lv.cell, cfg.zbuffer_rel_tol, cfg.zbuffer_abs_tol, group=group)
+        facing = None
+        if lv.normals is not None:
+            R = torch.stack([self._pose_tensors(T)[0] for T in Ts])
+            facing = facing_camera(p.reshape(-1, 3), torch.einsum("bij,nj->bni", R, lv.normals).reshape(-1, 3))
+        vis = visible_points(uv, z, lv.photo.camera.size, lv.cell, cfg.zbuffer_rel_tol, cfg.zbuffer_abs_tol, group=group,
+                             facing=facing)
         if lv.photo.valid is not None:
             vis &= _valid_at(lv.photo.valid, uv)
         vis = vis.reshape(B, n)

@@ -29,6 +29,7 @@ from rgbd_gt.align.sampling import bilinear, central_gradients
 from rgbd_gt.errors import InputError
 from rgbd_gt.pose import apply_update, random_starts, translated
 from rgbd_gt.render.project import project_pinhole, projection_jacobian
+from rgbd_gt.render.normals import facing_camera
 from rgbd_gt.render.zbuffer import cell_for_density, depth_edges, visible_points
 
 GRAY = (0.299, 0.587, 0.114)
@@ -46,6 +47,7 @@ class Frame:
     points: np.ndarray  # (N, 3) float64, scan frame, metres
     values: np.ndarray  # (N,) float32 in [0, 1]: intensity, or the gray of the scan's colors
     pyramid: list[PhotoLevel]  # the photo's, finest first (`photo_pyramid`)
+    normals: np.ndarray | None = None  # (N, 3) facing the scanner (render/normals.py), or None
 
 
 @dataclass
@@ -117,6 +119,8 @@ class NidAligner:
         self.frames = frames
         self._points = [torch.as_tensor(f.points - self.centre, dtype=torch.float32, device=self.device) for f in frames]
         self._values = [torch.as_tensor(f.values, dtype=torch.float32, device=self.device).reshape(-1) for f in frames]
+        self._normals = [None if f.normals is None else torch.as_tensor(f.normals, dtype=torch.float32, device=self.device)
+                         for f in frames]
         self._images = [[_channels(lv.image, cfg.nid_edges) for lv in f.pyramid] for f in frames]
         self._prepared: list[list[torch.Tensor]] | None = None  # per level, per frame: point indices
 
@@ -130,7 +134,7 @@ class NidAligner:
         cfg = self.cfg
         R, t = self._pose(translated(T_init, self.centre))
         per_frame = []
-        for f, pts in zip(self.frames, self._points):
+        for k, (f, pts) in enumerate(zip(self.frames, self._points)):
             finest = f.pyramid[0]
             uv, z = project_pinhole(pts @ R.T + t, finest.K)
             w, h = finest.camera.size
@@ -139,7 +143,7 @@ class NidAligner:
             if cfg.max_depth > 0:
                 near &= z < cfg.max_depth
             idx = torch.nonzero(near).squeeze(1)
-            if int(visible_points(uv[idx], z[idx], (w, h), 1).sum()) < cfg.min_visible:
+            if int(visible_points(uv[idx], z[idx], (w, h), 1, facing=self._facing(k, idx, R, t)).sum()) < cfg.min_visible:
                 raise InputError(f"fewer than {cfg.min_visible} scan points in view of the initial pose: "
                                  "check the pose, the camera file and the scan")
             gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
@@ -152,6 +156,12 @@ class NidAligner:
         return (torch.as_tensor(T_local[:3, :3], dtype=torch.float32, device=self.device),
                 torch.as_tensor(T_local[:3, 3], dtype=torch.float32, device=self.device))
 
+    def _facing(self, k: int, idx: torch.Tensor, R: torch.Tensor, t: torch.Tensor) -> torch.Tensor | None:
+        """Which of frame k's points idx face the camera at (R, t) (None without normals)."""
+        if self._normals[k] is None:
+            return None
+        return facing_camera(self._points[k][idx] @ R.T + t, self._normals[k][idx] @ R.T)
+
     def _parts(self, level: int, T_local: np.ndarray) -> list[_Part]:
         """The level's points that are visible at T_local (a Z-buffer with cells sized for their
         density in the image)."""
@@ -162,7 +172,8 @@ class NidAligner:
             pts = self._points[k][idx]
             uv, z = project_pinhole(pts @ R.T + t, photo.K)
             cell = cell_for_density(uv, photo.camera.size)
-            vis = visible_points(uv, z, photo.camera.size, cell, self.cfg.zbuffer_rel_tol, self.cfg.zbuffer_abs_tol)
+            vis = visible_points(uv, z, photo.camera.size, cell, self.cfg.zbuffer_rel_tol, self.cfg.zbuffer_abs_tol,
+                                 facing=self._facing(k, idx, R, t))
             values = self._values[k][idx][:, None]
             if self.cfg.nid_edges:
                 values = torch.cat([values, depth_edges(uv, z, photo.camera.size, cell)[:, None]], 1)

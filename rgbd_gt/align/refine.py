@@ -39,6 +39,10 @@ class RefineInputs:
     scan: object = None  # the `io.Scan` (its grid renders the verification's edge check); points only when None
     init_meta: dict = field(default_factory=dict)  # the init pose file's other keys (its `uncertainty`)
 
+    @property
+    def normals(self) -> np.ndarray | None:
+        return self.scan.normals if self.scan is not None else None
+
     def the_scan(self):
         from rgbd_gt.io.scan import Scan
 
@@ -50,13 +54,14 @@ def load_inputs(scan_path: Path, image_path: Path, camera_path: Path, init_path:
     from rgbd_gt.io import load_scan, read_camera, read_pose
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import read_image, read_mask
+    from rgbd_gt.render.normals import with_normals
 
     photo = read_image(image_path)
     camera = read_camera(camera_path, (photo.shape[1], photo.shape[0]))
     check_image_matches(camera, photo.shape, image_path, camera_path)
     T_init, init_meta = read_pose(init_path)
     ignore = read_mask(mask_path, photo.shape[:2]) if mask_path is not None else None
-    scan = load_scan(scan_path, require_points=True)
+    scan = with_normals(load_scan(scan_path, require_points=True))
     return RefineInputs(scan.xyz, scan_colors(scan, scan_path), photo, camera, T_init, ignore, scan, init_meta)
 
 
@@ -141,10 +146,10 @@ def make_aligner(inputs: RefineInputs, cfg: RefineConfig, device: str, more: lis
         if more:
             raise InputError("several pairs are solved jointly with --objective nid only")
         pyramid = photo_pyramid(inputs.photo, inputs.camera, cfg.levels, dev, inputs.ignore, cfg.upsample)
-        return Aligner(inputs.points, inputs.colors, pyramid, cfg)
+        return Aligner(inputs.points, inputs.colors, pyramid, cfg, inputs.normals)
     # NID compares value distributions: an enlarged photo adds pixels, not information
-    frames = [Frame(i.points, colors_to_gray(i.colors) / 255.0, photo_pyramid(i.photo, i.camera, cfg.levels, dev, i.ignore))
-              for i in [inputs, *more]]
+    frames = [Frame(i.points, colors_to_gray(i.colors) / 255.0, photo_pyramid(i.photo, i.camera, cfg.levels, dev, i.ignore),
+                    i.normals) for i in [inputs, *more]]
     return NidAligner(frames, cfg)
 
 

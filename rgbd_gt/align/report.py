@@ -8,24 +8,51 @@ import numpy as np
 
 from rgbd_gt.align.aligner import RefineResult
 from rgbd_gt.io.atomic import atomic_output
-from rgbd_gt.io.image import write_image
 
 
-def residual_image(uv: np.ndarray, err: np.ndarray, size: tuple[int, int], vmax: float) -> np.ndarray:
-    """|D K(I) - c| of each visible point drawn at its pixel, color-mapped (H, W, 3) uint8 RGB;
-    black where no point projects."""
+READABLE_SIDE = 1600  # residual images: the longer side, pixels
+
+
+def residual_image(uv: np.ndarray, err: np.ndarray, size: tuple[int, int], longest: int = READABLE_SIDE) -> np.ndarray:
+    """|D K(I) - c| of the visible points (uv (N, 2) photo pixels, err (N,)) as an image (h, w)
+    float32 at a readable scale (the longer side at most `longest`): the mean per pixel, each
+    point spread over the gap to its neighbours (a splat), NaN where no point reaches."""
     import cv2
 
     w, h = size
-    img = np.zeros((h, w), np.float32)
-    hit = np.zeros((h, w), bool)
-    px = np.clip(np.round(uv).astype(int), 0, [w - 1, h - 1])
-    img[px[:, 1], px[:, 0]] = err
-    hit[px[:, 1], px[:, 0]] = True
-    u8 = np.clip(img / vmax * 255, 0, 255).astype(np.uint8)
-    color = cv2.applyColorMap(u8, cv2.COLORMAP_INFERNO)[:, :, ::-1]
-    color[~hit] = 0
-    return color
+    s = min(1.0, longest / max(w, h))
+    sw, sh = max(1, round(w * s)), max(1, round(h * s))
+    px = np.clip(np.floor(uv * s).astype(int), 0, [sw - 1, sh - 1])
+    key = px[:, 1] * sw + px[:, 0]
+    total = np.bincount(key, weights=err, minlength=sw * sh).reshape(sh, sw).astype(np.float32)
+    count = np.bincount(key, minlength=sw * sh).reshape(sh, sw).astype(np.float32)
+    occupied = max(int((count > 0).sum()), 1)
+    # points that cover only part of the pixels leave gaps about sqrt(area / occupied) wide
+    r = int(np.clip(np.ceil(0.5 * np.sqrt(np.ptp(px[:, 0]) * np.ptp(px[:, 1]) / occupied)), 0, 12)) if len(px) else 0
+    if r > 0:
+        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        total, count = cv2.dilate(total * (count > 0) / np.maximum(count, 1), k), cv2.dilate(count, k)
+        return np.where(count > 0, total, np.nan).astype(np.float32)
+    return np.where(count > 0, total / np.maximum(count, 1), np.nan).astype(np.float32)
+
+
+def _save_residuals(path: Path, image: np.ndarray, vmax: float, title: str) -> None:
+    """The residual image with a color scale bar (matplotlib), black where no point projects."""
+    import matplotlib.pyplot as plt
+
+    h, w = image.shape
+    fig = plt.figure(figsize=(w / 100 + 1.4, h / 100 + 0.6), dpi=100)
+    ax = fig.add_axes([0.01, 0.01, w / 100 / (w / 100 + 1.4), 1 - 0.6 / (h / 100 + 0.6)])
+    ax.set_facecolor("black")
+    im = ax.imshow(image, cmap="inferno", vmin=0, vmax=vmax, interpolation="nearest")
+    ax.set_title(title, fontsize=10)
+    ax.set_xticks([])
+    ax.set_yticks([])
+    cax = fig.add_axes([ax.get_position().x1 + 0.01, 0.1, 0.02, 0.8])
+    fig.colorbar(im, cax=cax, label="|color residual| (colors scaled to 0-1)")
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, format="png", facecolor="white")
+    plt.close(fig)
 
 
 def write_report(out_dir: Path, result: RefineResult, size: tuple[int, int]) -> list[Path]:
@@ -59,7 +86,8 @@ def write_report(out_dir: Path, result: RefineResult, size: tuple[int, int]) -> 
     written.append(out_dir / "convergence.png")
     if result.start_residuals is not None and result.end_residuals is not None:
         vmax = float(np.percentile(result.start_residuals[1], 95)) or 1.0
-        for name, (uv, err) in (("residuals_start.png", result.start_residuals), ("residuals_end.png", result.end_residuals)):
-            write_image(out_dir / name, residual_image(uv, err, size, vmax))
+        for name, title, (uv, err) in (("residuals_start.png", "at the initial pose", result.start_residuals),
+                                       ("residuals_end.png", "at the refined pose", result.end_residuals)):
+            _save_residuals(out_dir / name, residual_image(uv, err, size), vmax, f"color residuals {title}")
             written.append(out_dir / name)
     return written

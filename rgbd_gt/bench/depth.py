@@ -38,10 +38,13 @@ def seen_by_both(folder: Path, i: int, j: int) -> np.ndarray:
     return out
 
 
-def depth_errors(folder: Path, i: int, j: int) -> dict:
+def depth_errors(folder: Path, i: int, j: int, grid: bool = True) -> dict:
     """Median absolute error (m), fraction off by > 5 cm (leaks) and fraction filled, over the
-    pixels both frames see."""
+    pixels both frames see. grid=False: the same points without their grid (as a merged or
+    downsampled scan would come), rendered as surfels."""
     scan = frame_grid_scan(folder, i)
+    if not grid:
+        scan = Scan(xyz=scan.xyz, rgb=scan.rgb, origins=scan.origins)
     T_j = invert(read_trajectory(folder / "trajectory.log")[j])
     rendered = render_depth(scan, ICL_CAMERA, T_j).z
     both = seen_by_both(folder, i, j)

@@ -46,10 +46,11 @@ def pjlab_scenes(folder: Path) -> list[Scene]:
     from rgbd_gt.io import load_scan, read_camera, read_pose
     from rgbd_gt.io.image import read_image
     from rgbd_gt.io.scan import scan_colors
+    from rgbd_gt.render.normals import with_normals
 
     out = []
     for d in sorted(folder.glob("pjlab_*")):
-        scan = load_scan(d / "calib.pcd")
+        scan = with_normals(load_scan(d / "calib.pcd"))
         photo = read_image(next(p for p in sorted(d.glob("calib.*")) if p.suffix in (".jpg", ".png")))
         camera = read_camera(d / "calib.txt", (photo.shape[1], photo.shape[0]))
         out.append(Scene(d.name, scan, scan_colors(scan), photo, camera, read_pose(d / "calib.txt")[0]))

@@ -24,6 +24,7 @@ from rgbd_gt.align.config import RefineConfig, VerifyConfig
 from rgbd_gt.camera import Camera, project
 from rgbd_gt.io.scan import Scan
 from rgbd_gt.pose import apply_update, rotation_error_deg, transform_points, translation_error_m
+from rgbd_gt.render.normals import with_normals
 
 RIGHT_MM, RIGHT_DEG = 2.0, 0.05  # a right result: within both
 WRONG_MM, WRONG_DEG = 5.0, 0.1  # a wrong one: beyond either (the ICL benchmark's success limits)
@@ -108,7 +109,7 @@ def icl_cases(folder: Path, other_photo: np.ndarray | None, rng: np.random.Gener
     cases = make_cases(folder, offsets=(1, 2), effects_per_pair=2, seed=11)
     for c in cases:
         if c.i not in scans:
-            scans[c.i] = frame_grid_scan(folder, c.i, "noisy")
+            scans[c.i] = with_normals(frame_grid_scan(folder, c.i, "noisy"))
         s = scans[c.i]
         yield TrustCase(f"icl {c.name}", "icl", "right", s, s.rgb, c.photo, ICL_CAMERA, c.T_init, c.T_true)
     for k, c in enumerate(cases[::4]):  # one in four pairs gives each kind of wrong case
@@ -146,7 +147,7 @@ def synthetic_cases(folder: Path, seeds: list[int], other_photo: np.ndarray | No
 
     for seed in seeds:
         d = synthetic_scene(folder, seed)
-        s = load_scan(d / "scan.ply")
+        s = with_normals(load_scan(d / "scan.ply"))
         photo, cam = read_image(d / "photo.png"), read_camera(d / "camera.yaml")
         T_true, T_init = read_pose(d / "gt_pose.yaml")[0], read_pose(d / "init_pose.yaml")[0]
         base = dict(source="synthetic", scan=s, colors=s.rgb, camera=cam, T_init=T_init, T_true=T_true)

@@ -2,7 +2,7 @@
 
 Vertex properties understood: x y z (float or double); red green blue (uchar, ushort or
 float in [0,1]; also r g b and diffuse_*); intensity or CloudCompare's scalar_Intensity;
-row col scan_id. Scan origins travel in header comments: `comment rgbd_gt origin ID X Y Z`.
+row col scan_id; nx ny nz (normals, turned to face the scan origin when there is one). Scan origins travel in header comments: `comment rgbd_gt origin ID X Y Z`.
 """
 
 from __future__ import annotations
@@ -166,6 +166,13 @@ def read_ply(path: str | os.PathLike) -> Scan:
         scan_id=table["scan_id"].astype(np.int32) if "scan_id" in names else None,
         origins=_origins(comments),
     )
+    if all(c in names for c in ("nx", "ny", "nz")):
+        from rgbd_gt.render.normals import scan_normals
+
+        n = np.stack([table[c] for c in ("nx", "ny", "nz")], 1).astype(np.float32)
+        length = np.linalg.norm(n, axis=1, keepdims=True)
+        scan.normals = np.where(np.isfinite(length) & (length > 0), n / np.where(length > 0, length, 1), 0).astype(np.float32)
+        scan.normals = scan_normals(scan)
     del table
     return scan
 
@@ -188,6 +195,8 @@ def write_ply(path: str | os.PathLike, scan: Scan, ascii: bool = False, double: 
         fields += [("row", "i4"), ("col", "i4")]
     if scan.scan_id is not None:
         fields.append(("scan_id", "i4"))
+    if scan.normals is not None:
+        fields += [("nx", "f4"), ("ny", "f4"), ("nz", "f4")]
     dtype = np.dtype([(n, "<" + t) for n, t in fields])
     type_names = {"f8": "double", "f4": "float", "u1": "uchar", "i4": "int"}
     header = ["ply", f"format {'ascii' if ascii else 'binary_little_endian'} 1.0", "comment written by rgbd-gt"]
@@ -212,6 +221,9 @@ def write_ply(path: str | os.PathLike, scan: Scan, ascii: bool = False, double: 
                 block["col"] = scan.col[start:stop]
             if scan.scan_id is not None:
                 block["scan_id"] = scan.scan_id[start:stop]
+            if scan.normals is not None:
+                for j, c in enumerate(("nx", "ny", "nz")):
+                    block[c] = scan.normals[start:stop, j]
             if ascii:
                 fmts = ["%.17g" if t.startswith("f") else "%d" for _, t in fields]
                 np.savetxt(f, block.tolist(), fmt=fmts)

@@ -25,6 +25,8 @@ class Scan:
         row, col: (N,) int32 structured-grid indices (row = elevation, col = azimuth) or None.
         scan_id: (N,) int32 index of the scan each point came from, or None.
         origins: (S, 3) float64 sensor position of each scan in the world frame.
+        normals: (N, 3) float32 unit normals facing the scanner (0 where unknown) or None
+            (`render.normals.with_normals` fills them in).
     """
 
     xyz: np.ndarray
@@ -34,8 +36,9 @@ class Scan:
     col: np.ndarray | None = None
     scan_id: np.ndarray | None = None
     origins: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    normals: np.ndarray | None = None
 
-    PER_POINT = ("xyz", "rgb", "intensity", "row", "col", "scan_id")
+    PER_POINT = ("xyz", "rgb", "intensity", "row", "col", "scan_id", "normals")
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])
@@ -79,7 +82,7 @@ def merge_scans(scans: list[Scan]) -> Scan:
     if len(scans) == 1:
         return scans[0]
     out: dict[str, np.ndarray | None] = {}
-    for name in ("xyz", "rgb", "intensity", "row", "col"):
+    for name in ("xyz", "rgb", "intensity", "row", "col", "normals"):
         parts = [getattr(s, name) for s in scans]
         out[name] = np.concatenate(parts) if all(p is not None for p in parts) else None
     ids, offset = [], 0

@@ -21,6 +21,29 @@ class DepthMap:
     method: str
     colors: np.ndarray | None = None  # (H, W, C) the scan's colors where seen (0 elsewhere)
     splat_radius: int = 0  # pixels, for a scan rendered as splats (0: a mesh, sharp to the pixel)
+    # pixels whose nearest surface the camera sees from behind (z is 0 there: the scan has
+    # nothing of the side the camera sees); None when the scan's normals are unknown
+    back_facing: int | None = None
+
+
+BACK_FACING_WARN = 0.03  # of the view: more, and the photo was taken from the other side of much of the scan
+
+
+def back_facing_fraction(depth: DepthMap) -> float | None:
+    """Of the pixels where the scan has a surface, the fraction seen only from behind (None when
+    the scan's sides are unknown)."""
+    if depth.back_facing is None:
+        return None
+    return depth.back_facing / max(int((depth.z > 0).sum()) + depth.back_facing, 1)
+
+
+def back_facing_warning(depth: DepthMap) -> str | None:
+    """A sentence for the user when more than BACK_FACING_WARN of the view is seen from behind."""
+    f = back_facing_fraction(depth)
+    if f is None or f <= BACK_FACING_WARN:
+        return None
+    return (f"{f:.1%} of what the scan shows in this view is seen from behind (the photo sees the back of surfaces "
+            "the scanner saw from the front): those pixels have no depth (0)")
 
 
 def pixel_rays(camera: Camera) -> np.ndarray:
@@ -35,7 +58,10 @@ def render_depth(scan: Scan, camera: Camera, T_cam_from_scan: np.ndarray, max_de
                  values: np.ndarray | None = None) -> DepthMap:
     """Occlusion-correct depth: a structured scan is triangulated along its grid and ray-cast
     (Open3D); a scan without a grid is splatted with discs sized by its point spacing.
-    values: optional per-point (N, C) values (colors) rendered along, as DepthMap.colors."""
+    values: optional per-point (N, C) values (colors) rendered along, as DepthMap.colors.
+
+    Surfaces seen from behind (their normals, `render.normals`, facing away from the camera)
+    render as 0 and are counted in DepthMap.back_facing; they still hide what lies behind them."""
     if scan.has_grid:
         out = _raycast_mesh(scan, camera, T_cam_from_scan, values)
     else:
@@ -52,7 +78,10 @@ def _raycast_mesh(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray 
 
     from rgbd_gt.render.mesh import grid_triangles
 
-    tris = grid_triangles(scan)
+    from rgbd_gt.render.normals import oriented_triangles, scan_origin_per_point
+
+    tris = oriented_triangles(scan, grid_triangles(scan))
+    knows_sides = scan_origin_per_point(scan) is not None
     # a local frame keeps float32 exact for georeferenced coordinates
     centre = scan.xyz.mean(axis=0)
     mesh = o3d.t.geometry.TriangleMesh()
@@ -69,7 +98,13 @@ def _raycast_mesh(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray 
     z = hit["t_hit"].numpy()
     z = np.where(np.isfinite(z), z, 0).astype(np.float32)
     n = hit["primitive_normals"].numpy() @ T[:3, :3].T.astype(np.float32)
-    n *= -np.sign(np.sum(n * d_cam.astype(np.float32), axis=1, keepdims=True) + 1e-12)
+    facing = np.sum(n * d_cam.astype(np.float32), axis=1)
+    back = None
+    if knows_sides:  # triangles face their scanner: one facing away is seen from behind
+        behind = (z > 0) & (facing > 0)
+        z[behind] = 0
+        back = int(behind.sum())
+    n *= -np.sign(facing + 1e-12)[:, None]
     n[z == 0] = 0
     h, w = camera.height, camera.width
     colors = None
@@ -83,13 +118,43 @@ def _raycast_mesh(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray 
         c[~ok] = 0
         colors = c.reshape(h, w, -1)
     return DepthMap(z.reshape(h, w), n.reshape(h, w, 3).astype(np.float32),
-                    f"ray-cast grid mesh ({len(tris):,} triangles)", colors)
+                    f"ray-cast grid mesh ({len(tris):,} triangles)", colors, back_facing=back)
+
+
+def local_spacing(points: np.ndarray, k: int = 3) -> np.ndarray:
+    """(N,) distance (metres) from each point to its k-th nearest other point: the sampling step
+    around it (3: a grid-like sampling's step along both directions, even where they differ)."""
+    import open3d as o3d
+
+    pts = o3d.core.Tensor(np.ascontiguousarray(points, np.float64))
+    nns = o3d.core.nns.NearestNeighborSearch(pts)
+    nns.knn_index()
+    _, d2 = nns.knn_search(pts, k + 1)
+    return np.sqrt(d2.numpy()[:, k])
+
+
+def surfel_slope(p: np.ndarray, n: np.ndarray, z: np.ndarray, camera: Camera, radius: int,
+                 most: float = 0.5) -> np.ndarray:
+    """(N, 2) d(1/z)/d(u, v) (1/m per pixel) of the tangent planes of camera-frame points p (N, 3)
+    with normals n (N, 3) and depths z (N,): 1/z = (n . ray) / (n . p), ray = ((u - cx)/fx,
+    (v - cy)/fy, 1) (the local scale of distortion left out). Clipped so that the inverse depth
+    changes by at most `most` of its value over a footprint of `radius` pixels: a surface seen
+    edge-on would otherwise reach out to infinity. 0 where the normal is unknown."""
+    a = np.sum(n * p, axis=1)
+    ok = np.abs(a) > 1e-9
+    a = np.where(ok, a, 1.0)
+    s = np.stack([n[:, 0] / (camera.fx * a), n[:, 1] / (camera.fy * a)], 1)
+    s[~ok] = 0
+    limit = most / (np.maximum(z, 1e-6) * max(radius, 1) * np.sqrt(2))
+    scale = np.minimum(1.0, limit / np.maximum(np.linalg.norm(s, axis=1), 1e-30))
+    return (s * scale[:, None]).astype(np.float32)
 
 
 def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None) -> DepthMap:
     import torch
 
-    from rgbd_gt.render.splat import splat
+    from rgbd_gt.render.normals import facing_camera, with_normals
+    from rgbd_gt.render.splat import Surfels, splat
     from rgbd_gt.render.zbuffer import estimate_spacing
 
     p = transform_points(T, scan.xyz)
@@ -102,10 +167,31 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None)
     if len(z) < 4:
         zz = np.zeros((camera.height, camera.width), np.float32)
         return DepthMap(zz, np.zeros(zz.shape + (3,), np.float32), "splats (nothing in view)")
-    spacing = estimate_spacing(torch.as_tensor(p[seen]))
-    radius = max(1, int(np.ceil(0.75 * camera.fx * spacing / max(float(np.median(z)), 1e-6))))
     vals = values[seen].astype(np.float32) if values is not None else np.zeros((len(z), 1), np.float32)
-    img, depth, _ = splat(torch.as_tensor(uv), torch.as_tensor(z), torch.as_tensor(vals), camera.size, radius)
+    normals = with_normals(scan).normals
+    surfels, back = None, None
+    if normals is None:  # squares at the typical spacing
+        spacing = estimate_spacing(torch.as_tensor(p[seen]))
+        radius = max(1, int(np.ceil(0.75 * camera.fx * spacing / max(float(np.median(z)), 1e-6))))
+    else:
+        # discs of the local spacing (a scanner's grows with range and on surfaces seen at a
+        # slant), just closing the gaps of a square sampling (s / sqrt 2) with a margin: a larger
+        # disc grows every silhouette (docs/depth_benchmark.md)
+        n_cam = normals[seen] @ T[:3, :3].T
+        reach = 0.8 * local_spacing(p[seen])
+        reach_px = reach * camera.fx / z
+        radius = max(1, int(np.ceil(min(np.quantile(reach_px, 0.99), 4 * np.median(reach_px)))))
+        slope = surfel_slope(p[seen], n_cam, z, camera, radius)
+        surfels = Surfels(torch.as_tensor(slope), torch.as_tensor(reach), camera.fx, camera.fy)
+    img, depth, index = splat(torch.as_tensor(uv), torch.as_tensor(z), torch.as_tensor(vals), camera.size, radius, surfels)
     zz = depth.numpy().astype(np.float32)
+    if normals is not None:  # a pixel whose nearest point faces away is seen from behind
+        away = ~facing_camera(torch.as_tensor(p[seen], dtype=torch.float32), torch.as_tensor(n_cam, dtype=torch.float32))
+        idx = index.numpy()
+        behind = (idx >= 0) & away.numpy()[np.maximum(idx, 0)]
+        zz[behind] = 0
+        back = int(behind.sum())
+        if values is not None:
+            img[torch.as_tensor(behind)] = 0
     return DepthMap(zz, np.zeros(zz.shape + (3,), np.float32), f"splats of radius {radius} px",
-                    img.numpy() if values is not None else None, radius)
+                    img.numpy() if values is not None else None, radius, back)

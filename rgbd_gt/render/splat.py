@@ -2,7 +2,21 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
+
+
+@dataclass
+class Surfels:
+    """Points as discs of their tangent planes: per point (N,) the inverse-depth slope
+    d(1/z)/d(u, v) (N, 2) (1/m per pixel; inverse depth is affine in the image for a plane) and
+    the disc radius (N,) in metres; fx, fy the focal lengths in pixels."""
+
+    inv_depth_slope: torch.Tensor
+    radius_m: torch.Tensor
+    fx: float
+    fy: float
 
 
 def render_points(points_cam: torch.Tensor, values: torch.Tensor, K: torch.Tensor, size: tuple[int, int],
@@ -15,11 +29,14 @@ def render_points(points_cam: torch.Tensor, values: torch.Tensor, K: torch.Tenso
 
 
 def splat(uv: torch.Tensor, z: torch.Tensor, values: torch.Tensor, size: tuple[int, int],
-          radius: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+          radius: int = 0, surfels: Surfels | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Nearest-point image of points projected at uv (N, 2) with depth z (N,).
 
     Each point covers the (2 radius + 1)^2 pixels around its projection; per pixel the nearest
-    point wins. values: (N, C); size: (width, height). Returns image (H, W, C) (0 where empty),
+    point wins. values: (N, C); size: (width, height). surfels: each point is then a disc of its
+    tangent plane, whose depth varies over its footprint, and which covers only the pixels whose
+    rays meet the disc (a flat square at the point's depth grows every silhouette by the
+    footprint). Returns image (H, W, C) (0 where empty),
     depth (H, W) metres (0 where empty) and index (H, W) int64 of the winning point (-1 where empty).
     """
     w, h = size
@@ -27,6 +44,9 @@ def splat(uv: torch.Tensor, z: torch.Tensor, values: torch.Tensor, size: tuple[i
     ok = (z > 1e-6) & (px[:, 0] >= -radius) & (px[:, 1] >= -radius) & (px[:, 0] < w + radius) & (px[:, 1] < h + radius)
     ids = torch.nonzero(ok).squeeze(1)
     px, z = px[ids], z[ids]
+    if surfels is not None:
+        slope, reach = surfels.inv_depth_slope[ids].to(z.dtype), surfels.radius_m[ids].to(z.dtype)
+        frac = uv[ids].to(z.dtype) - px.to(z.dtype)  # the footprint's offsets are from the point's own position
     r = torch.arange(-radius, radius + 1, device=px.device)
     offsets = torch.stack(torch.meshgrid(r, r, indexing="ij"), -1).reshape(-1, 2)  # (K, 2) as (dy, dx)
     zmin = torch.full((h * w,), float("inf"), dtype=z.dtype, device=z.device)
@@ -39,8 +59,17 @@ def splat(uv: torch.Tensor, z: torch.Tensor, values: torch.Tensor, size: tuple[i
         x = px[None, :, 0] + off[:, None, 1]
         y = px[None, :, 1] + off[:, None, 0]
         inside = (x >= 0) & (y >= 0) & (x < w) & (y < h)
+        if surfels is None:
+            zz = z.expand_as(x)
+        else:
+            du = off[:, None, 1].to(z.dtype) - frac[None, :, 0]
+            dv = off[:, None, 0].to(z.dtype) - frac[None, :, 1]
+            zz = 1 / (1 / z[None] + slope[None, :, 0] * du + slope[None, :, 1] * dv).clamp_min(1e-6)
+            # the ray meets the plane this far from the point: sideways and in depth
+            lateral2 = zz**2 * ((du / surfels.fx) ** 2 + (dv / surfels.fy) ** 2)
+            inside &= lateral2 + (zz - z[None]) ** 2 <= reach[None] ** 2
         key = (y * w + x)[inside]
-        zz = z.expand_as(x)[inside]
+        zz = zz[inside]
         owner = ids.expand_as(x)[inside]
         zmin.scatter_reduce_(0, key, zz, reduce="amin", include_self=True)
         passes.append((key, zz, owner))

@@ -37,8 +37,9 @@ def cell_size_for(spacing_m: float, focal_px: float, median_depth_m: float, mini
 
 def visible_points(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cell: int,
                    rel_tol: float = 0.02, abs_tol: float = 0.01, near: float = 1e-3,
-                   group: torch.Tensor | None = None) -> torch.Tensor:
-    """Boolean mask (N,) of points that are in the image, in front of the camera and not occluded.
+                   group: torch.Tensor | None = None, facing: torch.Tensor | None = None) -> torch.Tensor:
+    """Boolean mask (N,) of points that are in the image, in front of the camera, not occluded
+    and (given `facing`) not seen from behind.
 
     Args:
         uv: (N, 2) pixel coordinates; z: (N,) depth (metres).
@@ -47,6 +48,8 @@ def visible_points(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cel
         rel_tol, abs_tol: a point is visible when z <= zmin_cell * (1 + rel_tol) + abs_tol.
         group: (N,) int64, optional: points of different groups (the same points seen from
             several poses) are in separate Z-buffers.
+        facing: (N,) bool, optional (`render.normals.facing_camera`): points whose surface faces
+            away are never visible, but they still hide what lies behind them.
     """
     w, h = size
     u, v = uv[:, 0], uv[:, 1]
@@ -62,7 +65,8 @@ def visible_points(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cel
     zz = torch.where(inside, z, torch.full_like(z, float("inf")))
     zmin = torch.full((groups * ch * cw,), float("inf"), dtype=z.dtype, device=z.device)
     zmin = zmin.scatter_reduce(0, key, zz, reduce="amin", include_self=True)
-    return inside & (z <= zmin[key] * (1 + rel_tol) + abs_tol)
+    vis = inside & (z <= zmin[key] * (1 + rel_tol) + abs_tol)
+    return vis if facing is None else vis & facing
 
 
 def cell_for_density(uv: torch.Tensor, size: tuple[int, int], per_cell: int = 3, largest: int = 64) -> int:

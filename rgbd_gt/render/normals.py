@@ -1,0 +1,108 @@
+"""Surface normals of a scan, oriented toward the scanner that saw each point, and the test
+that uses them: a camera sees a surface's front only.
+
+A laser scanner sees a surface from its front. A photo taken from the other side sees that
+surface's back, where the scan has nothing: those points must neither be drawn nor matched,
+but they still hide what lies behind them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from rgbd_gt.io.scan import Scan
+
+
+def scan_origin_per_point(scan: Scan) -> np.ndarray | None:
+    """(N, 3) position of the scanner that saw each point, or None when the scan records none."""
+    if len(scan.origins) == 0:
+        return None
+    sid = scan.scan_id if scan.scan_id is not None else np.zeros(len(scan), np.int64)
+    return scan.origins[np.minimum(sid, len(scan.origins) - 1)]
+
+
+def oriented_triangles(scan: Scan, tris: np.ndarray) -> np.ndarray:
+    """tris (T, 3) with the vertex order of each triangle swapped where needed so that its
+    normal (b - a) x (c - a) faces the scanner of its first vertex (unchanged without origins)."""
+    origin = scan_origin_per_point(scan)
+    if origin is None or len(tris) == 0:
+        return tris
+    a, b, c = (scan.xyz[tris[:, k]] for k in range(3))
+    n = np.cross(b - a, c - a)
+    away = np.einsum("ij,ij->i", n, origin[tris[:, 0]] - a) < 0
+    out = tris.copy()
+    out[away, 1], out[away, 2] = tris[away, 2], tris[away, 1]
+    return out
+
+
+def vertex_normals(xyz: np.ndarray, tris: np.ndarray) -> np.ndarray:
+    """(N, 3) float32 unit normals: the area-weighted sum of the (oriented) triangles around each
+    vertex; 0 for a vertex in no triangle."""
+    a, b, c = (xyz[tris[:, k]] for k in range(3))
+    n = np.cross(b - a, c - a)  # length = 2 x area: the weight
+    out = np.zeros((len(xyz), 3))
+    for k in range(3):
+        for j in range(3):
+            out[:, j] += np.bincount(tris[:, k], weights=n[:, j], minlength=len(xyz))
+    length = np.linalg.norm(out, axis=1, keepdims=True)
+    return np.where(length > 0, out / np.maximum(length, 1e-30), 0).astype(np.float32)
+
+
+def knn_normals(xyz: np.ndarray, k: int = 16, chunk: int = 1 << 20) -> np.ndarray:
+    """(N, 3) float32 unit normals of a scan without a grid: the least-variance direction of each
+    point's k nearest neighbours (unoriented). 0 where the neighbourhood is not a surface patch:
+    a line (one ring of a LiDAR sweep, an edge) or a blob says nothing about which side faces
+    the camera, and a wrong normal would hide a point that is seen."""
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(xyz, np.float64)))
+    pcd.estimate_covariances(o3d.geometry.KDTreeSearchParamKNN(k))
+    cov = np.asarray(pcd.covariances)
+    out = np.zeros((len(xyz), 3), np.float32)
+    for s in range(0, len(xyz), chunk):
+        lam, vec = np.linalg.eigh(cov[s:s + chunk])  # ascending eigenvalues
+        flat = lam[:, 0] < 0.1 * lam[:, 1]  # much thinner than wide
+        wide = lam[:, 1] > 0.05 * lam[:, 2]  # not a line
+        out[s:s + chunk] = np.where((flat & wide)[:, None], vec[:, :, 0], 0)
+    return out
+
+
+def scan_normals(scan: Scan) -> np.ndarray | None:
+    """(N, 3) float32 unit normals facing the scanner that saw each point (0 where unknown):
+    the scan's own (a PLY's nx ny nz) when it has them, else from its grid triangles, else from
+    its k nearest neighbours. None when the scan records no scanner position and no normals:
+    which side was seen is then unknown."""
+    origin = scan_origin_per_point(scan)
+    if scan.normals is not None:
+        n = np.asarray(scan.normals, np.float32)
+    elif origin is None:
+        return None
+    elif scan.has_grid:
+        from rgbd_gt.render.mesh import grid_triangles
+
+        return vertex_normals(scan.xyz, oriented_triangles(scan, grid_triangles(scan)))
+    else:
+        n = knn_normals(scan.xyz)
+    if origin is not None:
+        n = np.where((np.einsum("ij,ij->i", n, origin - scan.xyz) < 0)[:, None], -n, n).astype(np.float32)
+    return n
+
+
+def with_normals(scan: Scan) -> Scan:
+    """The scan with `normals` filled in (`scan_normals`) when it can be; scan work done once per
+    scan and shared by every photo and step."""
+    import dataclasses
+
+    if scan.normals is not None:
+        return scan
+    n = scan_normals(scan)
+    return scan if n is None else dataclasses.replace(scan, normals=n)
+
+
+def facing_camera(points_cam: torch.Tensor, normals_cam: torch.Tensor, tolerance: float = 0.05) -> torch.Tensor:
+    """(N,) bool: camera-frame points (N, 3) whose camera-frame normals (N, 3) face the camera:
+    n . p <= tolerance |p|, p the ray from the camera to the point; the tolerance (the cosine
+    past perpendicular, about 3 degrees) keeps grazing surfaces whose normals are a little off.
+    A zero normal (unknown) counts as facing."""
+    return (normals_cam * points_cam).sum(1) <= tolerance * points_cam.norm(dim=1)

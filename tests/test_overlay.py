@@ -1,0 +1,50 @@
+"""rgbd-gt overlay: the scan rendered at a pose over the photo, at full resolution."""
+
+import cv2
+import numpy as np
+
+from conftest import assert_one_line_error, run_cli
+from rgbd_gt.io import read_pose, write_pose
+from rgbd_gt.pose import apply_update
+
+
+def _agreement(photo: np.ndarray, blend: np.ndarray) -> float:
+    """Correlation of the photo's gray with the rendering's where the scan covers the photo:
+    the blend is (photo + rendering) / 2, so rendering = 2 blend - photo."""
+    p = cv2.cvtColor(photo, cv2.COLOR_BGR2GRAY).astype(float)
+    r = 2 * cv2.cvtColor(blend, cv2.COLOR_BGR2GRAY).astype(float) - p
+    covered = np.abs(cv2.cvtColor(blend, cv2.COLOR_BGR2GRAY).astype(float) - p) > 0
+    return float(np.corrcoef(p[covered], r[covered])[0, 1])
+
+
+def test_overlay_at_the_true_pose_agrees_with_the_photo(tmp_path):
+    scene = tmp_path / "scene"
+    assert run_cli("synth", scene, "--size", "small", "--seed", 4).returncode == 0
+    T = read_pose(scene / "gt_pose.yaml")[0]
+    write_pose(tmp_path / "off.yaml", apply_update(T, np.r_[0.0, 0.01, 0.0, 0.02, 0.0, 0.0]))  # 0.6 deg, 2 cm
+    photo = cv2.imread(str(scene / "photo.png"))
+    scores = {}
+    for name, pose in (("true", scene / "gt_pose.yaml"), ("off", tmp_path / "off.yaml")):
+        proc = run_cli("overlay", "--scan", scene / "scan.ply", "--image", scene / "photo.png", "--camera",
+                       scene / "camera.yaml", "--pose", pose, "-o", tmp_path / f"{name}.png")
+        assert proc.returncode == 0, proc.stderr
+        checker, blend = cv2.imread(str(tmp_path / f"{name}.png")), cv2.imread(str(tmp_path / f"{name}_blend.png"))
+        assert checker.shape == blend.shape == photo.shape
+        # the checkerboard's photo squares are the photo itself
+        assert (checker == photo).all(axis=2).mean() > 0.4
+        scores[name] = _agreement(photo, blend)
+    assert scores["true"] > 0.8 and scores["true"] > scores["off"] + 0.1, scores
+
+
+def test_overlay_errors(tmp_path):
+    scene = tmp_path / "scene"
+    assert run_cli("synth", scene, "--size", "small", "--seed", 5).returncode == 0
+    args = ["overlay", "--scan", scene / "scan.ply", "--image", scene / "photo.png", "--camera", scene / "camera.yaml"]
+    T = read_pose(scene / "gt_pose.yaml")[0]
+    away = T.copy()
+    away[:3, :3] = away[:3, :3] @ np.diag([-1.0, 1.0, -1.0])  # looking the other way
+    write_pose(tmp_path / "away.yaml", away)
+    assert_one_line_error(run_cli(*args, "--pose", tmp_path / "away.yaml", "-o", tmp_path / "o.png"), "away.yaml", "no scan surface")
+    assert_one_line_error(run_cli(*args, "--pose", scene / "gt_pose.yaml", "-o", tmp_path / "o.jpg"), "o.jpg", ".png")
+    assert_one_line_error(run_cli(*args, "--pose", scene / "gt_pose.yaml", "-o", scene / "photo.png"), "overwrite")
+    assert not list(tmp_path.glob("o*"))
