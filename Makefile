@@ -28,3 +28,4 @@ bench: $(STAMP)
 	$(PY) benchmarks/load_large_scan.py
 	$(PY) benchmarks/trust.py
 	$(PY) benchmarks/lidar.py
+	$(PY) benchmarks/intrinsics.py

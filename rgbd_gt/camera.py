@@ -129,3 +129,18 @@ def rescale(camera: Camera, width: int, height: int) -> Camera:
         cx=(camera.cx + 0.5) * sx - 0.5,
         cy=(camera.cy + 0.5) * sy - 0.5,
     )
+
+
+def corrected(camera: Camera, q) -> Camera:
+    """The camera with the corrections q (5,) of `render.project.project_corrected` applied:
+    focal scaled by 1 + q0, principal point moved by (fx q1, fy q2), k1 and k2 added."""
+    q = [float(v) for v in q]
+    dist = list(camera.distortion) + [0.0] * max(0, 5 - len(camera.distortion))
+    if q[3] or q[4]:
+        dist[0] += q[3]
+        dist[1] += q[4]
+    else:
+        dist = list(camera.distortion)
+    return dataclasses.replace(camera, fx=camera.fx * (1 + q[0]), fy=camera.fy * (1 + q[0]),
+                               cx=camera.cx + camera.fx * q[1], cy=camera.cy + camera.fy * q[2],
+                               distortion=tuple(dist))

@@ -270,6 +270,74 @@ def init_pose(
 
 
 @app.command()
+def pick(
+    scan: Path = typer.Option(..., "--scan", help="The scan (.ply, .e57 or .pcd)."),
+    image: Path = typer.Option(..., "--image", help="The photo."),
+    output: Path = typer.Option(..., "-o", "--output", help="PAIRS.csv to write (u,v,x,y,z,label; init-pose --correspondences and refine --check read it). When it exists, its pairs are loaded to go on with."),
+    camera: Optional[Path] = typer.Option(None, "--camera", help="Camera file of the photo: with 6 or more pairs the page then solves the pose live (RANSAC PnP, as init-pose) and shows the scan over the photo."),
+    init: Optional[Path] = typer.Option(None, "--init", help="A pose to render the scan from with the photo's camera (the view closest to the photo)."),
+    view: str = typer.Option("auto", "--view", help="The scan image to click on: grid (the structured scan's own grid), panorama (rendered from the scan origin), pose (rendered at --init) or auto (pose with --init, else grid, else panorama)."),
+    estimate_focal: bool = typer.Option(False, "--estimate-focal", help="Estimate the focal length in the live solve (photos without calibration; --camera then gives the image size and principal point)."),
+    ransac_px: float = typer.Option(4.0, "--ransac-px", help="Outlier threshold of the live solve (pixels)."),
+    port: int = typer.Option(0, "--port", help="Port on 127.0.0.1 (0: any free one)."),
+    no_browser: bool = typer.Option(False, "--no-browser", help="Do not open the page in a browser (the address is printed)."),
+) -> None:
+    """Pick correspondences between the photo and the scan in a local web page: the photo on the
+    left, the scan as an image on the right; a click in each makes a pair. Saving writes
+    PAIRS.csv; the command ends when the page says 'Save and close' (or on Ctrl-C)."""
+    from rgbd_gt.init.pick import click_view
+    from rgbd_gt.init.pick_server import PickSession, serve
+    from rgbd_gt.init.run import read_correspondences
+    from rgbd_gt.io import check_not_input, load_scan, read_camera, read_pose
+    from rgbd_gt.io.camera_file import check_image_matches
+    from rgbd_gt.io.image import read_image
+
+    check_not_input(output, [p for p in (scan, image, camera, init) if p])
+    if output.suffix.lower() != ".csv":
+        raise InputError("pairs are written as .csv", output)
+    if not output.parent.is_dir():
+        raise InputError("the output's folder does not exist", output)
+    if not (np.isfinite(ransac_px) and ransac_px > 0):
+        raise InputError(f"--ransac-px must be a positive number of pixels, got {ransac_px}")
+    if estimate_focal and camera is None:
+        raise InputError("--estimate-focal needs --camera (for the image size and principal point)")
+    photo = read_image(image)
+    cam = None
+    if camera is not None:
+        cam = read_camera(camera, (photo.shape[1], photo.shape[0]))
+        check_image_matches(cam, photo.shape, image, camera)
+    T_init = read_pose(init)[0] if init is not None else None
+    if T_init is not None and cam is None:
+        raise InputError("--init needs --camera (the view is rendered with the photo's camera)")
+    pairs = []
+    if output.exists():
+        picks = read_correspondences(output, minimum=1)
+        pairs = [{"u": a[0], "v": a[1], "x": b[0], "y": b[1], "z": b[2], "label": lab}
+                 for a, b, lab in zip(picks.img.tolist(), picks.obj.tolist(), picks.labels)]
+    with _progress() as bar:
+        bar.add_task("preparing the scan image", total=None)
+        the_scan = load_scan(scan, require_points=True)
+        clicks = click_view(the_scan, view, cam, T_init)
+    session = PickSession(the_scan, photo, clicks, output, cam, estimate_focal, ransac_px, pairs)
+
+    def ready(url: str) -> None:
+        out.print(f"serving the pick page on {url} (Ctrl-C to stop)", soft_wrap=True)
+        sys.stdout.flush()
+        if not no_browser:
+            import webbrowser
+
+            webbrowser.open(url)
+
+    try:
+        serve(session, port, ready)
+    except OSError as exc:
+        raise InputError(f"--port {port}: cannot listen ({exc.strerror})") from None
+    except KeyboardInterrupt:
+        pass
+    out.print(f"wrote {output} ({session.saved} pairs)" if session.saved else "no pairs saved")
+
+
+@app.command()
 def refine(
     scan: Optional[Path] = typer.Option(None, "--scan", help="The scan (.ply, .e57 or .pcd; colored, or with intensity only), in the scan/world frame. Required unless --pairs lists the pairs."),
     image: Optional[Path] = typer.Option(None, "--image", help="The photo (its size must match the camera file). Required with --scan."),
@@ -295,6 +363,8 @@ def refine(
     check: Optional[Path] = typer.Option(None, "--check", help="CSV u,v,x,y,z of held-out picked pairs: their reprojection error at the init and after refine goes into the verdict."),
     repeats: Optional[int] = typer.Option(None, "--repeats", help="Refine again from this many starts around the init to check the result is reproduced (default 4; 0 skips it)."),
     strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when the verdict is 'failed' (the pose file is still written, with the verdict)."),
+    refine_intrinsics: Optional[str] = typer.Option(None, "--refine-intrinsics", help="Also refine the camera, for photos whose calibration is rough: focal, focal+principal or focal+principal+k1k2 (default none). The refined camera goes into the pose file (intrinsics) and, with --camera-out, into a camera file."),
+    camera_out: Optional[Path] = typer.Option(None, "--camera-out", help="With --refine-intrinsics: write the refined camera here (YAML), for export-depth and overlay."),
 ) -> None:
     """Refine a photo's pose against the scan, then judge the result. Colored scans: multimodal
     photometric alignment; intensity-only scans (LiDAR sweeps, laser scans without color): NID
@@ -316,12 +386,17 @@ def refine(
     if scan is None and pairs is None:
         raise InputError("give --scan and --image, or --pairs")
     listed = read_pairs(pairs, camera) if pairs is not None else []
-    check_not_input(output, [p for p in (scan, image, camera, init, mask, check, config, pairs) if p]
-                    + [p for pair in listed for p in pair.values()])
+    read_only = [p for p in (scan, image, camera, init, mask, check, config, pairs) if p] + [p for pair in listed for p in pair.values()]
+    check_not_input(output, read_only)
+    if camera_out is not None:
+        if refine_intrinsics in (None, "none"):
+            raise InputError("--camera-out writes the camera of --refine-intrinsics: give both")
+        check_not_input(camera_out, read_only + [output])
     cfg = load_config(RefineConfig, config, "refine.yaml")
     flags = dict(color_model=color_model, gradient=gradient, optimizer=optimizer, levels=levels,
                  upsample=upsample, iterations=iterations, max_points=max_points, beta_max=beta_max,
-                 objective=objective, max_depth=max_depth, search_starts=search_starts)
+                 objective=objective, max_depth=max_depth, search_starts=search_starts,
+                 refine_intrinsics=refine_intrinsics)
     cfg = dataclasses.replace(cfg, **{k: v for k, v in flags.items() if v is not None})
     if optimizer == "adam" and iterations is not None:
         cfg = dataclasses.replace(cfg, adam_iterations=iterations)
@@ -349,9 +424,15 @@ def refine(
 
         result, verification = refine_verified(inputs[0], cfg, device, progress, keep_residuals=report is not None,
                                                check=held_out, more=inputs[1:])
-    meta = refine_meta(result, cfg, inputs[0].T_init, init, verification, pairs=len(inputs))
+    meta = refine_meta(result, cfg, inputs[0].T_init, init, verification, pairs=len(inputs), camera=inputs[0].camera)
     if warnings:
         meta["warnings"] = warnings
+    if camera_out is not None:
+        from rgbd_gt.align.refine import refined_camera
+        from rgbd_gt.io.camera_file import write_camera
+
+        write_camera(camera_out, refined_camera(inputs[0].camera, result))
+        meta["camera_out"] = str(camera_out)
     write_pose(output, result.T_cam_from_scan, **meta)
     moved_mm, moved_deg = meta["change_from_init"]["translation_mm"], meta["change_from_init"]["rotation_deg"]
     if report is not None:
@@ -372,6 +453,11 @@ def refine(
         rows.append(("repeat runs", f"{ev['repeatability']['starts']} starts, spread {ev['repeatability']['spread_px']:.3f} px"))
     if "check" in ev:
         rows.append(("check pairs", f"{ev['check']['rms_init_px']:.2f} px at the init -> {ev['check']['rms_px']:.2f} px"))
+    if "intrinsics" in meta:
+        intr, sig = meta["intrinsics"], meta["intrinsics"]["sigma"]
+        rows.append(("camera refined", f"fx {intr['fx']:.2f} px ({intr['change']['focal_percent']:+.2f}%, 1 sigma "
+                                       f"{sig['focal_px']:.2f} px), cx {intr['cx']:.1f}, cy {intr['cy']:.1f}"
+                     + (f", k1 {intr['distortion'][0]:.4f}, k2 {intr['distortion'][1]:.4f}" if "k1" in sig else "")))
     rows += [
         ("iterations", str(result.iterations)),
         ("visible points", f"{result.visible_points:,} (inliers {result.inlier_fraction:.0%})" if result.objective == "photometric"
@@ -379,6 +465,8 @@ def refine(
         ("aligner time", f"{result.seconds:.2f} s + verification {verification.seconds:.2f} s (total {time.perf_counter() - start:.2f} s)"),
     ]
     _summary("refine", rows, output, report)
+    if camera_out is not None:
+        out.print(f"wrote {camera_out}")
     if strict and verification.verdict == "failed":
         raise typer.Exit(3)
 

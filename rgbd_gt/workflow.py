@@ -126,7 +126,8 @@ def run_photo(photo: Path, scan, colors: np.ndarray, camera, cfg: RunConfig, sca
     else:
         inputs = RefineInputs(scan.xyz, colors, image, camera, T_init, None, scan, init_meta)
         r, verification = refine_verified(inputs, cfg.refine, cfg.device)
-        write_pose(files["refine"], r.T_cam_from_scan, **refine_meta(r, cfg.refine, T_init, files["init"], verification))
+        write_pose(files["refine"], r.T_cam_from_scan, **refine_meta(r, cfg.refine, T_init, files["init"], verification,
+                                                                             camera=camera))
     T, meta = read_pose(files["refine"])
     res.refine_loss, res.inlier_fraction = meta.get("final_loss"), meta.get("inlier_fraction")
     res.verdict, res.reasons = meta.get("verdict"), "; ".join(meta.get("reasons") or [])

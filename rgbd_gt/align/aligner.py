@@ -28,7 +28,8 @@ from rgbd_gt.align.sampling import bilinear, bilinear_with_gradient, central_gra
 from rgbd_gt.errors import InputError
 from rgbd_gt.pose import apply_update, translated
 from rgbd_gt.render.normals import facing_camera
-from rgbd_gt.render.project import project_pinhole, projection_jacobian
+from rgbd_gt.render.project import (INTRINSICS, corrected_jacobian, project_corrected, project_pinhole,
+                                    projection_jacobian)
 from rgbd_gt.render.zbuffer import cell_size_for, estimate_spacing, visible_points
 
 
@@ -48,6 +49,10 @@ class RefineResult:
     # (rotation vector, translation) in the camera frame (`apply_update`); inf where undetermined
     covariance: np.ndarray | None = None
     objective: str = "photometric"  # or "nid" (align/nid_aligner.py); loss is then the mean NID
+    # with cfg.refine_intrinsics: the camera corrections q (5,) (`render.project.project_corrected`)
+    # and their 1-sigma (inf where not refined)
+    intrinsics: np.ndarray | None = None
+    intrinsics_sigma: np.ndarray | None = None
     start_residuals: tuple[np.ndarray, np.ndarray] | None = None  # (uv (N, 2), |r| (N,)) at full resolution
     end_residuals: tuple[np.ndarray, np.ndarray] | None = None
 
@@ -140,8 +145,9 @@ def _normal_equations(du: torch.Tensor, dv: torch.Tensor, a: torch.Tensor, b: to
 
 
 def covariance(H: np.ndarray, energy: float, count: int) -> np.ndarray:
-    """The pose covariance (6, 6) from a Gauss-Newton matrix H = J^T W J, scaled by the residual
-    variance energy / (count - 6) (energy = sum w r^2), or all inf where H is singular. Inverted
+    """The covariance (P, P) of the parameters (the pose's 6 first) from a Gauss-Newton matrix
+    H = J^T W J, scaled by the residual variance energy / (count - P) (energy = sum w r^2), or
+    all inf where H is singular. Inverted
     with its parameters scaled to unit diagonal (rotation and translation differ by orders of
     magnitude). Residuals are treated as independent: neighbouring points share photo pixels, so
     this is a lower bound."""
@@ -149,8 +155,8 @@ def covariance(H: np.ndarray, energy: float, count: int) -> np.ndarray:
     Hs = H * s[:, None] * s[None, :]
     eig = np.linalg.eigvalsh(Hs)
     if eig[0] <= eig[-1] * 1e-12:
-        return np.full((6, 6), np.inf)
-    return energy / max(count - 6, 1) * (s[:, None] * np.linalg.inv(Hs) * s[None, :])
+        return np.full(H.shape, np.inf)
+    return energy / max(count - len(H), 1) * (s[:, None] * np.linalg.inv(Hs) * s[None, :])
 
 
 def _valid_at(valid: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
@@ -187,6 +193,9 @@ class Aligner:
         c = c.to(self.dtype) / 255.0 if colors.dtype == np.uint8 else c.to(self.dtype)
         self.target = self.model.target(c.reshape(len(points), -1))
         self.normals = None if normals is None else torch.as_tensor(normals, dtype=self.dtype, device=self.device)
+        # the camera corrections refined with the pose (cfg.refine_intrinsics: the first `free` of q)
+        self.free = INTRINSICS[cfg.refine_intrinsics]
+        self.q = torch.zeros(5, dtype=self.dtype, device=self.device)
         self._prepared: tuple[np.ndarray, list[_LevelData]] | None = None
 
     # -- pose conversion between the scan frame and the local frame ---------------------------
@@ -239,6 +248,16 @@ class Aligner:
         return out
 
     # -- one evaluation ------------------------------------------------------------------------
+    def _project(self, p: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Camera-frame points (n, 3) -> pixels (n, 2), depths (n,), through the camera corrected by q."""
+        return project_corrected(p, K, self.q) if self.free else project_pinhole(p, K)
+
+    def _jacobian(self, p: torch.Tensor, K: torch.Tensor, free: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """d(u, v) / d(pose, q[:free]): two (n, 6 + free)."""
+        if not self.free:
+            return projection_jacobian(p, K[0, 0], K[1, 1])
+        return corrected_jacobian(p, K, self.q, free)
+
     def _pose_tensors(self, T_local: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         R = torch.as_tensor(T_local[:3, :3], dtype=self.dtype, device=self.device)
         t = torch.as_tensor(T_local[:3, 3], dtype=self.dtype, device=self.device)
@@ -248,7 +267,7 @@ class Aligner:
         """Indices (into lv.points) of the points visible at this pose on usable pixels."""
         R, t = self._pose_tensors(T_local)
         p = lv.points @ R.T + t
-        uv, z = project_pinhole(p, lv.photo.K)
+        uv, z = self._project(p, lv.photo.K)
         facing = None if lv.normals is None else facing_camera(p, lv.normals @ R.T)
         vis = visible_points(uv, z, lv.photo.camera.size, lv.cell, self.cfg.zbuffer_rel_tol, self.cfg.zbuffer_abs_tol,
                              facing=facing)
@@ -268,7 +287,7 @@ class Aligner:
         kernel K(I) (n, k), image gradients dI/du, dI/dv (n, 3) and the targets (n, m)."""
         R, t = self._pose_tensors(T_local)
         p = lv.points[idx] @ R.T + t
-        uv, _ = project_pinhole(p, lv.photo.K)
+        uv, _ = self._project(p, lv.photo.K)
         w, h = lv.photo.camera.size
         uv = torch.stack([uv[:, 0].clamp(0, w - 1), uv[:, 1].clamp(0, h - 1)], 1)  # a point may drift out
         I, Iu, Iv = bilinear_with_gradient(lv.photo.image, uv, self.cfg.gradient, lv.grads)
@@ -307,7 +326,7 @@ class Aligner:
         # dr/du = D (dK/dI . dI/du), likewise for v: (n, m)
         a = self.model.kernel_derivative(I, Iu) @ D.T
         b = self.model.kernel_derivative(I, Iv) @ D.T
-        du, dv = projection_jacobian(p, lv.photo.K[0, 0], lv.photo.K[1, 1])
+        du, dv = self._jacobian(p, lv.photo.K, self.free)
         H, g = _normal_equations(du[None], dv[None], a[None], b[None], r[None], w[None])
         state.H, state.g = H[0].cpu().numpy(), g[0].cpu().numpy()
         state.wrr = float((w * r * r).sum())
@@ -350,6 +369,11 @@ class Aligner:
             level_info.append({"level": level, "iterations": n_it, "stop": stop})
         final = self._evaluate(levels[finest], T, None, jacobian=finest == 0)
         end_res = (levels[0].photo.to_photo_pixels(final.uv).cpu().numpy(), final.err.cpu().numpy()) if keep_residuals else None
+        cov = covariance(final.H, final.wrr, final.n_residuals) if final.H is not None else None
+        sigma = None
+        if self.free and cov is not None:
+            sigma = np.full(5, np.inf)
+            sigma[:self.free] = np.sqrt(np.diag(cov)[6:])
         return RefineResult(
             T_cam_from_scan=self._to_scan(T),
             color_transform=final.D.double().cpu().numpy(),
@@ -360,7 +384,9 @@ class Aligner:
             seconds=time.perf_counter() - start,
             history=history,
             levels=level_info,
-            covariance=covariance(final.H, final.wrr, final.n_residuals) if final.H is not None else None,
+            covariance=cov[:6, :6] if cov is not None else None,
+            intrinsics=self.q.double().cpu().numpy() if self.free else None,
+            intrinsics_sigma=sigma,
             start_residuals=start_res,
             end_residuals=end_res,
         )
@@ -393,7 +419,7 @@ class Aligner:
         R = torch.stack([self._pose_tensors(T)[0] for T in Ts])
         t = torch.stack([self._pose_tensors(T)[1] for T in Ts])
         p = torch.einsum("bij,nj->bni", R, lv.points) + t[:, None]
-        uv, z = project_pinhole(p.reshape(-1, 3), lv.photo.K)
+        uv, z = self._project(p.reshape(-1, 3), lv.photo.K)
         w, h = lv.photo.camera.size
         return p, uv, z, torch.stack([uv[:, 0].clamp(0, w - 1), uv[:, 1].clamp(0, h - 1)], 1)
 
@@ -427,7 +453,7 @@ class Aligner:
         loss = student_t_loss(r, cfg.nu, sigma2, mask=vis)
         a = self.model.kernel_derivative(I, Iu).reshape(B, n, k) @ D.transpose(1, 2)
         b = self.model.kernel_derivative(I, Iv).reshape(B, n, k) @ D.transpose(1, 2)
-        du, dv = projection_jacobian(p.reshape(-1, 3), lv.photo.K[0, 0], lv.photo.K[1, 1])
+        du, dv = self._jacobian(p.reshape(-1, 3), lv.photo.K, 0)
         H, g = _normal_equations(du.reshape(B, n, 6), dv.reshape(B, n, 6), a, b, r, w * vis[..., None])
         return _Many(loss.double().cpu().numpy(), D, sigma2, vis, H.cpu().numpy(), g.cpu().numpy())
 
@@ -484,7 +510,7 @@ class Aligner:
         rec = {
             "level": level, "iteration": iteration, "loss": state.own_loss,
             "rotation_update_deg": float(np.degrees(np.linalg.norm(delta[:3]))),
-            "translation_update_m": float(np.linalg.norm(delta[3:])),
+            "translation_update_m": float(np.linalg.norm(delta[3:6])),
             "median_residual": float(state.err.median()),
             "visible": state.visible, "inlier_fraction": state.inlier_fraction, "accepted": accepted,
         }
@@ -497,7 +523,7 @@ class Aligner:
         a coarse level only hands its pose on to a finer one."""
         scale = 2.0**level
         return (np.degrees(np.linalg.norm(delta[:3])) < self.cfg.stop_rotation_deg * scale
-                and np.linalg.norm(delta[3:]) < self.cfg.stop_translation_m * scale)
+                and np.linalg.norm(delta[3:6]) < self.cfg.stop_translation_m * scale)
 
     def _lm_level(self, lv, level, T, history, progress, iterations=None):
         """Levenberg-Marquardt on the 6 pose parameters. Visibility, D and sigma are re-fitted at
@@ -510,13 +536,18 @@ class Aligner:
         for it in range(1, (iterations or self.cfg.iterations) + 1):
             A = state.H + lam * np.diag(np.diag(state.H) + 1e-12)
             delta = -np.linalg.solve(A, state.g)
-            T_new = apply_update(T, delta)
+            T_new = apply_update(T, delta[:6])
+            q_old = self.q
+            if self.free:  # the camera corrections move with the pose (kept only when the step is)
+                self.q = q_old.clone()
+                self.q[:self.free] += torch.as_tensor(delta[6:], dtype=self.dtype, device=self.device)
             accepted = self._loss_at(lv, T_new, state) <= state.own_loss
             if accepted:
                 T = T_new
                 state = self._evaluate(lv, T, state, jacobian=True)
                 lam = max(lam / 4, 1e-7)
             else:
+                self.q = q_old
                 lam *= 8
             self._record(history, progress, level, it, state, delta, accepted)
             if accepted and self._converged(delta, level):

@@ -79,6 +79,9 @@ class RefineConfig:
     search_rotation_deg: float = 3.0  # ... turned this much ...
     search_translation_m: float = 0.2  # ... and moved this much from the init
     search_iterations: int = 10  # ... for at most this many iterations each; the lowest NID goes on
+    # photometric, lm: also refine the camera (render.project.INTRINSICS): none | focal |
+    # focal+principal | focal+principal+k1k2
+    refine_intrinsics: str = "none"
     verify: VerifyConfig = field(default_factory=VerifyConfig)  # the verdict's evidence and thresholds
 
     def check(self) -> "RefineConfig":
@@ -92,6 +95,12 @@ class RefineConfig:
             raise ValueError(f"objective must be one of {', '.join(OBJECTIVES)}, got {self.objective!r}")
         if self.nid_bins < 6 or self.search_starts < 0 or self.search_iterations < 1 or self.max_depth < 0:
             raise ValueError("nid_bins >= 6, search_starts >= 0, search_iterations >= 1 and max_depth >= 0")
+        from rgbd_gt.render.project import INTRINSICS
+
+        if self.refine_intrinsics not in INTRINSICS:
+            raise ValueError(f"refine_intrinsics must be one of {', '.join(INTRINSICS)}, got {self.refine_intrinsics!r}")
+        if self.refine_intrinsics != "none" and (self.optimizer != "lm" or self.objective == "nid"):
+            raise ValueError("refine_intrinsics works with the photometric objective and optimizer lm")
         if self.levels < 1 or self.iterations < 1 or self.max_points < 10 or self.upsample < 1:
             raise ValueError("levels, upsample, iterations and max_points must be positive")
         self.verify.check()

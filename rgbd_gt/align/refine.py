@@ -110,7 +110,7 @@ def objective_of(cfg: RefineConfig, colors: np.ndarray) -> str:
 
 
 def refine_meta(result: RefineResult, cfg: RefineConfig, T_init: np.ndarray, init_path,
-                verification: Verification | None = None, pairs: int = 1) -> dict:
+                verification: Verification | None = None, pairs: int = 1, camera=None) -> dict:
     """The keys a refined pose file records besides the pose: the verdict first."""
     from rgbd_gt.pose import rotation_error_deg, translation_error_m
 
@@ -122,13 +122,15 @@ def refine_meta(result: RefineResult, cfg: RefineConfig, T_init: np.ndarray, ini
         meta.update(nid_bins=cfg.nid_bins, nid_edges=cfg.nid_edges, pairs=pairs)
     else:
         meta.update(color_model=cfg.color_model, gradient=cfg.gradient, optimizer=cfg.optimizer,
-                    color_transform=result.color_transform.tolist())
+                    refine_intrinsics=cfg.refine_intrinsics, color_transform=result.color_transform.tolist())
     meta.update(
         final_loss=result.loss, inlier_fraction=result.inlier_fraction,
         iterations=result.iterations, visible_points=result.visible_points, seconds=round(result.seconds, 3),
         change_from_init={"translation_mm": translation_error_m(result.T_cam_from_scan, T_init) * 1e3,
                           "rotation_deg": rotation_error_deg(result.T_cam_from_scan, T_init)},
     )
+    if result.intrinsics is not None and camera is not None:
+        meta["intrinsics"] = intrinsics_meta(camera, result)
     if verification is not None:
         meta["verify_seconds"] = round(verification.seconds, 3)
     return meta
@@ -142,6 +144,8 @@ def make_aligner(inputs: RefineInputs, cfg: RefineConfig, device: str, more: lis
     from rgbd_gt.io.scan import colors_to_gray
 
     dev = resolve_device(device)
+    if cfg.refine_intrinsics != "none" and objective_of(cfg, inputs.colors) != "photometric":
+        raise InputError("--refine-intrinsics works with the photometric objective (a colored scan) only")
     if objective_of(cfg, inputs.colors) == "photometric":
         if more:
             raise InputError("several pairs are solved jointly with --objective nid only")
@@ -168,6 +172,28 @@ def refine_verified(inputs: RefineInputs, cfg: RefineConfig, device: str = "auto
     more: further pairs that share the pose (solved jointly; the image check uses the first)."""
     aligner = make_aligner(inputs, cfg, device, more)
     result = aligner.refine(inputs.T_init, progress=progress, keep_residuals=keep_residuals)
-    verification = verify(aligner, result, inputs.T_init, inputs.camera, inputs.photo, inputs.the_scan(),
-                          inputs.colors, cfg.verify, cfg.seed, inputs.init_meta, check)
+    verification = verify(aligner, result, inputs.T_init, refined_camera(inputs.camera, result), inputs.photo,
+                          inputs.the_scan(), inputs.colors, cfg.verify, cfg.seed, inputs.init_meta, check)
     return result, verification
+
+
+def refined_camera(camera, result: RefineResult):
+    """The camera the result's pose goes with: the input's, corrected when its intrinsics were refined."""
+    from rgbd_gt.camera import corrected
+
+    return camera if result.intrinsics is None else corrected(camera, result.intrinsics)
+
+
+def intrinsics_meta(camera, result: RefineResult) -> dict:
+    """The refined camera and each refined value's 1-sigma, for the pose file."""
+    cam = refined_camera(camera, result)
+    q, s = result.intrinsics, result.intrinsics_sigma
+    meta = {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "distortion": list(cam.distortion),
+            "sigma": {"focal_px": float(s[0] * camera.fx)}}
+    if np.isfinite(s[1]):
+        meta["sigma"].update(cx_px=float(s[1] * camera.fx), cy_px=float(s[2] * camera.fy))
+    if np.isfinite(s[3]):
+        meta["sigma"].update(k1=float(s[3]), k2=float(s[4]))
+    meta["change"] = {"focal_percent": float(q[0] * 100), "principal_px": [float(q[1] * camera.fx), float(q[2] * camera.fy)],
+                      "k1": float(q[3]), "k2": float(q[4])}
+    return meta

@@ -1,0 +1,119 @@
+"""rgbd-gt pick in a real headless browser: Debian's chromium driven by Playwright clicks pairs of
+points on a synthetic scene (photo pixel, scan grid pixel); the page's live pose and the
+written PAIRS.csv are checked against the truth."""
+
+import csv
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import assert_one_line_error, run_cli
+from rgbd_gt.camera import project
+from rgbd_gt.init.pick import grid_panorama
+from rgbd_gt.io import load_scan, read_camera, read_pose
+from rgbd_gt.pose import rotation_error_deg, transform_points, translation_error_m
+from rgbd_gt.render.depth import render_depth
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+playwright = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
+pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed (apt-get install chromium)")
+
+
+def _start_pick(*args) -> tuple[subprocess.Popen, str]:
+    proc = subprocess.Popen([sys.executable, "-c", "from rgbd_gt.cli import main; main()", "pick", *map(str, args), "--no-browser"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    line = proc.stdout.readline()
+    assert "serving the pick page on http://127.0.0.1:" in line, (line, proc.stderr.read() if proc.poll() is not None else "")
+    return proc, line.split(" on ")[1].split()[0]
+
+
+def _chosen_pairs(scene: Path, n: int = 9):
+    """n scan grid points seen in the photo, spread over it: (photo uv, panorama pixel, xyz)."""
+    scan = load_scan(scene / "scan.ply")
+    cam = read_camera(scene / "camera.yaml")
+    T = read_pose(scene / "gt_pose.yaml")[0]
+    view = grid_panorama(scan)
+    uv, z = project(cam, transform_points(T, scan.xyz))
+    depth = render_depth(scan, cam, T).z
+    px = np.round(uv).astype(int)
+    inside = (z > 0) & np.all(px >= 20, 1) & (px[:, 0] < cam.width - 20) & (px[:, 1] < cam.height - 20)
+    seen = np.zeros(len(z), bool)
+    seen[inside] = np.abs(depth[px[inside, 1], px[inside, 0]] - z[inside]) < 0.01
+    rng = np.random.default_rng(0)
+    # one point per cell of a 3 x 3 grid over the photo
+    out = []
+    for gy in range(3):
+        for gx in range(3):
+            cell = np.nonzero(seen & (px[:, 0] * 3 // cam.width == gx) & (px[:, 1] * 3 // cam.height == gy))[0]
+            k = rng.choice(cell)
+            r0, c0 = scan.row.min(), scan.col.min()
+            out.append((uv[k], (scan.col[k] - c0 + 0.5, scan.row[k] - r0 + 0.5), scan.xyz[k]))
+    assert view.xyz.shape[:2] == (scan.row.max() - scan.row.min() + 1, scan.col.max() - scan.col.min() + 1)
+    return out[:n]
+
+
+def test_pick_pairs_in_a_browser(tmp_path):
+    scene = tmp_path / "scene"
+    assert run_cli("synth", scene, "--size", "small", "--seed", 6).returncode == 0
+    pairs = _chosen_pairs(scene)
+    out = tmp_path / "pairs.csv"
+    proc, url = _start_pick("--scan", scene / "scan.ply", "--image", scene / "photo.png", "--camera", scene / "camera.yaml",
+                            "-o", out)
+    try:
+        with playwright.sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=CHROMIUM, args=[
+                "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+                "--disable-sync", "--no-first-run"])
+            page = browser.new_page(viewport={"width": 1600, "height": 1000})
+            page.goto(url)
+            page.wait_for_function("window.picker && window.picker.ready")
+            for k, (uv, grid_px, _) in enumerate(pairs):
+                x, y = page.evaluate(f"window.picker.photo.toScreen({uv[0] + 0.5}, {uv[1] + 0.5})")
+                page.mouse.click(x, y)
+                x, y = page.evaluate(f"window.picker.scan.toScreen({grid_px[0]}, {grid_px[1]})")
+                page.mouse.click(x, y)
+                page.wait_for_function(f"window.picker.pairs.length === {k + 1}")
+            page.wait_for_function("window.picker.solution !== null")
+            solution = page.evaluate("window.picker.solution")
+            assert page.locator("#pairs tbody tr").count() == len(pairs)
+            page.locator("#pairs tbody tr input").first.fill("corner A")
+            page.locator("#pairs tbody tr input").first.dispatch_event("change")
+            page.click("#show-overlay")
+            page.screenshot(path=str(tmp_path / "page.png"))
+            page.click("#done")
+            proc.wait(timeout=30)
+            browser.close()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, proc.stderr.read()
+    # the live pose is the truth's, to what clicks on whole screen pixels allow
+    T_true = read_pose(scene / "gt_pose.yaml")[0]
+    T = np.array(solution["T_cam_from_scan"])
+    assert translation_error_m(T, T_true) < 0.02 and rotation_error_deg(T, T_true) < 0.3
+    assert solution["inliers"] == len(pairs) and solution["rms_px"] < 1.0
+    # the CSV: every pair, its scan point exactly the grid point clicked, its photo pixel within a pixel
+    rows = list(csv.DictReader(open(out)))
+    assert [r["label"] for r in rows] == ["corner A"] + [str(k) for k in range(2, len(pairs) + 1)]
+    for r, (uv, _, xyz) in zip(rows, pairs):
+        np.testing.assert_allclose([float(r[c]) for c in "xyz"], xyz, atol=1e-5)
+        assert np.hypot(float(r["u"]) - uv[0], float(r["v"]) - uv[1]) < 1.0
+    # and init-pose takes it as it is
+    assert run_cli("init-pose", "--scan", scene / "scan.ply", "--image", scene / "photo.png", "--camera",
+                   scene / "camera.yaml", "--correspondences", out, "-o", tmp_path / "init.yaml").returncode == 0
+
+
+def test_pick_errors(tmp_path):
+    scene = tmp_path / "scene"
+    assert run_cli("synth", scene, "--size", "small", "--seed", 7).returncode == 0
+    args = ["pick", "--scan", scene / "scan.ply", "--image", scene / "photo.png", "--no-browser"]
+    assert_one_line_error(run_cli(*args, "-o", tmp_path / "p.txt"), "p.txt", ".csv")
+    assert_one_line_error(run_cli(*args, "-o", tmp_path / "nowhere" / "p.csv"), "folder does not exist")
+    assert_one_line_error(run_cli(*args, "-o", tmp_path / "p.csv", "--view", "sideways"), "--view")
+    assert_one_line_error(run_cli(*args, "-o", tmp_path / "p.csv", "--init", scene / "gt_pose.yaml"), "--init needs --camera")
+    assert not (tmp_path / "p.csv").exists()
