@@ -17,6 +17,15 @@ if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
     fi
 fi
 
+# The pick page's test drives Debian's chromium (no browser is downloaded at run time); without
+# it that test skips, saying why.
+if ! command -v chromium >/dev/null && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    echo "setup: installing the system package chromium (for the pick page's browser test)"
+    apt-get install -y -q chromium >/dev/null 2>&1 \
+        || { apt-get update -q >/dev/null && apt-get install -y -q chromium >/dev/null 2>&1; } \
+        || echo "setup: chromium could not be installed: the browser test will skip"
+fi
+
 if [ ! -x .venv/bin/python ]; then
     echo "setup: creating .venv"
     "$PYTHON" -m venv .venv

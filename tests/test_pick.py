@@ -51,9 +51,8 @@ def _chosen_pairs(scene: Path, n: int = 9):
         for gx in range(3):
             cell = np.nonzero(seen & (px[:, 0] * 3 // cam.width == gx) & (px[:, 1] * 3 // cam.height == gy))[0]
             k = rng.choice(cell)
-            r0, c0 = scan.row.min(), scan.col.min()
-            out.append((uv[k], (scan.col[k] - c0 + 0.5, scan.row[k] - r0 + 0.5), scan.xyz[k]))
-    assert view.xyz.shape[:2] == (scan.row.max() - scan.row.min() + 1, scan.col.max() - scan.col.min() + 1)
+            y, x = np.argwhere(np.all(view.xyz == scan.xyz[k].astype(np.float32), axis=2))[0]
+            out.append((uv[k], (x + 0.5, y + 0.5), scan.xyz[k]))
     return out[:n]
 
 

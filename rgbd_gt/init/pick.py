@@ -61,11 +61,32 @@ def grid_panorama(scan: Scan, longest: int = VIEW_SIDE) -> ClickView:
     keep = ((row - r0) % step == 0) & ((col - c0) % step == 0)
     sel, row, col = sel[keep], (row[keep] - r0) // step, (col[keep] - c0) // step
     h, w = int(row.max()) + 1, int(col.max()) + 1
+    # shown as seen from the scanner, z up: azimuth falling to the right, elevation rising upward
+    up, left = _grid_directions(scan.xyz[sel], row, col, scan.origins[0] if len(scan.origins) else scan.xyz[sel].mean(0))
+    row = row if not up else h - 1 - row
+    col = col if not left else w - 1 - col
     image = np.zeros((h, w, 3), np.uint8)
     xyz = np.full((h, w, 3), np.nan, np.float32)
     image[row, col] = _stretch(_gray_to_rgb(scan_colors(scan)[sel]))
     xyz[row, col] = scan.xyz[sel]
     return ClickView(image, xyz, f"the scan's grid ({rows} x {cols} shots" + (f", every {step}th" if step > 1 else "") + ")")
+
+
+def _grid_directions(xyz: np.ndarray, row: np.ndarray, col: np.ndarray, origin: np.ndarray) -> tuple[bool, bool]:
+    """(rows go up, columns go left) as seen from the origin with z up, from grid neighbours:
+    the elevation change along rows and the turn (about z) along columns, by majority."""
+    d = xyz - origin
+    order = np.lexsort((col, row))
+    r, c, dd = row[order], col[order], d[order]
+    along = (np.diff(r) == 0) & (np.diff(c) == 1)
+    a, b = dd[:-1][along], dd[1:][along]
+    turn = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]  # > 0: turning counter-clockwise, to the left
+    order = np.lexsort((row, col))
+    r, c, dd = row[order], col[order], d[order]
+    down = (np.diff(c) == 0) & (np.diff(r) == 1)
+    el = dd[:, 2] / np.maximum(np.linalg.norm(dd, axis=1), 1e-12)
+    rise = np.diff(el)[down]
+    return bool(np.median(rise) > 0) if rise.size else False, bool(np.median(turn) > 0) if turn.size else False
 
 
 def origin_panorama(scan: Scan, width: int = VIEW_SIDE) -> ClickView:
