@@ -500,7 +500,7 @@ def export_depth(
     the_scan = load_scan(scan, require_points=True)
     with _progress() as bar:
         bar.add_task("rendering depth", total=None)
-        depth = render_depth(the_scan, cam, T, max_depth)
+        depth = render_depth(the_scan, cam, T, max_depth, normals=normals is not None)
     valid = depth.z > 0
     if not valid.any():
         if depth.back_facing:
@@ -550,7 +550,7 @@ def qa_edges(
     from rgbd_gt.io import atomic_output, check_not_input, load_scan, read_camera, read_pose
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import read_image, write_image
-    from rgbd_gt.qa.edges import qa, side_by_side, structural_qa
+    from rgbd_gt.qa.edges import qa, side_by_side, structural_qa, working_view
 
     for p in (output, json_out):
         if p:
@@ -564,15 +564,17 @@ def qa_edges(
     colors = scan_colors(the_scan, scan)
     with _progress() as bar:
         bar.add_task("edges", total=None)
-        _, score = qa(the_scan, colors, photo, cam, T)
+        view = working_view(the_scan, colors, photo, cam, T)
+        _, score = qa(the_scan, colors, photo, cam, T, view=view)
         if score.scan_edge_pixels == 0:
             raise InputError("no scan edges in view of this pose (no scan points in view?)", pose)
-        img, structural = structural_qa(the_scan, colors, photo, cam, T)
+        img, structural = structural_qa(the_scan, colors, photo, cam, T, view=view)
         result = {**structural.as_dict(), **score.as_dict()}
         rows = [("after" if before else "score", f"edges vs chance {structural.ratio:.2f}; Canny {score.summary()}")]
         if T_before is not None:
-            _, score_b = qa(the_scan, colors, photo, cam, T_before)
-            img_b, structural_b = structural_qa(the_scan, colors, photo, cam, T_before)
+            view_b = working_view(the_scan, colors, photo, cam, T_before)
+            _, score_b = qa(the_scan, colors, photo, cam, T_before, view=view_b)
+            img_b, structural_b = structural_qa(the_scan, colors, photo, cam, T_before, view=view_b)
             img = side_by_side(img_b, img)
             result.update({**structural_b.as_dict("before_"), **score_b.as_dict("before_")})
             rows.insert(0, ("before", f"edges vs chance {structural_b.ratio:.2f}; Canny {score_b.summary()}"))
@@ -622,8 +624,10 @@ def overlay(
         checker, mixed, covered = make_overlay(the_scan, photo, cam, T, max_depth)
     if covered == 0:
         raise InputError("no scan surface in view of this pose (or only surfaces seen from behind)", pose)
-    write_image(output, checker)
-    write_image(blend, mixed)
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(2) as pool:  # PNG encoding releases the GIL: two 24 MP images at once
+        list(pool.map(lambda job: write_image(*job), [(output, checker), (blend, mixed)]))
     _summary("overlay", [("size", f"{cam.width} x {cam.height}"), ("scan covers", f"{covered:.1%} of the photo"),
                          ("time", f"{time.perf_counter() - start:.1f} s")], output, None)
     out.print(f"wrote {blend}")

@@ -139,7 +139,7 @@ def run_photo(photo: Path, scan, colors: np.ndarray, camera, cfg: RunConfig, sca
     elif res.verdict == "failed" and not export_failed:
         res.skipped.append("depth (failed)")
     else:
-        depth = render_depth(scan, camera, T, cfg.max_depth)
+        depth = render_depth(scan, camera, T, cfg.max_depth, normals=False)
         res.seen_from_behind = back_facing_fraction(depth)
         write_depth_png16(d / "depth.png", depth.z)
         write_depth_exr(files["depth"], depth.z, camera, T, scan_path.name)

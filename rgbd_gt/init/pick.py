@@ -120,7 +120,7 @@ def pose_view(scan: Scan, camera: Camera, T: np.ndarray, longest: int = VIEW_SID
     s = min(1.0, longest / max(camera.size))
     cam = rescale(camera, max(1, round(camera.width * s)), max(1, round(camera.height * s)))
     values = np.concatenate([_gray_to_rgb(scan_colors(scan)), scan.xyz], 1)
-    depth = render_depth(scan, cam, T, values=values)
+    depth = render_depth(scan, cam, T, values=values, normals=False)
     have = depth.z > 0
     if not have.any():
         raise InputError("no scan surface in view of the initial pose: pick on a panorama instead (--view panorama)")

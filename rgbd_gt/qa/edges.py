@@ -53,14 +53,15 @@ def auto_canny(gray: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
 def scan_view(scan: Scan, colors: np.ndarray, camera: Camera, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
     """The scan as the camera sees it: gray values (H, W) float32 0..255, z-depth (H, W) metres
     (0 where it sees no scan) and the splat radius in pixels (0 for a mesh)."""
-    out = render_depth(scan, camera, T, values=colors_to_gray(colors).reshape(-1, 1))
+    out = render_depth(scan, camera, T, values=colors_to_gray(colors).reshape(-1, 1), normals=False)
     return out.colors[..., 0], out.z, out.splat_radius
 
 
-def edge_score(photo_edges: np.ndarray, scan_edges: np.ndarray) -> EdgeScore:
-    """Distance (px) from each scan edge pixel to the nearest photo edge pixel."""
+def edge_score(photo_edges: np.ndarray, scan_edges: np.ndarray, pixel: float = 1.0) -> EdgeScore:
+    """Distance from each scan edge pixel to the nearest photo edge pixel, in units of `pixel`
+    edge-image pixels (the photo's own pixels for edges found at a reduced scale)."""
     dist = cv2.distanceTransform((~photo_edges).astype(np.uint8), cv2.DIST_L2, 5)
-    d = dist[scan_edges]
+    d = dist[scan_edges] * pixel
     if d.size == 0:
         return EdgeScore(float("nan"), float("nan"), 0.0, 0)
     return EdgeScore(float(np.median(d)), float(d.mean()), float(np.mean(d <= 1.0)), int(d.size))
@@ -80,12 +81,35 @@ def side_by_side(before: np.ndarray, after: np.ndarray) -> np.ndarray:
     return np.concatenate([before, np.full((before.shape[0], 8, 3), 255, np.uint8), after], axis=1)
 
 
-def qa(scan: Scan, colors: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray) -> tuple[np.ndarray, EdgeScore]:
-    """(overlay image, score) for one pose."""
-    photo_edges = auto_canny(cv2.cvtColor(photo, cv2.COLOR_RGB2GRAY))
-    gray, z, _ = scan_view(scan, colors, camera, T)
-    scan_edges = auto_canny(gray, z > 0)
-    return overlay(photo, photo_edges, scan_edges), edge_score(photo_edges, scan_edges)
+@dataclass
+class WorkingView:
+    """The photo and the scan rendered at a pose, both at a working resolution (`working_camera`):
+    what both edge checks look at, rendered once."""
+
+    camera: Camera
+    photo: np.ndarray  # (h, w, 3) uint8
+    gray: np.ndarray  # `scan_view`'s
+    z: np.ndarray
+    radius: int
+
+
+def working_view(scan: Scan, colors: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray,
+                 max_side: int = 1280) -> WorkingView:
+    cam = working_camera(camera, max_side)
+    small = photo if cam.size == camera.size else cv2.resize(photo, cam.size, interpolation=cv2.INTER_AREA)
+    return WorkingView(cam, small, *scan_view(scan, colors, cam, T))
+
+
+def qa(scan: Scan, colors: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray,
+       max_side: int = 1280, view: WorkingView | None = None) -> tuple[np.ndarray, EdgeScore]:
+    """(overlay image, score) for one pose, at a working resolution whose longer side is at most
+    max_side (distances in the photo's own pixels): Canny on every pixel of a 24 MP photo costs
+    seconds and gigabytes, and its edges are no surer."""
+    view = view or working_view(scan, colors, photo, camera, T, max_side)
+    photo_edges = auto_canny(cv2.cvtColor(view.photo, cv2.COLOR_RGB2GRAY))
+    scan_edges = auto_canny(view.gray, view.z > 0)
+    return (overlay(view.photo, photo_edges, scan_edges),
+            edge_score(photo_edges, scan_edges, camera.width / view.camera.width))
 
 
 @dataclass
@@ -171,14 +195,13 @@ def working_camera(camera: Camera, max_side: int) -> Camera:
 
 
 def structural_qa(scan: Scan, colors: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray,
-                  max_side: int = 1280, shift_px: int = 6) -> tuple[np.ndarray, StructuralScore]:
+                  max_side: int = 1280, shift_px: int = 6, view: WorkingView | None = None) -> tuple[np.ndarray, StructuralScore]:
     """(overlay at the working resolution: red = the photo's strongest gradients, blue = the
     scan's structural edges that were scored, white = both; the chance-relative score) for one
     pose. shift_px is in working-resolution pixels; splats wider than it make the score unusable."""
-    cam = working_camera(camera, max_side)
-    small = photo if cam.size == camera.size else cv2.resize(photo, cam.size, interpolation=cv2.INTER_AREA)
+    view = view or working_view(scan, colors, photo, camera, T, max_side)
+    small, gray, z, radius = view.photo, view.gray, view.z, view.radius
     strength = photo_strength(cv2.cvtColor(small, cv2.COLOR_RGB2GRAY))
-    gray, z, radius = scan_view(scan, colors, cam, T)
     edges = structural_edges(z, gray)
     strong = cv2.erode((strength > 0.5).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0  # undo the 3x3 maximum
     score = dataclasses.replace(chance_relative(strength, edges, shift_px), splat_radius=radius, usable=radius <= shift_px)

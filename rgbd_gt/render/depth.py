@@ -14,10 +14,11 @@ from rgbd_gt.pose import invert, transform_points
 @dataclass
 class DepthMap:
     """z: (H, W) float32 z-depth in metres along the optical axis, 0 where nothing is seen;
-    normals: (H, W, 3) float32 unit normals in the camera frame (0 where no depth)."""
+    normals: (H, W, 3) float32 unit normals in the camera frame (0 where no depth), or None when
+    not asked for."""
 
     z: np.ndarray
-    normals: np.ndarray
+    normals: np.ndarray | None
     method: str
     colors: np.ndarray | None = None  # (H, W, C) the scan's colors where seen (0 elsewhere)
     splat_radius: int = 0  # pixels, for a scan rendered as splats (0: a mesh, sharp to the pixel)
@@ -46,79 +47,146 @@ def back_facing_warning(depth: DepthMap) -> str | None:
             "the scanner saw from the front): those pixels have no depth (0)")
 
 
-def pixel_rays(camera: Camera) -> np.ndarray:
-    """(H*W, 3) camera-frame directions (x/z, y/z, 1) through every pixel centre of the
-    distorted photo, row by row."""
-    v, u = np.mgrid[0 : camera.height, 0 : camera.width]
-    xn = undistort_points(camera, np.stack([u.ravel(), v.ravel()], 1).astype(np.float64))
-    return np.concatenate([xn, np.ones((xn.shape[0], 1))], axis=1)
+def normalised_map(camera: Camera, step: int | None = None) -> np.ndarray:
+    """(H, W, 2) float32 normalised image coordinates (x/z, y/z) of every pixel centre of the
+    distorted photo. With distortion the exact inverse is computed at the centres of step x step
+    blocks (and one block beyond the border) and interpolated bilinearly, steps of fx / 650 pixels
+    (distortion is smooth: at most 0.002 px off on a 24-megapixel photo with k1 = -0.1), so that
+    such a photo costs no 24 million iterative undistortions."""
+    w, h = camera.width, camera.height
+    if not camera.has_distortion:
+        x = ((np.arange(w, dtype=np.float32) - camera.cx) / camera.fx)[None, :].repeat(h, 0)
+        y = ((np.arange(h, dtype=np.float32) - camera.cy) / camera.fy)[:, None].repeat(w, 1)
+        return np.stack([x, y], -1)
+    import cv2
+
+    # the interpolation error grows with (step / focal)^2: 1 px steps (exact) for small photos
+    step = step or int(np.clip(camera.fx // 650, 1, 16))
+    # node k sits at pixel step k + (step - 1) / 2 - step: cv2.resize by `step` then puts node k's
+    # value at output pixel step k + (step - 1) / 2, i.e. image pixel (output pixel - step)
+    gu = step * np.arange(-1, w // step + 2) + (step - 1) / 2
+    gv = step * np.arange(-1, h // step + 2) + (step - 1) / 2
+    g = undistort_points(camera, np.stack(np.meshgrid(gu, gv), -1).reshape(-1, 2)).reshape(len(gv), len(gu), 2)
+    full = cv2.resize(g.astype(np.float32), (len(gu) * step, len(gv) * step), interpolation=cv2.INTER_LINEAR)
+    return full[step:step + h, step:step + w]
+
+
+def pixel_rays(camera: Camera, rows: tuple[int, int] | None = None, normalised: np.ndarray | None = None) -> np.ndarray:
+    """(n, 3) float32 camera-frame directions (x/z, y/z, 1) through the pixel centres of the
+    distorted photo's rows [r0, r1) (all rows by default), row by row; `normalised` is
+    `normalised_map(camera)` when already made."""
+    r0, r1 = rows if rows is not None else (0, camera.height)
+    xy = (normalised if normalised is not None else normalised_map(camera))[r0:r1].reshape(-1, 2)
+    return np.concatenate([xy, np.ones((len(xy), 1), np.float32)], axis=1)
 
 
 def render_depth(scan: Scan, camera: Camera, T_cam_from_scan: np.ndarray, max_depth: float | None = None,
-                 values: np.ndarray | None = None) -> DepthMap:
+                 values: np.ndarray | None = None, normals: bool = True) -> DepthMap:
     """Occlusion-correct depth: a structured scan is triangulated along its grid and ray-cast
     (Open3D); a scan without a grid is splatted with discs sized by its point spacing.
-    values: optional per-point (N, C) values (colors) rendered along, as DepthMap.colors.
+    values: optional per-point (N, C) values (colors) rendered along, as DepthMap.colors (of the
+    values' dtype: uint8 colors stay uint8). normals: also the camera-frame normals (else
+    DepthMap.normals is None, which saves 12 bytes a pixel).
 
     Surfaces seen from behind (their normals, `render.normals`, facing away from the camera)
     render as 0 and are counted in DepthMap.back_facing; they still hide what lies behind them."""
     if scan.has_grid:
-        out = _raycast_mesh(scan, camera, T_cam_from_scan, values)
+        out = _raycast_mesh(scan, camera, T_cam_from_scan, values, normals)
     else:
         out = _splat(scan, camera, T_cam_from_scan, values)
+        if not normals:
+            out.normals = None
     if max_depth is not None:
         far = out.z > max_depth
         out.z[far] = 0
-        out.normals[far] = 0
+        if out.normals is not None:
+            out.normals[far] = 0
+        if out.colors is not None:
+            out.colors[far] = 0
     return out
 
 
-def _raycast_mesh(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None) -> DepthMap:
+def _raycast_mesh(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None, want_normals: bool,
+                  block: int = 1 << 20) -> DepthMap:
+    """Ray-cast the grid mesh (triangles turned toward their scanner) pixel by pixel, `block`
+    pixels at a time so that memory stays near the outputs' own."""
     import open3d as o3d
 
     from rgbd_gt.render.mesh import grid_triangles
-
     from rgbd_gt.render.normals import oriented_triangles, scan_origin_per_point
 
-    tris = oriented_triangles(scan, grid_triangles(scan))
+    tris = _triangles_in_view(scan, grid_triangles(scan), camera, T)
+    tris = oriented_triangles(scan, tris)
     knows_sides = scan_origin_per_point(scan) is not None
+    h, w = camera.height, camera.width
+    if len(tris) == 0:
+        return DepthMap(np.zeros((h, w), np.float32), np.zeros((h, w, 3), np.float32) if want_normals else None,
+                        "ray-cast grid mesh (nothing in view)",
+                        np.zeros((h, w, values.shape[1]), values.dtype) if values is not None else None,
+                        back_facing=0 if knows_sides else None)
     # a local frame keeps float32 exact for georeferenced coordinates
     centre = scan.xyz.mean(axis=0)
+    used, local = np.unique(tris, return_inverse=True)  # only the vertices of triangles in view
     mesh = o3d.t.geometry.TriangleMesh()
-    mesh.vertex.positions = o3d.core.Tensor((scan.xyz - centre).astype(np.float32))
-    mesh.triangle.indices = o3d.core.Tensor(tris.astype(np.int32))
+    mesh.vertex.positions = o3d.core.Tensor((scan.xyz[used] - centre).astype(np.float32))
+    mesh.triangle.indices = o3d.core.Tensor(local.reshape(-1, 3).astype(np.int32))
     rc = o3d.t.geometry.RaycastingScene()
     rc.add_triangles(mesh)
-    d_cam = pixel_rays(camera)
     T_sc = invert(T)
-    d_world = d_cam @ T_sc[:3, :3].T  # unnormalised: t_hit is then z-depth directly
-    origin = T_sc[:3, 3] - centre
-    rays = np.concatenate([np.broadcast_to(origin, d_world.shape), d_world], 1).astype(np.float32)
-    hit = rc.cast_rays(o3d.core.Tensor(rays))
-    z = hit["t_hit"].numpy()
-    z = np.where(np.isfinite(z), z, 0).astype(np.float32)
-    n = hit["primitive_normals"].numpy() @ T[:3, :3].T.astype(np.float32)
-    facing = np.sum(n * d_cam.astype(np.float32), axis=1)
-    back = None
-    if knows_sides:  # triangles face their scanner: one facing away is seen from behind
-        behind = (z > 0) & (facing > 0)
-        z[behind] = 0
-        back = int(behind.sum())
-    n *= -np.sign(facing + 1e-12)[:, None]
-    n[z == 0] = 0
-    h, w = camera.height, camera.width
-    colors = None
-    if values is not None:  # barycentric interpolation of the hit triangle's vertex values
-        prim = hit["primitive_ids"].numpy().astype(np.int64)
-        bary = hit["primitive_uvs"].numpy()
-        ok = z > 0
-        tri = tris[np.where(ok, prim, 0)]
-        vals = values.astype(np.float32)
-        c = (1 - bary[:, :1] - bary[:, 1:]) * vals[tri[:, 0]] + bary[:, :1] * vals[tri[:, 1]] + bary[:, 1:] * vals[tri[:, 2]]
-        c[~ok] = 0
-        colors = c.reshape(h, w, -1)
-    return DepthMap(z.reshape(h, w), n.reshape(h, w, 3).astype(np.float32),
-                    f"ray-cast grid mesh ({len(tris):,} triangles)", colors, back_facing=back)
+    origin = (T_sc[:3, 3] - centre).astype(np.float32)
+    R = T_sc[:3, :3]
+    z = np.zeros(h * w, np.float32)
+    n = np.zeros((h * w, 3), np.float32) if want_normals else None
+    colors = np.zeros((h * w, values.shape[1]), values.dtype) if values is not None else None
+    vals = values.astype(np.float32) if values is not None else None
+    back = 0
+    rows = max(1, block // w)
+    xy = normalised_map(camera)
+    for r0 in range(0, h, rows):
+        r1 = min(h, r0 + rows)
+        d_cam = pixel_rays(camera, (r0, r1), xy)
+        d_world = d_cam @ R.T.astype(np.float32)  # unnormalised: t_hit is then z-depth directly
+        rays = np.concatenate([np.broadcast_to(origin, d_world.shape), d_world], 1)
+        hit = rc.cast_rays(o3d.core.Tensor(rays))
+        zb = hit["t_hit"].numpy()
+        zb = np.where(np.isfinite(zb), zb, 0).astype(np.float32)
+        nb = hit["primitive_normals"].numpy() @ T[:3, :3].T.astype(np.float32)
+        facing = np.sum(nb * d_cam, axis=1)
+        if knows_sides:  # triangles face their scanner: one facing away is seen from behind
+            behind = (zb > 0) & (facing > 0)
+            zb[behind] = 0
+            back += int(behind.sum())
+        sl = slice(r0 * w, r1 * w)
+        z[sl] = zb
+        ok = zb > 0
+        if n is not None:
+            nb *= -np.sign(facing + 1e-12)[:, None]
+            nb[~ok] = 0
+            n[sl] = nb
+        if colors is not None and ok.any():  # barycentric interpolation of the hit triangle's vertex values
+            tri = tris[hit["primitive_ids"].numpy()[ok].astype(np.int64)]
+            bary = hit["primitive_uvs"].numpy()[ok]
+            c = (1 - bary[:, :1] - bary[:, 1:]) * vals[tri[:, 0]] + bary[:, :1] * vals[tri[:, 1]] + bary[:, 1:] * vals[tri[:, 2]]
+            block_colors = np.zeros((len(zb), c.shape[1]), colors.dtype)
+            block_colors[ok] = np.rint(c) if np.issubdtype(colors.dtype, np.integer) else c
+            colors[sl] = block_colors
+    return DepthMap(z.reshape(h, w), n.reshape(h, w, 3) if n is not None else None,
+                    f"ray-cast grid mesh ({len(tris):,} triangles in view)",
+                    colors.reshape(h, w, -1) if colors is not None else None, back_facing=back if knows_sides else None)
+
+
+def _triangles_in_view(scan: Scan, tris: np.ndarray, camera: Camera, T: np.ndarray, margin: float = 0.25) -> np.ndarray:
+    """The triangles with a vertex in front of the camera and near the image (pinhole, a margin of
+    `margin` x the image size for distortion and long triangles): the rest cannot be hit, and
+    building the ray-casting structure costs with every triangle."""
+    p = transform_points(T, scan.xyz)
+    z = p[:, 2]
+    zs = np.maximum(z, 1e-9)
+    u = camera.fx * p[:, 0] / zs + camera.cx
+    v = camera.fy * p[:, 1] / zs + camera.cy
+    mu, mv = margin * camera.width, margin * camera.height
+    near = (z > 1e-6) & (u > -mu) & (u < camera.width + mu) & (v > -mv) & (v < camera.height + mv)
+    return tris[near[tris].any(axis=1)]
 
 
 def local_spacing(points: np.ndarray, k: int = 3) -> np.ndarray:

@@ -8,10 +8,14 @@ but they still hide what lies behind them.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import torch
 
 from rgbd_gt.io.scan import Scan
+
+if TYPE_CHECKING:
+    import torch
 
 
 def scan_origin_per_point(scan: Scan) -> np.ndarray | None:
