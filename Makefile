@@ -29,3 +29,4 @@ bench: $(STAMP)
 	$(PY) benchmarks/trust.py
 	$(PY) benchmarks/lidar.py
 	$(PY) benchmarks/intrinsics.py
+	$(PY) benchmarks/big_photo.py

@@ -1,0 +1,83 @@
+"""Big photos: each command on a 24-megapixel photo (a synthetic scene's photo enlarged to
+5664 x 4248, its camera scaled), run alone as a user runs it, wall time and peak memory of the
+whole process (issue targets on a 2-core CPU: refine <= 5 s of aligner time, qa-edges and
+overlay <= 5 s and 1 GB each, export-depth <= 10 s and 1.5 GB). Writes docs/big_photo.md.
+
+    python benchmarks/big_photo.py [--megapixels 24]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+def run(args: list[str]) -> tuple[float, float]:
+    """(wall seconds, peak resident memory in GB) of `rgbd-gt args` in a fresh process."""
+    start = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, "-m", "rgbd_gt", *args], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - start
+    if os.waitstatus_to_exitcode(status) != 0:
+        raise SystemExit(f"rgbd-gt {' '.join(args)} failed: {proc.stderr.read().decode()}")
+    return wall, usage.ru_maxrss / 2**20  # KB -> GB
+
+
+def main() -> None:
+    import cv2
+    import numpy as np
+
+    from rgbd_gt.camera import rescale
+    from rgbd_gt.io import atomic_output, load_scan, read_camera, read_pose
+    from rgbd_gt.io.camera_file import write_camera
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--megapixels", type=float, default=24.0)
+    ap.add_argument("--out", type=Path, default=Path("docs/big_photo.md"))
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        d = Path(tmp)
+        subprocess.run([sys.executable, "-m", "rgbd_gt", "synth", str(d / "scene"), "--size", "small", "--seed", "1"],
+                       check=True, stdout=subprocess.DEVNULL)
+        cam = read_camera(d / "scene" / "camera.yaml")
+        points = len(load_scan(d / "scene" / "scan.ply"))
+        s = np.sqrt(args.megapixels * 1e6 / (cam.width * cam.height))
+        w, h = int(round(cam.width * s / 8) * 8), int(round(cam.height * s / 8) * 8)
+        write_camera(d / "camera.yaml", rescale(cam, w, h))
+        photo = cv2.imread(str(d / "scene" / "photo.png"))
+        cv2.imwrite(str(d / "photo.png"), cv2.resize(photo, (w, h), interpolation=cv2.INTER_CUBIC))
+        common = ["--scan", str(d / "scene" / "scan.ply"), "--camera", str(d / "camera.yaml")]
+        pose = ["--pose", str(d / "scene" / "gt_pose.yaml")]
+        rows = []
+        wall, mem = run(["refine", *common, "--image", str(d / "photo.png"), "--init", str(d / "scene" / "init_pose.yaml"),
+                         "-o", str(d / "refined.yaml")])
+        meta = read_pose(d / "refined.yaml")[1]
+        rows.append(("refine", f"{meta['seconds']:.1f} s aligner, {meta['verify_seconds']:.1f} s verdict", wall, mem, "<= 5 s aligner"))
+        for name, extra, target in (("export-depth", ["-o", str(d / "depth.exr")], "<= 10 s, 1.5 GB"),
+                                    ("qa-edges", ["--image", str(d / "photo.png"), "-o", str(d / "qa.png")], "<= 5 s, 1 GB"),
+                                    ("overlay", ["--image", str(d / "photo.png"), "-o", str(d / "overlay.png")], "<= 5 s, 1 GB")):
+            wall, mem = run([name, *common, *pose, *extra])
+            rows.append((name, "", wall, mem, target))
+            print(rows[-1], flush=True)
+    lines = ["# Big photos", "",
+             f"Made by `python benchmarks/big_photo.py`: a small synthetic scene ({points:,} scan points on a grid) with its photo",
+             f"enlarged to {w} x {h} ({w * h / 1e6:.1f} MP) and its camera scaled; each command alone in a fresh process",
+             "on this 2-core CPU, wall time (imports and file reading and writing included) and peak resident memory.", "",
+             "| command | | wall s | peak memory GB | target |", "|---|---|---|---|---|"]
+    lines += [f"| {n} | {info} | {wall:.1f} | {mem:.2f} | {target} |" for n, info, wall, mem, target in rows]
+    lines += ["", "What makes them cheap: export-depth ray-casts the grid mesh in blocks of rows, with each pixel's ray",
+              "interpolated from an exact grid of undistorted rays (0.002 px off), and only the triangles in view;",
+              "qa-edges works at 1280 px (both scores from one rendering); overlay renders at the resolution the scan",
+              "supports (2 pixels per scan step) and enlarges it; refine works on a pyramid and a fixed number of points.", ""]
+    with atomic_output(args.out) as tmp_out:
+        tmp_out.write_text("\n".join(lines))
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
