@@ -318,6 +318,10 @@ def pick(
         bar.add_task("preparing the scan image", total=None)
         the_scan = load_scan(scan, require_points=True)
         clicks = click_view(the_scan, view, cam, T_init)
+        for pair in pairs:  # draw loaded pairs where their scan points are in the scan image
+            px = clicks.pixel_of([pair["x"], pair["y"], pair["z"]])
+            if px is not None:
+                pair["sx"], pair["sy"] = px
     session = PickSession(the_scan, photo, clicks, output, cam, estimate_focal, ransac_px, pairs)
 
     def ready(url: str) -> None:

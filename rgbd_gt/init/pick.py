@@ -44,6 +44,17 @@ class ClickView:
         return patch[vy[k], vx[k]].astype(np.float64)
 
 
+    def pixel_of(self, xyz, within: float = 0.05) -> tuple[float, float] | None:
+        """The centre (x, y) of the image pixel whose scan point is nearest to xyz (3,), if within
+        `within` metres: where a pair loaded from a file is drawn."""
+        ok = np.isfinite(self.xyz[..., 0])
+        d = np.linalg.norm(self.xyz[ok] - np.asarray(xyz, np.float32), axis=1)
+        if d.size == 0 or d.min() > within:
+            return None
+        y, x = np.argwhere(ok)[int(np.argmin(d))]
+        return float(x) + 0.5, float(y) + 0.5
+
+
 def _gray_to_rgb(colors: np.ndarray) -> np.ndarray:
     c = colors.astype(np.float32)
     return np.repeat(c * 255, 3, axis=1) if c.shape[1] == 1 else c
