@@ -651,7 +651,9 @@ def run_workflow(
     from rgbd_gt.io import load_scan, read_camera
     from rgbd_gt.io.scan import scan_colors
     from rgbd_gt.render.normals import with_normals
-    from rgbd_gt.workflow import PhotoResult, RunConfig, resolve, run_photo, verdict_counts, write_summary
+    import dataclasses
+
+    from rgbd_gt.workflow import PhotoResult, RunConfig, resolve, run_photo, shared_camera, verdict_counts, write_summary
 
     cfg = load_config(RunConfig, config)
     try:
@@ -665,6 +667,12 @@ def run_workflow(
     results = []
     with _progress(TextColumn("{task.fields[step]}")) as bar:
         task = bar.add_task("photos", total=len(photos), step="")
+        if cfg.refine.refine_intrinsics != "none":  # one camera for all photos, then their poses with it
+            out_dir.mkdir(parents=True, exist_ok=True)
+            camera = shared_camera(photos, scan, colors, camera, cfg, scan_path, out_dir, lambda step: bar.update(task, step=step))
+            out.print(f"camera refined over the photos ({cfg.refine.refine_intrinsics}): fx {camera.fx:.2f} px, "
+                      f"cx {camera.cx:.1f}, cy {camera.cy:.1f}; wrote {out_dir / 'camera.yaml'}")
+            cfg = dataclasses.replace(cfg, refine=dataclasses.replace(cfg.refine, refine_intrinsics="none"))
         for photo in photos:
             bar.update(task, description=photo.name)
             try:

@@ -88,8 +88,6 @@ def run_photo(photo: Path, scan, colors: np.ndarray, camera, cfg: RunConfig, sca
     """The four steps for one photo into out/<photo stem>/. The depth map is written only for a
     pose whose verdict is ok or suspect, unless export_failed."""
     from rgbd_gt.align.refine import RefineInputs, refine_meta, refine_verified
-    from rgbd_gt.init.detect import BoardSpec
-    from rgbd_gt.init.run import init_from_board, read_csv_rows
     from rgbd_gt.io import read_pose, write_pose
     from rgbd_gt.io.atomic import atomic_output
     from rgbd_gt.io.camera_file import check_image_matches
@@ -111,13 +109,7 @@ def run_photo(photo: Path, scan, colors: np.ndarray, camera, cfg: RunConfig, sca
     progress("init-pose")
     if files["init"].exists():
         res.skipped.append("init")
-    else:
-        b = cfg.board
-        spec = BoardSpec(b.cols, b.rows, b.square, b.charuco, b.marker)
-        corners = read_csv_rows(Path(b.points), "x,y,z") if b.points else None
-        r = init_from_board(scan, image, camera, spec, corners, scan_path, photo)
-        write_pose(files["init"], r.T_cam_from_scan, **r.pose_meta())
-    T_init, init_meta = read_pose(files["init"])
+    T_init, init_meta = initial_pose(photo, image, scan, camera, cfg, scan_path, files["init"])
     res.init_rms_px = init_meta.get("reprojection_rms_px")
 
     progress("refine")
@@ -165,6 +157,71 @@ def run_photo(photo: Path, scan, colors: np.ndarray, camera, cfg: RunConfig, sca
     res.within_1px_before, res.within_1px_after = score["before_within_1px"], score["within_1px"]
     res.seconds = time.perf_counter() - start
     return res
+
+
+def initial_pose(photo: Path, image: np.ndarray, scan, camera, cfg: RunConfig, scan_path: Path,
+                 path: Path) -> tuple[np.ndarray, dict]:
+    """The photo's initial pose file `path`: read when it exists, else made from the board (and
+    written)."""
+    from rgbd_gt.init.detect import BoardSpec
+    from rgbd_gt.init.run import init_from_board, read_csv_rows
+    from rgbd_gt.io import read_pose, write_pose
+
+    if not path.exists():
+        b = cfg.board
+        spec = BoardSpec(b.cols, b.rows, b.square, b.charuco, b.marker)
+        corners = read_csv_rows(Path(b.points), "x,y,z") if b.points else None
+        r = init_from_board(scan, image, camera, spec, corners, scan_path, photo)
+        write_pose(path, r.T_cam_from_scan, **r.pose_meta())
+    return read_pose(path)
+
+
+def shared_camera(photos: list[Path], scan, colors: np.ndarray, camera, cfg: RunConfig, scan_path: Path, out: Path,
+                  progress: Callable[[str], None] = lambda step: None):
+    """With cfg.refine.refine_intrinsics, the one camera of all the photos: per photo its initial
+    pose (kept for the run) and the camera corrections refined with its pose, then their
+    inverse-variance weighted mean. Each photo's variance already includes what its pose leaves
+    open, so to first order this is the joint solve of all poses and one camera. Written to
+    out/camera.yaml with the per-photo estimates in out/intrinsics.json; reused when there.
+    Returns the camera."""
+    from rgbd_gt.align.refine import RefineInputs, make_aligner
+    from rgbd_gt.camera import corrected
+    from rgbd_gt.io import read_camera
+    from rgbd_gt.io.atomic import atomic_output
+    from rgbd_gt.io.camera_file import check_image_matches, write_camera
+    from rgbd_gt.io.image import read_image
+
+    if (out / "camera.yaml").exists():
+        return read_camera(out / "camera.yaml")
+    estimates = []
+    for photo in photos:
+        progress(f"{photo.name}: camera")
+        try:
+            image = read_image(photo)
+            check_image_matches(camera, image.shape, photo, "the camera file")
+            (out / photo.stem).mkdir(parents=True, exist_ok=True)
+            T_init, init_meta = initial_pose(photo, image, scan, camera, cfg, scan_path, out / photo.stem / "init.yaml")
+            inputs = RefineInputs(scan.xyz, colors, image, camera, T_init, None, scan, init_meta)
+            r = make_aligner(inputs, cfg.refine, cfg.device).refine(T_init)
+        except InputError:
+            continue  # the photo's own run reports why
+        if r.intrinsics is not None and np.isfinite(r.intrinsics_sigma[0]):
+            estimates.append({"photo": photo.name, "q": r.intrinsics.tolist(), "sigma": r.intrinsics_sigma})
+    if not estimates:
+        raise InputError("no photo gave a camera estimate (refine_intrinsics): check the boards and the camera file")
+    q = np.array([e["q"] for e in estimates])
+    w = 1 / np.square(np.array([e["sigma"] for e in estimates]))  # inf sigma (not refined): weight 0
+    for e in estimates:  # JSON has no inf: null where not refined
+        e["sigma"] = [float(v) if np.isfinite(v) else None for v in e["sigma"]]
+    shared = np.where(w.sum(0) > 0, (w * q).sum(0) / np.maximum(w.sum(0), 1e-300), 0.0)
+    sigma = np.where(w.sum(0) > 0, 1 / np.sqrt(np.maximum(w.sum(0), 1e-300)), np.inf)
+    result = corrected(camera, shared)
+    write_camera(out / "camera.yaml", result)
+    with atomic_output(out / "intrinsics.json") as tmp:
+        tmp.write_text(json.dumps({"mode": cfg.refine.refine_intrinsics, "photos": estimates, "shared": shared.tolist(),
+                                   "shared_sigma": [None if not np.isfinite(v) else float(v) for v in sigma],
+                                   "camera": out.name + "/camera.yaml"}, indent=1))
+    return result
 
 
 def write_summary(path: Path, results: list[PhotoResult]) -> None:

@@ -54,3 +54,27 @@ def test_run_bad_config(tmp_path):
     assert_one_line_error(run_cli("run", tmp_path / "bad.yaml"), "bad.yaml", "whatever")
     (tmp_path / "nophotos.yaml").write_text("scan: x.ply\ncamera: c.yaml\nphotos: [none*.png]\n")
     assert_one_line_error(run_cli("run", tmp_path / "nophotos.yaml"), "no photo matches")
+
+
+def test_run_refines_one_camera_for_all_photos(tmp_path):
+    """refine_intrinsics in a run: one camera from all photos (their estimates weighted by their
+    variances), then every pose with it; the camera file's focal is 2% off."""
+    scene = tmp_path / "scene"
+    assert run_cli("synth", scene, "--size", "small", "--seed", 8, "--photos", 2).returncode == 0
+    cam = yaml.safe_load((scene / "camera.yaml").read_text())
+    (scene / "camera_off.yaml").write_text(yaml.safe_dump({**cam, "fx": cam["fx"] * 1.02, "fy": cam["fy"] * 1.02}))
+    config = {"scan": "scene/scan.ply", "camera": "scene/camera_off.yaml", "photos": ["scene/photo*.png"],
+              "output": "out", "refine": {"max_points": 40000, "refine_intrinsics": "focal"}}
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump(config))
+    proc = run_cli("run", tmp_path / "run.yaml")
+    assert proc.returncode == 0, proc.stderr
+    assert "camera refined over the photos" in proc.stdout
+    shared = yaml.safe_load((tmp_path / "out" / "camera.yaml").read_text())
+    assert abs(shared["fx"] / cam["fx"] - 1) < 0.003, (shared["fx"], cam["fx"])
+    estimates = __import__("json").loads((tmp_path / "out" / "intrinsics.json").read_text())
+    assert [e["photo"] for e in estimates["photos"]] == ["photo.png", "photo_1.png"]
+    for photo, truth in (("photo", "gt_pose.yaml"), ("photo_1", "gt_pose_1.yaml")):
+        T = read_pose(tmp_path / "out" / photo / "pose.yaml")[0]
+        gt = read_pose(scene / truth)[0]
+        assert translation_error_m(T, gt) < 0.005 and rotation_error_deg(T, gt) < 0.05
+        assert (tmp_path / "out" / photo / "depth.exr").exists()
