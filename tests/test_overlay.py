@@ -34,6 +34,16 @@ def test_overlay_at_the_true_pose_agrees_with_the_photo(tmp_path):
         assert (checker == photo).all(axis=2).mean() > 0.4
         scores[name] = _agreement(photo, blend)
     assert scores["true"] > 0.8 and scores["true"] > scores["off"] + 0.1, scores
+    # a scan without a grid (surfels) gives the same kind of picture
+    from rgbd_gt.io import load_scan, save_scan
+    from rgbd_gt.io.scan import Scan
+
+    scan = load_scan(scene / "scan.ply")
+    save_scan(tmp_path / "loose.ply", Scan(xyz=scan.xyz, rgb=scan.rgb, origins=scan.origins))
+    proc = run_cli("overlay", "--scan", tmp_path / "loose.ply", "--image", scene / "photo.png", "--camera",
+                   scene / "camera.yaml", "--pose", scene / "gt_pose.yaml", "-o", tmp_path / "loose_overlay.png")
+    assert proc.returncode == 0, proc.stderr
+    assert _agreement(photo, cv2.imread(str(tmp_path / "loose_overlay_blend.png"))) > 0.7
 
 
 def test_overlay_errors(tmp_path):

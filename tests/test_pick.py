@@ -116,3 +116,38 @@ def test_pick_errors(tmp_path):
     assert_one_line_error(run_cli(*args, "-o", tmp_path / "p.csv", "--view", "sideways"), "--view")
     assert_one_line_error(run_cli(*args, "-o", tmp_path / "p.csv", "--init", scene / "gt_pose.yaml"), "--init needs --camera")
     assert not (tmp_path / "p.csv").exists()
+
+
+def test_click_views_know_their_points(tmp_path):
+    """Each scan image (grid, panorama from the origin, view at a pose) gives, under a pixel, a
+    scan point that the view itself put there (no browser needed)."""
+    from rgbd_gt.init.pick import click_view
+    from rgbd_gt.io.scan import Scan
+
+    scene = tmp_path / "scene"
+    assert run_cli("synth", scene, "--size", "small", "--seed", 9).returncode == 0
+    scan = load_scan(scene / "scan.ply")
+    cam = read_camera(scene / "camera.yaml")
+    T = read_pose(scene / "gt_pose.yaml")[0]
+    loose = Scan(xyz=scan.xyz, rgb=scan.rgb, origins=scan.origins)
+    views = {"grid": click_view(scan, "auto"), "panorama": click_view(loose, "auto"), "pose": click_view(scan, "auto", cam, T)}
+    assert [v.kind.split()[0] for v in views.values()] == ["the", "a", "the"] and "grid" in views["grid"].kind
+    for name, view in views.items():
+        have = np.argwhere(np.isfinite(view.xyz[..., 0]))
+        assert len(have) > 0.2 * view.xyz[..., 0].size, name
+        rng = np.random.default_rng(0)
+        for y, x in have[rng.choice(len(have), 50)]:
+            p = view.point_at(x + 0.5, y + 0.5)
+            np.testing.assert_allclose(p, view.xyz[y, x], atol=1e-6)
+            px, py = view.pixel_of(p)  # the same point, possibly at another pixel that holds it too
+            np.testing.assert_allclose(view.xyz[int(py), int(px)], p, atol=1e-6)
+    # the pose view's points are where the camera sees them: a pixel's point projects back onto it
+    pose = views["pose"]
+    ys, xs = np.nonzero(np.isfinite(pose.xyz[..., 0]))
+    uv, _ = project(cam, transform_points(T, pose.xyz[ys, xs].astype(float)))
+    assert np.median(np.hypot(uv[:, 0] - xs, uv[:, 1] - ys)) < 0.5
+    # the grid's points are the scan's own; the panorama's too
+    own = set(map(tuple, scan.xyz.astype(np.float32).tolist()))
+    for name in ("grid", "panorama"):
+        pts = views[name].xyz[np.isfinite(views[name].xyz[..., 0])]
+        assert all(tuple(p) in own for p in pts[:: max(1, len(pts) // 500)].tolist()), name

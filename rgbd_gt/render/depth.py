@@ -261,5 +261,9 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None)
         back = int(behind.sum())
         if values is not None:
             img[torch.as_tensor(behind)] = 0
-    return DepthMap(zz, np.zeros(zz.shape + (3,), np.float32), f"splats of radius {radius} px",
-                    img.numpy() if values is not None else None, radius, back)
+    colors = None
+    if values is not None:  # in the values' own type, as the mesh path gives them
+        colors = img.numpy()
+        colors = np.rint(colors).astype(values.dtype) if np.issubdtype(values.dtype, np.integer) else colors.astype(values.dtype)
+    kind = "surfels of radius up to" if surfels is not None else "splats of radius"
+    return DepthMap(zz, np.zeros(zz.shape + (3,), np.float32), f"{kind} {radius} px", colors, radius, back)
