@@ -21,15 +21,18 @@ def test_icl_grid_depth_meets_the_figures(icl_dir):
     assert r["filled_fraction"] > 0.95
 
 
-def test_unstructured_scan_is_splatted(icl_dir):
+def test_unstructured_scan_is_rendered_as_surfels(icl_dir):
+    """Without its grid the frame-0 cloud renders as surfels at frame 1's pose: depth from each
+    point's tangent plane (median 0.3 mm measured, docs/depth_benchmark.md), few leaks."""
     scan = dataclasses.replace(frame_grid_scan(icl_dir, 0), row=None, col=None)
     out = render_depth(scan, ICL_CAMERA, invert(read_trajectory(icl_dir / "trajectory.log")[1]))
-    assert out.method.startswith("splats")
+    assert out.method.startswith("surfels")
     both = seen_by_both(icl_dir, 0, 1)
     truth = read_depth(icl_dir, 1, "clean")
     filled = both & (out.z > 0)
     assert filled.sum() > 0.95 * both.sum()
-    assert np.median(np.abs(out.z[filled] - truth[filled])) < 0.01
+    err = np.abs(out.z[filled] - truth[filled])
+    assert np.median(err) < 0.002 and np.mean(err > 0.05) < 0.01
 
 
 @pytest.fixture
