@@ -243,10 +243,10 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None)
         radius = max(1, int(np.ceil(0.75 * camera.fx * spacing / max(float(np.median(z)), 1e-6))))
     else:
         # discs of the local spacing (a scanner's grows with range and on surfaces seen at a
-        # slant), just closing the gaps of a square sampling (s / sqrt 2) with a margin: a larger
+        # slant), just closing the gaps of a square sampling (s / sqrt 2) with a 6% margin: a larger
         # disc grows every silhouette (docs/depth_benchmark.md)
         n_cam = normals[seen] @ T[:3, :3].T
-        reach = 0.8 * local_spacing(p[seen])
+        reach = 0.75 * local_spacing(p[seen])
         reach_px = reach * camera.fx / z
         radius = max(1, int(np.ceil(min(np.quantile(reach_px, 0.99), 4 * np.median(reach_px)))))
         slope = surfel_slope(p[seen], n_cam, z, camera, radius)
