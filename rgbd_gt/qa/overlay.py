@@ -63,12 +63,13 @@ def checkerboard(photo: np.ndarray, rendered: np.ndarray, have: np.ndarray, squa
     h, w = photo.shape[:2]
     side = max(8, max(h, w) // squares)
     out = photo.copy()
+    mask = have.view(np.uint8)
     # square by square (a few hundred): full-size masks would cost more than the copying itself
     for y in range(0, h, side):
         for x in range((y // side % 2 == 0) * side, w, 2 * side):
             sl = (slice(y, y + side), slice(x, x + side))
-            np.copyto(out[sl], cv2.convertScaleAbs(photo[sl], alpha=0.45))
-            np.copyto(out[sl], rendered[sl], where=have[sl][..., None])
+            out[sl] = cv2.convertScaleAbs(photo[sl], alpha=0.45)
+            cv2.copyTo(rendered[sl], mask[sl], out[sl])
     return out
 
 
@@ -77,7 +78,7 @@ def blend(photo: np.ndarray, rendered: np.ndarray, have: np.ndarray) -> np.ndarr
     import cv2
 
     out = photo.copy()
-    np.copyto(out, cv2.addWeighted(photo, 0.5, rendered, 0.5, 0), where=have[..., None])
+    cv2.copyTo(cv2.addWeighted(photo, 0.5, rendered, 0.5, 0), have.view(np.uint8), out)
     return out
 
 
