@@ -76,6 +76,8 @@ def _summary(title: str, rows: list[tuple[str, str]], output: Path, report: Opti
     out.print(f"wrote {output}" + (f" and a report in {report}" if report else ""))
 
 
+POSE_SUFFIXES = (".yaml", ".yml")  # pose and camera files are YAML
+
 VERDICT_STYLE = {"ok": "green", "suspect": "yellow", "failed": "bold red"}
 
 
@@ -101,11 +103,11 @@ def ingest(
 ) -> None:
     """Merge scans, optionally crop and downsample, write a PLY and extract embedded images."""
     from rgbd_gt.ingest import ingest as run_ingest
-    from rgbd_gt.io.atomic import check_not_input
+    from rgbd_gt.io.outputs import Outputs
 
-    if output.suffix.lower() != ".ply":
-        raise InputError("output must be a .ply file", output)
-    check_not_input(output, list(scans))
+    outs = Outputs(scans)
+    staged = outs.file(output, "-o", (".ply",))
+    images_dir = outs.folder(extract_images, "--extract-images") if extract_images else None
     box = None
     if crop is not None:
         v = _parse_floats(crop, 6, "--crop")
@@ -123,7 +125,11 @@ def ingest(
                 tasks[path] = bar.add_task(f"reading {path.name}", total=total)
             bar.update(tasks[path], completed=done)
 
-        result = run_ingest(list(scans), output, scan_index, voxel, box, extract_images, progress)
+        with outs:
+            result = run_ingest(list(scans), staged, scan_index, voxel, box, images_dir, progress)
+    for im in result.images:
+        if im.saved_to:
+            im.saved_to = str(extract_images / Path(im.saved_to).relative_to(images_dir))
 
     table = Table(title="Scans")
     for col in ("scan", "points", "fields", "bounds min .. max (m)", "spacing (mm)"):
@@ -158,15 +164,20 @@ def synth(
     """Generate a synthetic scene with exact ground truth: a laser scan (E57 + PLY), a photo,
     its camera file, the true and a rough initial pose, and the board's 3D corners."""
     from rgbd_gt.config import load_config
+    from rgbd_gt.io.outputs import Outputs
     from rgbd_gt.synth.generate import FILES, SynthConfig, generate
 
+    outs = Outputs([config])
+    staged = outs.folder(out_dir, "OUT_DIR")
     cfg = load_config(SynthConfig, config, "synth.yaml")
+    if photos < 1:
+        raise InputError(f"--photos must be at least 1, got {photos}")
+    if seed < 0:
+        raise InputError(f"--seed must be 0 or more, got {seed}")
     start = time.perf_counter()
-    with _progress() as bar:
+    with _progress() as bar, outs:
         task = bar.add_task("synth", total=None)
-        if photos < 1:
-            raise InputError(f"--photos must be at least 1, got {photos}")
-        info = generate(out_dir, seed, size, cfg, progress=lambda stage: bar.update(task, description=stage), photos=photos)
+        info = generate(staged, seed, size, cfg, progress=lambda stage: bar.update(task, description=stage), photos=photos)
     table = Table(title=f"Synthetic scene (seed {seed}, {size})", show_header=False)
     table.add_row("scan points", f"{info['scanner']['points']:,} ({info['scanner']['grid']['rows']} x {info['scanner']['grid']['cols']} grid, {info['scanner']['step_deg']} deg)")
     table.add_row("photo", f"{info['image']['width']} x {info['image']['height']}")
@@ -182,8 +193,8 @@ def _board_shape(text: str) -> tuple[int, int]:
         cols, rows = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise InputError(f"--board must look like 9x6 (inner corners), got '{text}'") from None
-    if cols < 2 or rows < 2:
-        raise InputError(f"--board needs at least 2x2 inner corners, got '{text}'")
+    if not (2 <= cols <= 100 and 2 <= rows <= 100):
+        raise InputError(f"--board needs 2..100 inner corners each way, got '{text}'")
     return cols, rows
 
 
@@ -207,18 +218,20 @@ def init_pose(
     """Coarse pose of a photo from a checkerboard seen in both the photo and the scan (PnP), or
     from hand-picked correspondences (RANSAC PnP)."""
     from rgbd_gt.init.detect import BoardSpec
-    from rgbd_gt.init.run import (init_from_board, init_from_correspondences, read_correspondences,
-                                  read_csv_rows, write_report)
-    from rgbd_gt.io import check_not_input, load_scan, read_camera, write_pose
+    from rgbd_gt.init.run import (check_picks_in_scan, init_from_board, init_from_correspondences,
+                                  read_correspondences, read_csv_rows, write_report)
+    from rgbd_gt.io import load_scan, read_camera, write_pose
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import read_image
+    from rgbd_gt.io.outputs import Outputs
 
-    inputs = [p for p in (scan, image, camera, board_points, correspondences) if p]
-    check_not_input(output, inputs)
+    outs = Outputs([scan, image, camera, board_points, correspondences])
+    pose_out = outs.file(output, "-o", POSE_SUFFIXES)
     if camera_out is not None:
         if not estimate_focal:
             raise InputError("--camera-out writes the camera of --estimate-focal: give both")
-        check_not_input(camera_out, inputs + [output])
+        staged_camera = outs.file(camera_out, "--camera-out", POSE_SUFFIXES)
+    report_dir = outs.folder(report, "--report") if report is not None else None
     if not (np.isfinite(ransac_px) and ransac_px > 0):
         raise InputError(f"--ransac-px must be a positive number of pixels, got {ransac_px}")
     cols, rows = _board_shape(board)
@@ -236,22 +249,25 @@ def init_pose(
     check_image_matches(cam, photo.shape, image, camera)
     with _progress() as bar:
         bar.add_task("init-pose", total=None)
+        the_scan = load_scan(scan, require_points=True)
         if correspondences is not None:
-            result = init_from_correspondences(read_correspondences(correspondences), cam, estimate_focal, ransac_px)
+            picks = read_correspondences(correspondences)
+            check_picks_in_scan(picks, the_scan, correspondences)
+            result = init_from_correspondences(picks, cam, estimate_focal, ransac_px)
         else:
             spec = BoardSpec(cols, rows, square, charuco, marker)
-            the_scan = load_scan(scan, require_points=True)
             corners = read_csv_rows(board_points, "x,y,z") if board_points else None
             result = init_from_board(the_scan, photo, cam, spec, corners, scan, image)
     meta = result.pose_meta()
-    if camera_out is not None:
-        from rgbd_gt.io.camera_file import write_camera
+    with outs:
+        if camera_out is not None:
+            from rgbd_gt.io.camera_file import write_camera
 
-        write_camera(camera_out, result.camera)
-        meta["camera_out"] = str(camera_out)
-    write_pose(output, result.T_cam_from_scan, **meta)
-    if report is not None:
-        write_report(report, result, photo)
+            write_camera(staged_camera, result.camera)
+            meta["camera_out"] = str(camera_out)
+        write_pose(pose_out, result.T_cam_from_scan, **meta)
+        if report is not None:
+            write_report(report_dir, result, photo)
     rows = [("method", result.method), ("points used", str(result.n_points)),
             ("reprojection RMS", f"{result.reprojection_rms_px:.3f} px")]
     dropped = [p for p in result.extra.get("pairs", []) if not p["inlier"]]
@@ -288,15 +304,13 @@ def pick(
     from rgbd_gt.init.pick import click_view
     from rgbd_gt.init.pick_server import PickSession, serve
     from rgbd_gt.init.run import read_correspondences
-    from rgbd_gt.io import check_not_input, load_scan, read_camera, read_pose
+    from rgbd_gt.io import load_scan, read_camera, read_pose
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import read_image
+    from rgbd_gt.io.outputs import Outputs
 
-    check_not_input(output, [p for p in (scan, image, camera, init) if p])
-    if output.suffix.lower() != ".csv":
-        raise InputError("pairs are written as .csv", output)
-    if not output.parent.is_dir():
-        raise InputError("the output's folder does not exist", output)
+    # checked only: the page saves the file itself (atomically) each time it is asked to
+    Outputs([scan, image, camera, init]).file(output, "-o", (".csv",))
     if not (np.isfinite(ransac_px) and ransac_px > 0):
         raise InputError(f"--ransac-px must be a positive number of pixels, got {ransac_px}")
     if estimate_focal and camera is None:
@@ -382,7 +396,8 @@ def refine(
     from rgbd_gt.align.refine import camera_disagreement, load_inputs, read_pairs, refine_meta, refine_verified
     from rgbd_gt.config import load_config
     from rgbd_gt.init.run import read_correspondences
-    from rgbd_gt.io import check_not_input, write_pose
+    from rgbd_gt.io import write_pose
+    from rgbd_gt.io.outputs import Outputs
 
     start = time.perf_counter()
     if (scan is None) != (image is None):
@@ -390,12 +405,13 @@ def refine(
     if scan is None and pairs is None:
         raise InputError("give --scan and --image, or --pairs")
     listed = read_pairs(pairs, camera) if pairs is not None else []
-    read_only = [p for p in (scan, image, camera, init, mask, check, config, pairs) if p] + [p for pair in listed for p in pair.values()]
-    check_not_input(output, read_only)
+    outs = Outputs([scan, image, camera, init, mask, check, config, pairs] + [p for pair in listed for p in pair.values()])
+    pose_out = outs.file(output, "-o", POSE_SUFFIXES)
     if camera_out is not None:
         if refine_intrinsics in (None, "none"):
             raise InputError("--camera-out writes the camera of --refine-intrinsics: give both")
-        check_not_input(camera_out, read_only + [output])
+        staged_camera = outs.file(camera_out, "--camera-out", POSE_SUFFIXES)
+    report_dir = outs.folder(report, "--report") if report is not None else None
     cfg = load_config(RefineConfig, config, "refine.yaml")
     flags = dict(color_model=color_model, gradient=gradient, optimizer=optimizer, levels=levels,
                  upsample=upsample, iterations=iterations, max_points=max_points, beta_max=beta_max,
@@ -431,18 +447,19 @@ def refine(
     meta = refine_meta(result, cfg, inputs[0].T_init, init, verification, pairs=len(inputs), camera=inputs[0].camera)
     if warnings:
         meta["warnings"] = warnings
-    if camera_out is not None:
-        from rgbd_gt.align.refine import refined_camera
-        from rgbd_gt.io.camera_file import write_camera
+    with outs:
+        if camera_out is not None:
+            from rgbd_gt.align.refine import refined_camera
+            from rgbd_gt.io.camera_file import write_camera
 
-        write_camera(camera_out, refined_camera(inputs[0].camera, result))
-        meta["camera_out"] = str(camera_out)
-    write_pose(output, result.T_cam_from_scan, **meta)
+            write_camera(staged_camera, refined_camera(inputs[0].camera, result))
+            meta["camera_out"] = str(camera_out)
+        write_pose(pose_out, result.T_cam_from_scan, **meta)
+        if report is not None:
+            from rgbd_gt.align.report import write_report
+
+            write_report(report_dir, result, inputs[0].camera.size)
     moved_mm, moved_deg = meta["change_from_init"]["translation_mm"], meta["change_from_init"]["rotation_deg"]
-    if report is not None:
-        from rgbd_gt.align.report import write_report
-
-        write_report(report, result, inputs[0].camera.size)
     ev = verification.evidence
     rows = [
         ("verdict", _verdict_text(verification.verdict)),
@@ -488,16 +505,18 @@ def export_depth(
 ) -> None:
     """Depth of the scan as the photo's camera sees it, pixel for pixel with the original photo:
     z-depth in metres, occlusion-correct (a grid mesh ray-cast, or splats for unstructured scans)."""
-    from rgbd_gt.io import check_not_input, load_scan, read_camera, read_pose
+    from rgbd_gt.io import load_scan, read_camera, read_pose
     from rgbd_gt.io.depth_file import write_depth_exr, write_depth_png16
     from rgbd_gt.io.image import write_image
+    from rgbd_gt.io.outputs import Outputs
     from rgbd_gt.render.depth import back_facing_fraction, back_facing_warning, render_depth
 
-    outputs = [p for p in (output, png16, normals, mask) if p]
-    for p in outputs:
-        check_not_input(p, [scan, camera, pose])
-    if output.suffix.lower() != ".exr":
-        raise InputError("the depth map is written as .exr", output)
+    outs = Outputs([scan, camera, pose])
+    staged = {name: outs.file(p, option, suffixes) for name, p, option, suffixes in [
+        ("depth", output, "-o", (".exr",)), ("png16", png16, "--png16", (".png",)),
+        ("normals", normals, "--normals", (".exr",)), ("mask", mask, "--mask", (".png",))] if p is not None}
+    if max_depth is not None and max_depth < 0:
+        raise InputError(f"--max-depth must be positive (0: no limit), got {max_depth}")
     start = time.perf_counter()
     cam = read_camera(camera)
     T, _ = read_pose(pose)
@@ -514,13 +533,14 @@ def export_depth(
     warning = back_facing_warning(depth)
     if warning:
         _warn(warning)
-    write_depth_exr(output, depth.z, cam, T, scan.name)
-    if png16:
-        write_depth_png16(png16, depth.z)
-    if normals:
-        write_depth_exr(normals, depth.z, cam, T, scan.name, normals=depth.normals)
-    if mask:
-        write_image(mask, valid.astype(np.uint8) * 255)
+    with outs:
+        write_depth_exr(staged["depth"], depth.z, cam, T, scan.name)
+        if png16:
+            write_depth_png16(staged["png16"], depth.z)
+        if normals:
+            write_depth_exr(staged["normals"], depth.z, cam, T, scan.name, normals=depth.normals)
+        if mask:
+            write_image(staged["mask"], valid.astype(np.uint8) * 255)
     zs = depth.z[valid]
     _summary("export-depth", [
         ("method", depth.method),
@@ -551,14 +571,15 @@ def qa_edges(
     import json
 
     from rgbd_gt.io.scan import scan_colors
-    from rgbd_gt.io import atomic_output, check_not_input, load_scan, read_camera, read_pose
+    from rgbd_gt.io import load_scan, read_camera, read_pose
     from rgbd_gt.io.camera_file import check_image_matches
-    from rgbd_gt.io.image import read_image, write_image
+    from rgbd_gt.io.image import IMAGE_SUFFIXES, read_image, write_image
+    from rgbd_gt.io.outputs import Outputs
     from rgbd_gt.qa.edges import qa, side_by_side, structural_qa, working_view
 
-    for p in (output, json_out):
-        if p:
-            check_not_input(p, [scan, image, camera, pose] + ([before] if before else []))
+    outs = Outputs([scan, image, camera, pose, before])
+    staged = outs.file(output, "-o", IMAGE_SUFFIXES)
+    staged_json = outs.file(json_out, "--json", (".json",)) if json_out else None
     photo = read_image(image)
     cam = read_camera(camera, (photo.shape[1], photo.shape[0]))
     check_image_matches(cam, photo.shape, image, camera)
@@ -582,11 +603,11 @@ def qa_edges(
             img = side_by_side(img_b, img)
             result.update({**structural_b.as_dict("before_"), **score_b.as_dict("before_")})
             rows.insert(0, ("before", f"edges vs chance {structural_b.ratio:.2f}; Canny {score_b.summary()}"))
-    write_image(output, img)
-    if json_out:
-        with atomic_output(json_out) as tmp:
-            # JSON has no NaN: a score without edges to score is null
-            tmp.write_text(json.dumps({k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in result.items()}, indent=1))
+    with outs:
+        write_image(staged, img)
+        if json_out:  # JSON has no NaN: a score without edges to score is null
+            staged_json.write_text(json.dumps({k: None if isinstance(v, float) and not np.isfinite(v) else v
+                                               for k, v in result.items()}, indent=1))
     _summary("qa-edges", rows, output, None)
 
 
@@ -607,17 +628,18 @@ def overlay(
     """The scan rendered at the pose over the photo, as a checkerboard and as a 50% blend, full
     resolution (crop to inspect): the most direct check of a pose. Surfaces the camera would
     see from behind are not drawn."""
-    from rgbd_gt.io import check_not_input, load_scan, read_camera, read_pose
+    from rgbd_gt.io import load_scan, read_camera, read_pose
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import read_image, write_image
+    from rgbd_gt.io.outputs import Outputs
     from rgbd_gt.qa.overlay import overlay as make_overlay
 
     start = time.perf_counter()
     blend = blend_path(output)
-    for p in (output, blend):
-        check_not_input(p, [scan, image, camera, pose])
-        if p.suffix.lower() != ".png":
-            raise InputError("overlays are written as .png", p)
+    outs = Outputs([scan, image, camera, pose])
+    staged = [outs.file(output, "-o", (".png",)), outs.file(blend, "-o (its blend)", (".png",))]
+    if max_depth is not None and max_depth < 0:
+        raise InputError(f"--max-depth must be positive, got {max_depth}")
     photo = read_image(image)
     cam = read_camera(camera, (photo.shape[1], photo.shape[0]))
     check_image_matches(cam, photo.shape, image, camera)
@@ -630,8 +652,8 @@ def overlay(
         raise InputError("no scan surface in view of this pose (or only surfaces seen from behind)", pose)
     from concurrent.futures import ThreadPoolExecutor
 
-    with ThreadPoolExecutor(2) as pool:  # PNG encoding releases the GIL: two 24 MP images at once
-        list(pool.map(lambda job: write_image(*job), [(output, checker), (blend, mixed)]))
+    with outs, ThreadPoolExecutor(2) as pool:  # PNG encoding releases the GIL: two 24 MP images at once
+        list(pool.map(lambda job: write_image(*job), zip(staged, (checker, mixed))))
     _summary("overlay", [("size", f"{cam.width} x {cam.height}"), ("scan covers", f"{covered:.1%} of the photo"),
                          ("time", f"{time.perf_counter() - start:.1f} s")], output, None)
     out.print(f"wrote {blend}")
@@ -655,12 +677,12 @@ def run_workflow(
 
     from rgbd_gt.workflow import PhotoResult, RunConfig, resolve, run_photo, shared_camera, verdict_counts, write_summary
 
-    cfg = load_config(RunConfig, config)
-    try:
-        cfg.refine.check()
-    except ValueError as exc:
-        raise InputError(f"refine: {exc}", config) from None
+    cfg = load_config(RunConfig, config)  # checked there
     scan_path, camera_path, photos, out_dir = resolve(config, cfg)
+    from rgbd_gt.io.outputs import Outputs
+
+    # checked only: each step commits its own files, so that a rerun resumes where one stopped
+    Outputs([config, scan_path, camera_path, *photos]).folder(out_dir, "output")
     camera = read_camera(camera_path)
     scan = with_normals(load_scan(scan_path, require_points=True))  # once, for every photo
     colors = scan_colors(scan, scan_path)
@@ -733,9 +755,48 @@ def bench(
     out.print(f"wrote {out_dir / 'benchmark.md'} and {out_dir / 'benchmark_cumulative.png'}")
 
 
+def _click_exceptions() -> tuple[tuple, tuple, tuple]:
+    """(ClickException, Exit, Abort) classes of click and of the copy of click that Typer may carry:
+    Typer >= 0.20 raises its own, which `except click.ClickException` does not catch."""
+    modules = [click.exceptions]
+    try:
+        from typer._click import exceptions as vendored
+
+        modules.append(vendored)
+    except ImportError:
+        pass
+    return tuple(tuple(getattr(m, name) for m in modules if hasattr(m, name)) for name in ("ClickException", "Exit", "Abort"))
+
+
+def _finite_numbers(fn):
+    """Every number option must be finite: click's float type takes 'nan' and 'inf'."""
+    import functools
+
+    @functools.wraps(fn)
+    def checked(**kwargs):
+        for name, value in kwargs.items():
+            if isinstance(value, float) and not np.isfinite(value):
+                raise InputError(f"--{name.replace('_', '-')} must be a finite number, got {value}")
+        return fn(**kwargs)
+
+    return checked
+
+
+for _info in app.registered_commands:
+    _info.callback = _finite_numbers(_info.callback)
+
+
 def main(argv: list[str] | None = None) -> None:
+    """The one boundary: bad input ends as `error: ...` and exit 2; bad usage as click's usage
+    message and exit 2; anything else is a bug and shows its traceback."""
+    import warnings
+
     args = sys.argv[1:] if argv is None else argv
     debug = "--debug" in args
+    if not debug:  # library warnings are noise to a user; the error line says what matters
+        warnings.simplefilter("ignore")
+        np.seterr(all="ignore")
+    click_error, click_exit, click_abort = _click_exceptions()
     command = typer.main.get_command(app)
     try:
         code = command.main(args=args, prog_name="rgbd-gt", standalone_mode=False)
@@ -745,12 +806,12 @@ def main(argv: list[str] | None = None) -> None:
             raise
         err.print(f"error: {exc}", markup=False, highlight=False, soft_wrap=True)
         sys.exit(2)
-    except click.ClickException as exc:
+    except click_error as exc:
         exc.show()
         sys.exit(exc.exit_code)
-    except click.exceptions.Exit as exc:
+    except click_exit as exc:
         sys.exit(exc.exit_code)
-    except (click.Abort, KeyboardInterrupt):
+    except (*click_abort, KeyboardInterrupt):
         err.print("aborted", markup=False)
         sys.exit(130)
     except MemoryError:

@@ -1,9 +1,13 @@
-"""Typed configuration: dataclasses filled from `configs/*.yaml`, unknown keys rejected."""
+"""Typed configuration: dataclasses filled from `configs/*.yaml`; unknown keys, values of the
+wrong type and non-finite numbers are rejected naming the key, and a dataclass with a
+`check()` method checks its ranges there (raising ValueError)."""
 
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
+import types
 import typing
 from pathlib import Path
 from typing import Any, TypeVar
@@ -33,12 +37,52 @@ def from_dict(cls: type[T], data: dict[str, Any], where: str = "") -> T:
         hint = hints[key]
         sub = f"{where}.{key}" if where else key
         if dataclasses.is_dataclass(hint):
-            values[key] = from_dict(hint, value or {}, sub)
+            values[key] = from_dict(hint, {} if value is None else value, sub)
         elif typing.get_origin(hint) is dict and dataclasses.is_dataclass(typing.get_args(hint)[1]):
-            values[key] = {k: from_dict(typing.get_args(hint)[1], v or {}, f"{sub}.{k}") for k, v in (value or {}).items()}
+            if not isinstance(value, dict):
+                raise InputError(f"{sub}: expected a mapping, got {_name(value)}")
+            values[key] = {str(k): from_dict(typing.get_args(hint)[1], {} if v is None else v, f"{sub}.{k}")
+                           for k, v in value.items()}
         else:
-            values[key] = value
+            values[key] = _typed(value, hint, sub)
     return cls(**values)
+
+
+def _name(value: Any) -> str:
+    return "null" if value is None else f"{type(value).__name__} {value!r}"[:60]
+
+
+def _typed(value: Any, hint: Any, where: str) -> Any:
+    """`value` as type `hint` (str, int, float, bool, X | None, list[X]); InputError otherwise."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        inner = [a for a in args if a is not type(None)]
+        return _typed(value, inner[0], where)
+    if origin is list:
+        if not isinstance(value, list):
+            raise InputError(f"{where}: expected a list, got {_name(value)}")
+        return [_typed(v, args[0], f"{where}[{k}]") for k, v in enumerate(value)]
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise InputError(f"{where}: expected true or false, got {_name(value)}")
+        return value
+    if hint is int:
+        if isinstance(value, bool) or not (isinstance(value, int) or (isinstance(value, float) and value.is_integer())):
+            raise InputError(f"{where}: expected a whole number, got {_name(value)}")
+        return int(value)
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise InputError(f"{where}: expected a number, got {_name(value)}")
+        if not math.isfinite(value):
+            raise InputError(f"{where}: must be a finite number, got {value}")
+        return float(value)
+    if hint is str:
+        if not isinstance(value, str):
+            raise InputError(f"{where}: expected a string, got {_name(value)}")
+        return value
+    return value
 
 
 def load_config(cls: type[T], path: str | os.PathLike | None, default_name: str | None = None) -> T:
@@ -52,10 +96,15 @@ def load_config(cls: type[T], path: str | os.PathLike | None, default_name: str 
     if not path.is_file():
         raise InputError("config file not found", path)
     try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as exc:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
         raise InputError(f"invalid YAML ({str(exc).splitlines()[0]})", path) from None
     try:
-        return from_dict(cls, data)
+        cfg = from_dict(cls, {} if data is None else data)
+        if hasattr(cfg, "check"):
+            cfg.check()
+        return cfg
     except InputError as exc:
+        raise InputError(str(exc), path) from None
+    except ValueError as exc:
         raise InputError(str(exc), path) from None

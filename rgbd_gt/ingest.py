@@ -54,12 +54,14 @@ def summarize(label: str, scan: Scan) -> ScanSummary:
     return ScanSummary(label, len(scan), scan.fields, bounds, median_spacing(scan))
 
 
+MAX_SCAN_ROWS = 50  # a file of more scans is summarised as one row
+
+
 def _per_scan_summaries(path: Path, scan: Scan) -> list[ScanSummary]:
-    ids = scan.scan_id if scan.scan_id is not None else np.zeros(len(scan), np.int32)
-    n = max(len(scan.origins), int(ids.max()) + 1 if len(ids) else 1)
-    if n == 1:
-        return [summarize(path.name, scan)]
-    return [summarize(f"{path.name}#{i}", scan.subset(ids == i)) for i in range(n)]
+    ids = np.unique(scan.scan_id) if scan.scan_id is not None and len(scan) else np.zeros(1, np.int32)
+    if len(ids) == 1 or len(ids) > MAX_SCAN_ROWS:
+        return [summarize(path.name if len(ids) == 1 else f"{path.name} ({len(ids)} scans)", scan)]
+    return [summarize(f"{path.name}#{i}", scan.subset(scan.scan_id == i)) for i in ids]
 
 
 def _safe_name(text: str) -> str:
@@ -137,6 +139,10 @@ def ingest(
         if len(merged) == 0:
             raise InputError(f"no points inside the crop box {box[0].tolist()} .. {box[1].tolist()}")
     if voxel:
+        diagonal = float(np.linalg.norm(np.ptp(merged.xyz, axis=0))) if len(merged) else 0.0
+        if voxel > diagonal:
+            raise InputError(f"--voxel {voxel} m is larger than the whole scan ({diagonal:.2f} m across): "
+                             "one point would remain")
         merged = voxel_downsample(merged, voxel)
     save_scan(output, merged)
     return IngestResult(inputs, summarize(output.name, merged), images)

@@ -27,6 +27,13 @@ class BoardConfig:
     marker: float | None = None
     points: str | None = None  # CSV of the board's corners in the scan frame (skips finding it)
 
+    def check(self) -> "BoardConfig":
+        if not (2 <= self.cols <= 100 and 2 <= self.rows <= 100):
+            raise ValueError(f"board: cols and rows are inner corners, 2..100 each, got {self.cols}x{self.rows}")
+        if not self.square > 0 or (self.marker is not None and not 0 < self.marker < self.square):
+            raise ValueError(f"board: square must be positive and marker between 0 and square, got {self.square}, {self.marker}")
+        return self
+
 
 @dataclass
 class RunConfig:
@@ -40,6 +47,20 @@ class RunConfig:
     refine: RefineConfig = field(default_factory=RefineConfig)
     device: str = "auto"
     max_depth: float | None = None
+
+    def check(self) -> "RunConfig":
+        if not self.output:
+            raise ValueError("output must name a folder")
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise ValueError(f"device must be auto, cpu or cuda, got {self.device!r}")
+        if self.max_depth is not None and self.max_depth < 0:
+            raise ValueError(f"max_depth must be 0 or more, got {self.max_depth}")
+        self.board.check()
+        try:
+            self.refine.check()
+        except ValueError as exc:
+            raise ValueError(f"refine: {exc}") from None
+        return self
 
 
 STEPS = ("init", "refine", "depth", "qa", "overlay")

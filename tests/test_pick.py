@@ -112,7 +112,8 @@ def test_pick_errors(tmp_path):
     assert run_cli("synth", scene, "--size", "small", "--seed", 7).returncode == 0
     args = ["pick", "--scan", scene / "scan.ply", "--image", scene / "photo.png", "--no-browser"]
     assert_one_line_error(run_cli(*args, "-o", tmp_path / "p.txt"), "p.txt", ".csv")
-    assert_one_line_error(run_cli(*args, "-o", tmp_path / "nowhere" / "p.csv"), "folder does not exist")
+    (tmp_path / "a_file").write_text("x")
+    assert_one_line_error(run_cli(*args, "-o", tmp_path / "a_file" / "p.csv"), "it is a file, not a folder")
     assert_one_line_error(run_cli(*args, "-o", tmp_path / "p.csv", "--view", "sideways"), "--view")
     assert_one_line_error(run_cli(*args, "-o", tmp_path / "p.csv", "--init", scene / "gt_pose.yaml"), "--init needs --camera")
     assert not (tmp_path / "p.csv").exists()

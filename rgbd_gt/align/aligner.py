@@ -30,7 +30,7 @@ from rgbd_gt.pose import apply_update, translated
 from rgbd_gt.render.normals import facing_camera
 from rgbd_gt.render.project import (INTRINSICS, corrected_jacobian, project_corrected, project_pinhole,
                                     projection_jacobian)
-from rgbd_gt.render.zbuffer import cell_size_for, estimate_spacing, visible_points
+from rgbd_gt.render.zbuffer import cell_size_for, check_spread_in_view, estimate_spacing, visible_points
 
 
 @dataclass
@@ -224,7 +224,10 @@ class Aligner:
         # cells that close the gaps between the points: through them, what a surface hides would count as seen
         cell = cell_size_for(spacing, finest.camera.fx, depth)
         facing = None if self.normals is None else facing_camera(self.points[idx] @ R.T + t, self.normals[idx] @ R.T)
-        visible = int(visible_points(uv[idx], z[idx], (w, h), cell, facing=facing).sum())
+        seen = visible_points(uv[idx], z[idx], (w, h), cell, facing=facing)
+        visible = int(seen.sum())
+        if visible >= need:
+            check_spread_in_view(uv[idx], seen, need)
         if visible < need:
             if facing is not None and int(visible_points(uv[idx], z[idx], (w, h), cell).sum()) >= need:
                 raise InputError(f"only {visible} scan points in view of the initial pose face the camera "

@@ -103,5 +103,15 @@ class RefineConfig:
             raise ValueError("refine_intrinsics works with the photometric objective and optimizer lm")
         if self.levels < 1 or self.iterations < 1 or self.max_points < 10 or self.upsample < 1:
             raise ValueError("levels, upsample, iterations and max_points must be positive")
+        if self.levels > 12 or self.upsample > 8:
+            raise ValueError(f"levels at most 12 and upsample at most 8, got {self.levels} and {self.upsample}")
+        positive = ("adam_iterations", "adam_lr_rotation", "adam_lr_translation", "beta_max", "nu", "min_points",
+                    "min_visible")
+        not_negative = ("stop_rotation_deg", "stop_translation_m", "zbuffer_rel_tol", "zbuffer_abs_tol", "seed",
+                        "texture_floor", "search_rotation_deg", "search_translation_m")
+        for name in positive + not_negative:
+            v = getattr(self, name)
+            if not (v == v and abs(v) != float("inf")) or (v <= 0 if name in positive else v < 0):
+                raise ValueError(f"{name} must be {'positive' if name in positive else '0 or more'}, got {v}")
         self.verify.check()
         return self

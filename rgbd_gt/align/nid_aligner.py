@@ -30,7 +30,7 @@ from rgbd_gt.errors import InputError
 from rgbd_gt.pose import apply_update, random_starts, translated
 from rgbd_gt.render.project import project_pinhole, projection_jacobian
 from rgbd_gt.render.normals import facing_camera
-from rgbd_gt.render.zbuffer import cell_for_density, depth_edges, visible_points
+from rgbd_gt.render.zbuffer import cell_for_density, check_spread_in_view, depth_edges, visible_points
 
 GRAY = (0.299, 0.587, 0.114)
 # A level moves each pose parameter by at most this many of its pixels and at most the search
@@ -143,9 +143,11 @@ class NidAligner:
             if cfg.max_depth > 0:
                 near &= z < cfg.max_depth
             idx = torch.nonzero(near).squeeze(1)
-            if int(visible_points(uv[idx], z[idx], (w, h), 1, facing=self._facing(k, idx, R, t)).sum()) < cfg.min_visible:
+            seen = visible_points(uv[idx], z[idx], (w, h), 1, facing=self._facing(k, idx, R, t))
+            if int(seen.sum()) < cfg.min_visible:
                 raise InputError(f"fewer than {cfg.min_visible} scan points in view of the initial pose: "
                                  "check the pose, the camera file and the scan")
+            check_spread_in_view(uv[idx], seen, cfg.min_visible)
             gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
             per_frame.append(idx[torch.randperm(idx.numel(), generator=gen).to(self.device)])
         self._prepared = [[idx[: max(cfg.min_points, cfg.max_points // 4**level)] for idx in per_frame]

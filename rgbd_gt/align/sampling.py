@@ -33,8 +33,8 @@ def _corners(shape: tuple[int, int], uv: torch.Tensor):
     Points must satisfy 0 <= u <= W-1, 0 <= v <= H-1 (the caller masks the rest).
     """
     h, w = shape
-    u = uv[:, 0].clamp(0, w - 1)
-    v = uv[:, 1].clamp(0, h - 1)
+    u = uv[:, 0].nan_to_num(0.0).clamp(0, w - 1)  # a NaN would index far outside the image
+    v = uv[:, 1].nan_to_num(0.0).clamp(0, h - 1)
     u0 = u.floor().clamp(max=w - 2)
     v0 = v.floor().clamp(max=h - 2)
     a = (u - u0).unsqueeze(1)

@@ -51,6 +51,21 @@ def pose_uncertainty(T: np.ndarray, obj: np.ndarray, img: np.ndarray, camera: Ca
     return out
 
 
+def check_spread(obj: np.ndarray, img: np.ndarray, what: str, minimum: int = 4) -> None:
+    """InputError unless `minimum` pairs have distinct scan points and pixels and neither set lies
+    on one line: PnP solvers divide by that spread (cv2 asserts, numpy raises LinAlgError).
+
+    obj: (n, 3) metres; img: (n, 2) pixels.
+    """
+    for pts, unit, tol in ((obj, "scan points", 1e-4), (img, "photo pixels", 0.5)):
+        distinct = np.unique(np.round(pts / tol), axis=0)
+        if len(distinct) < minimum:
+            raise InputError(f"{what}: only {len(distinct)} distinct {unit}; {minimum} or more are needed")
+        s = np.linalg.svd(pts - pts.mean(axis=0), compute_uv=False)
+        if s[1] < 1e-3 * s[0]:
+            raise InputError(f"{what}: the {unit} lie on one line; the pose is undetermined")
+
+
 def pnp(obj: np.ndarray, img: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     """T_cam_from_scan from >= 6 correspondences (obj (n, 3) scan frame, img (n, 2) distorted
     pixels): cv2.solvePnP, Levenberg-Marquardt, then once more without the corners whose
@@ -58,10 +73,15 @@ def pnp(obj: np.ndarray, img: np.ndarray, camera: Camera) -> tuple[np.ndarray, n
     tenth of a degree). Returns (T, mask of the corners kept)."""
     dist = np.asarray(camera.distortion, float)
     obj, img = np.ascontiguousarray(obj, np.float64), np.ascontiguousarray(img, np.float64)
-    ok, rvec, tvec = cv2.solvePnP(obj, img, camera.K, dist, flags=cv2.SOLVEPNP_SQPNP)
+    check_spread(obj, img, "board corners")
+    try:  # with an absurd camera the undistorted corners collapse and cv2 asserts
+        ok, rvec, tvec = cv2.solvePnP(obj, img, camera.K, dist, flags=cv2.SOLVEPNP_SQPNP)
+        if ok:
+            rvec, tvec = cv2.solvePnPRefineLM(obj, img, camera.K, dist, rvec, tvec)
+    except cv2.error:
+        ok = False
     if not ok:
-        raise InputError("PnP failed on the board corners")
-    rvec, tvec = cv2.solvePnPRefineLM(obj, img, camera.K, dist, rvec, tvec)
+        raise InputError("PnP failed on the board corners (is the camera file right?)")
     err = np.linalg.norm(project(camera, transform_points(_to_T(rvec, tvec), obj))[0] - img, axis=1)
     keep = err <= max(3 * np.median(err), 0.05)
     if 6 <= keep.sum() < len(keep):
@@ -118,9 +138,12 @@ def board_pose(img_corners: np.ndarray, img_ids: np.ndarray, scan_corners: np.nd
 def pnp_ransac(obj: np.ndarray, img: np.ndarray, camera: Camera, threshold_px: float = 4.0) -> tuple[np.ndarray, np.ndarray]:
     """RANSAC PnP for hand-picked correspondences. Returns (T, inlier mask)."""
     dist = np.asarray(camera.distortion, float)
-    ok, rvec, tvec, inl = cv2.solvePnPRansac(np.ascontiguousarray(obj, np.float64), np.ascontiguousarray(img, np.float64),
-                                             camera.K, dist, reprojectionError=threshold_px, iterationsCount=5000,
-                                             confidence=0.9999, flags=cv2.SOLVEPNP_SQPNP)
+    try:
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(np.ascontiguousarray(obj, np.float64), np.ascontiguousarray(img, np.float64),
+                                                 camera.K, dist, reprojectionError=threshold_px, iterationsCount=5000,
+                                                 confidence=0.9999, flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error:
+        ok, inl = False, None
     if not ok or inl is None or len(inl) < 4:
         raise InputError("RANSAC PnP found no consistent pose in the correspondences")
     mask = np.zeros(len(obj), bool)

@@ -12,7 +12,7 @@ import numpy as np
 from rgbd_gt.camera import Camera, project
 from rgbd_gt.errors import InputError, require_file
 from rgbd_gt.init.detect import BoardSpec, detect_corners
-from rgbd_gt.init.pnp import board_pose, estimate_focal, pnp_ransac, pose_uncertainty, reprojection_rms
+from rgbd_gt.init.pnp import board_pose, check_spread, estimate_focal, pnp_ransac, pose_uncertainty, reprojection_rms
 from rgbd_gt.init.scan_board import ScanBoard, angular_step, find_board_in_scan, in_convex_polygon
 from rgbd_gt.io.scan import Scan, colors_to_gray, scan_colors
 from rgbd_gt.pose import transform_points
@@ -95,17 +95,29 @@ def init_from_board(scan: Scan, photo: np.ndarray, camera: Camera, spec: BoardSp
                       {"board_plane_rms_mm": sb.plane_rms_m * 1e3 if sb else None}, sigma)
 
 
+def _is_number(cell: str) -> bool:
+    try:
+        float(cell)
+        return True
+    except ValueError:
+        return False
+
+
 def read_csv_rows(path: Path, fields: str) -> np.ndarray:
     """A CSV of numeric rows with the given comma-separated `fields` (an optional header line
     is skipped) -> (n, len(fields)) float64."""
     require_file(path)
     first = path.read_text(errors="replace").lstrip().split("\n", 1)[0]
+    header = not all(_is_number(c) for c in first.split(","))  # "1e-01" has letters and is no header
     try:
-        data = np.loadtxt(path, delimiter=",", ndmin=2, skiprows=1 if any(ch.isalpha() for ch in first) else 0)
+        data = np.loadtxt(path, delimiter=",", ndmin=2, skiprows=int(header))
     except ValueError as exc:
         raise InputError(f"not a CSV of {fields} rows ({exc})", path) from None
     if data.shape[1] != len(fields.split(",")):
         raise InputError(f"expected {fields} rows, got {data.shape[1]} values per row", path)
+    bad = np.flatnonzero(~np.isfinite(data).all(axis=1))
+    if len(bad):
+        raise InputError(f"row {bad[0] + 1} has a value that is not a finite number", path)
     return data
 
 
@@ -132,15 +144,8 @@ def read_correspondences(path: Path, minimum: int = 6) -> Picks:
     rows = [r for r in csv.reader(path.read_text(errors="replace").splitlines()) if r and any(c.strip() for c in r)]
     rows = [[c.strip() for c in r] for r in rows]
 
-    def numeric(cell: str) -> bool:
-        try:
-            float(cell)
-            return True
-        except ValueError:
-            return False
-
     order = list(range(6))
-    if rows and not all(numeric(c) for c in rows[0][:5]):
+    if rows and not all(_is_number(c) for c in rows[0][:5]):
         names = [c.lower().lstrip("#").strip() for c in rows.pop(0)]
         missing = [c for c in PICK_COLUMNS[:5] if c not in names]
         if missing:
@@ -150,7 +155,7 @@ def read_correspondences(path: Path, minimum: int = 6) -> Picks:
         raise InputError(f"expected u,v,x,y,z[,label] rows, got {len(rows[0])} values per row", path)
     values, labels = [], []
     for k, r in enumerate(rows, 1):
-        if max(order[:5]) >= len(r) or not all(numeric(r[j]) for j in order[:5]):
+        if max(order[:5]) >= len(r) or not all(_is_number(r[j]) for j in order[:5]):
             raise InputError(f"row {k}: expected u,v,x,y,z numbers, got '{','.join(r)}'", path)
         values.append([float(r[j]) for j in order[:5]])
         labels.append(r[order[5]] if 0 <= order[5] < len(r) and r[order[5]] else str(k))
@@ -162,12 +167,30 @@ def read_correspondences(path: Path, minimum: int = 6) -> Picks:
     return Picks(data[:, :2], data[:, 2:], labels)
 
 
+def check_picks_in_scan(picks: Picks, scan, path: object) -> None:
+    """InputError when a picked scan point lies outside the scan's bounding box (with a 10 cm
+    margin): pairs picked on another scan, or a corrupt pairs file."""
+    lo, hi = scan.xyz.min(axis=0) - 0.1, scan.xyz.max(axis=0) + 0.1
+    outside = np.flatnonzero(((picks.obj < lo) | (picks.obj > hi)).any(axis=1))
+    if len(outside):
+        k = outside[0]
+        raise InputError(f"pair {picks.labels[k]}: scan point {picks.obj[k].tolist()} lies outside the scan "
+                         f"({np.round(lo, 2).tolist()} .. {np.round(hi, 2).tolist()}): picked on another scan?", path)
+
+
 def init_from_correspondences(picks: Picks, camera: Camera, focal: bool, ransac_px: float = 4.0) -> InitResult:
     """RANSAC PnP on hand picks (with the focal length searched when `focal`). The result's
     extra keys list every pair's reprojection error and inlier flag; with `focal` its
     uncertainty includes the focal length's."""
     start = time.perf_counter()
     img, obj = picks.img, picks.obj
+    # a pick just off the photo is a mis-click for RANSAC to drop; one a photo's size away is corrupt
+    size = np.array(camera.size, float)
+    outside = np.flatnonzero(((img < -size) | (img > 2 * size)).any(axis=1))
+    if len(outside):
+        raise InputError(f"pair {picks.labels[outside[0]]}: pixel {img[outside[0]].tolist()} is far outside the "
+                         f"{camera.width}x{camera.height} photo")
+    check_spread(obj, img, "correspondences", 6)
     if focal:
         camera, T, mask = estimate_focal(obj, img, camera, ransac_px)
     else:

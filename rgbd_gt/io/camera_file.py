@@ -16,17 +16,32 @@ VALID_DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
 
 
 def camera_from_values(path: Path, width, height, K: np.ndarray, dist) -> Camera:
-    dist = tuple(float(d) for d in np.asarray(dist if dist is not None else [], float).ravel())
+    """A Camera from a file's values, each checked: whole positive sizes, finite numbers, a focal
+    length between 1 px and 1000 x the image size, the principal point near the image."""
+    try:
+        dist = tuple(float(d) for d in np.asarray(dist if dist is not None else [], float).ravel())
+        K = np.asarray(K, float)
+    except (TypeError, ValueError):
+        raise InputError("fx, fy, cx, cy and distortion must be numbers", path) from None
     if len(dist) not in VALID_DISTORTION_LENGTHS:
         raise InputError(f"distortion must have 4, 5, 8, 12 or 14 coefficients, got {len(dist)}", path)
-    try:
-        w, h = int(width), int(height)
-    except (TypeError, ValueError):
-        raise InputError("width and height must be integers", path) from None
-    K = np.asarray(K, float)
+    if not (np.isfinite(dist).all() and np.isfinite(K).all()):
+        raise InputError("camera values must be finite numbers", path)
+    if np.abs(dist).max(initial=0) > 1000:  # even fisheye rational models stay far below
+        raise InputError(f"distortion coefficients must lie within +-1000, got {max(dist, key=abs)}", path)
+    sizes = []
+    for name, v in (("width", width), ("height", height)):
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not float(v).is_integer() \
+                or not 1 <= v <= 100_000:
+            raise InputError(f"{name} must be a whole number of pixels (1..100000), got {v!r}", path)
+        sizes.append(int(v))
+    w, h = sizes
     cam = Camera(w, h, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), dist)
-    if w <= 0 or h <= 0 or not (cam.fx > 0 and cam.fy > 0) or not np.isfinite(K).all():
-        raise InputError("camera needs positive width, height, fx, fy and finite values", path)
+    for name, f in (("fx", cam.fx), ("fy", cam.fy)):
+        if not 1 <= f <= 1000 * max(w, h):
+            raise InputError(f"{name} must lie between 1 and 1000 x the image size, got {f}", path)
+    if not (-w < cam.cx < 2 * w and -h < cam.cy < 2 * h):
+        raise InputError(f"the principal point ({cam.cx}, {cam.cy}) is far outside the {w}x{h} image", path)
     return cam
 
 
@@ -35,19 +50,21 @@ def _read_opencv(path: Path) -> Camera:
 
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error as exc:
-        raise InputError(f"not a readable OpenCV calibration file ({str(exc).strip().splitlines()[-1]})", path) from None
-    try:
-        K = fs.getNode("camera_matrix").mat()
-        dist = fs.getNode("distortion_coefficients").mat()
-        w, h = fs.getNode("image_width"), fs.getNode("image_height")
-        if K is None or K.shape != (3, 3):
-            raise InputError("OpenCV calibration file has no 3x3 'camera_matrix'", path)
-        if w.empty() or h.empty():
-            raise InputError("OpenCV calibration file has no 'image_width'/'image_height'", path)
-        return camera_from_values(path, w.real(), h.real(), K, dist)
-    finally:
-        fs.release()
+        try:
+            K = fs.getNode("camera_matrix").mat()
+            dist = fs.getNode("distortion_coefficients").mat()
+            w, h = fs.getNode("image_width"), fs.getNode("image_height")
+            w, h = (None if n.empty() else n.real() for n in (w, h))
+        finally:
+            fs.release()
+    except (cv2.error, SystemError) as exc:  # a truncated file ends in SystemError inside the binding
+        lines = str(exc).strip().splitlines() or ["unreadable"]
+        raise InputError(f"not a readable OpenCV calibration file ({lines[-1]})", path) from None
+    if K is None or K.shape != (3, 3):
+        raise InputError("OpenCV calibration file has no 3x3 'camera_matrix'", path)
+    if w is None or h is None:
+        raise InputError("OpenCV calibration file has no 'image_width'/'image_height'", path)
+    return camera_from_values(path, w, h, K, dist)
 
 
 def read_camera(path: str | os.PathLike, size: tuple[int, int] | None = None) -> Camera:
@@ -76,10 +93,10 @@ def read_camera(path: str | os.PathLike, size: tuple[int, int] | None = None) ->
     missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy") if k not in data]
     if missing:
         raise InputError(f"camera file lacks {', '.join(missing)}", path)
-    try:
-        K = np.array([[data["fx"], 0, data["cx"]], [0, data["fy"], data["cy"]], [0, 0, 1]], float)
-    except (TypeError, ValueError):
-        raise InputError("fx, fy, cx, cy must be numbers", path) from None
+    values = [data[k] for k in ("fx", "fy", "cx", "cy")]
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
+        raise InputError("fx, fy, cx, cy must be numbers", path)
+    K = np.array([[data["fx"], 0, data["cx"]], [0, data["fy"], data["cy"]], [0, 0, 1]], float)
     return camera_from_values(path, data["width"], data["height"], K, data.get("distortion"))
 
 

@@ -7,44 +7,24 @@ memory (plus one chunk).
 
 from __future__ import annotations
 
-import contextlib
 import os
-import sys
-import tempfile
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable
 
 import numpy as np
 
 from rgbd_gt.errors import InputError
 from rgbd_gt.io.atomic import atomic_output
 from rgbd_gt.io.scan import Scan
+from rgbd_gt.io.native import native_output
 
 CHUNK = 1 << 18  # points per read: bounds the extra memory to a few tens of MB
 CARTESIAN = ("cartesianX", "cartesianY", "cartesianZ")
 SPHERICAL = ("sphericalRange", "sphericalAzimuth", "sphericalElevation")
 COLORS = ("colorRed", "colorGreen", "colorBlue")
 IMAGE_KINDS = ("pinhole", "spherical", "cylindrical", "visualReference")
-
-
-@contextlib.contextmanager
-def _quiet_native() -> Iterator[None]:
-    """Silence C++-level stdout/stderr (libE57 prints its own diagnostics on failure)."""
-    sys.stdout.flush()
-    sys.stderr.flush()
-    saved = [os.dup(1), os.dup(2)]
-    with tempfile.TemporaryFile() as sink:
-        os.dup2(sink.fileno(), 1)
-        os.dup2(sink.fileno(), 2)
-        try:
-            yield
-        finally:
-            os.dup2(saved[0], 1)
-            os.dup2(saved[1], 2)
-            os.close(saved[0])
-            os.close(saved[1])
 
 
 def _libe57():
@@ -63,7 +43,7 @@ def _open(path: Path):
     if path.stat().st_size == 0:
         raise InputError("not an E57 file (empty)", path)
     try:
-        with _quiet_native():
+        with native_output():
             imf = libe57.ImageFile(str(path), "r")
             imf.root()
     except Exception as exc:  # libE57 raises its own exception type for every failure
@@ -120,7 +100,7 @@ def _matrix_to_quat(R: np.ndarray) -> list[float]:
     return list(q * np.sign(q[0] if q[0] != 0 else 1))
 
 
-def _pose(node) -> np.ndarray:
+def _pose(node, path: object = None) -> np.ndarray:
     """4x4 local-to-world transform of a data3D or images2D entry (identity when absent)."""
     T = np.eye(4)
     pose = _child(node, "pose")
@@ -128,6 +108,10 @@ def _pose(node) -> np.ndarray:
         return T
     q = _struct_numbers(_child(pose, "rotation"), ("w", "x", "y", "z"))
     t = _struct_numbers(_child(pose, "translation"), ("x", "y", "z"))
+    if q is not None and not (np.isfinite(q).all() and np.linalg.norm(q) > 1e-6):
+        raise InputError(f"pose rotation quaternion {q} is not a rotation (zero or not finite)", path)
+    if t is not None and not np.isfinite(t).all():
+        raise InputError(f"pose translation {t} is not finite", path)
     if q is not None:
         T[:3, :3] = _quat_to_matrix(q)
     if t is not None:
@@ -172,7 +156,7 @@ def _layout(path: Path, node) -> _ScanLayout:
         spherical = True
     else:
         raise InputError(f"scan has neither cartesian nor spherical coordinates (fields: {names})", path)
-    return _ScanLayout(node, int(points.childCount()), spherical, names, _pose(node))
+    return _ScanLayout(node, int(points.childCount()), spherical, names, _pose(node, path))
 
 
 def read_e57(
@@ -198,7 +182,7 @@ def read_e57(
             raise InputError(f"scan index {scan_index} out of range: the file has {n_scans} scan(s)", path)
         picked = range(n_scans) if scan_index is None else [scan_index]
         layouts = [_layout(path, data3d[i]) for i in picked]
-        with _quiet_native():
+        with native_output():
             try:
                 return _read_points(imf, layouts, progress)
             except InputError:
@@ -397,7 +381,7 @@ def _images(path: Path, with_data: bool):
             img, blob = entry
             if with_data:
                 buf = np.empty(img.nbytes, np.uint8)
-                with _quiet_native():
+                with native_output():
                     blob.read(buf, 0, img.nbytes)
                 out.append((img, buf.tobytes()))
             else:

@@ -3,11 +3,42 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import numpy as np
 
 from rgbd_gt.errors import InputError, require_file
 from rgbd_gt.io.atomic import atomic_output
+from rgbd_gt.io.native import native_output
+
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")  # what the image outputs may be
+MAX_PIXELS = 400_000_000  # a header claiming more is corrupt (or a photo no camera takes)
+
+
+def _imread(path: Path, flags: int) -> np.ndarray:
+    """cv2.imread with the header's size checked first and the decoder's complaints as errors."""
+    import cv2
+
+    try:
+        from PIL import Image
+
+        with Image.open(path) as im:
+            w, h = im.size
+        if w * h > MAX_PIXELS:
+            raise InputError(f"image header claims {w}x{h} pixels (more than {MAX_PIXELS:,})", path)
+    except (ImportError, OSError, SyntaxError, ValueError):
+        pass  # not a format Pillow knows: OpenCV decides
+    with native_output((2,)) as said:
+        try:
+            img = cv2.imread(str(path), flags)
+        except cv2.error:
+            img = None
+    bad = [line for line in said if "Premature end" in line or "Corrupt JPEG" in line or "error" in line.lower()]
+    if img is None or img.size == 0 or bad:
+        why = f" ({bad[0].strip()})" if bad else ""
+        raise InputError(f"not a readable image{why}", path)
+    return img
 
 
 def read_image(path: str | os.PathLike) -> np.ndarray:
@@ -15,9 +46,7 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     import cv2
 
     path = require_file(path)
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None or img.size == 0:
-        raise InputError("not a readable image", path)
+    img = _imread(path, cv2.IMREAD_UNCHANGED)
     if img.dtype == np.uint16:
         img = (img / 257.0 + 0.5).astype(np.uint8)
     elif img.dtype != np.uint8:
@@ -37,9 +66,7 @@ def read_mask(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarray:
     import cv2
 
     path = require_file(path)
-    m = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if m is None:
-        raise InputError("not a readable image", path)
+    m = _imread(path, cv2.IMREAD_GRAYSCALE)
     if m.shape != tuple(shape):
         raise InputError(f"mask is {m.shape[1]}x{m.shape[0]} but the photo is {shape[1]}x{shape[0]}", path)
     return m > 0

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from rgbd_gt.errors import InputError
+from rgbd_gt.io.native import native_output
 from rgbd_gt.io.scan import Scan
 
 INTENSITY_FIELDS = ("intensity", "reflectivity")
@@ -19,6 +20,7 @@ INTENSITY_FIELDS = ("intensity", "reflectivity")
 def read_header(path: Path) -> dict[str, list[str]]:
     """The header lines of a PCD file as {KEY: values}, up to and including DATA."""
     header: dict[str, list[str]] = {}
+    f_tell = 0
     with open(path, "rb") as f:
         for _ in range(64):
             line = f.readline()
@@ -30,6 +32,7 @@ def read_header(path: Path) -> dict[str, list[str]]:
             key, *values = text.split()
             header[key.upper()] = values
             if key.upper() == "DATA":
+                f_tell = f.tell()
                 break
     for key in ("FIELDS", "POINTS", "DATA"):
         if key not in header:
@@ -38,7 +41,30 @@ def read_header(path: Path) -> dict[str, list[str]]:
         raise InputError(f"unknown PCD DATA kind {' '.join(header['DATA'])!r}", path)
     if not {"x", "y", "z"} <= set(header["FIELDS"]):
         raise InputError(f"PCD has no x y z fields (fields: {' '.join(header['FIELDS'])})", path)
+    _check_sizes(path, header, f_tell)
     return header
+
+
+def _check_sizes(path: Path, header: dict[str, list[str]], data_offset: int) -> None:
+    """The declared point count and field sizes against the file's length, before Open3D
+    allocates for them (a header may claim 10^12 points)."""
+    n_fields = len(header["FIELDS"])
+    try:
+        points = int(header["POINTS"][0])
+        sizes = [int(v) for v in header.get("SIZE", ["4"] * n_fields)]
+        counts = [int(v) for v in header.get("COUNT", ["1"] * n_fields)]
+    except (ValueError, IndexError):
+        raise InputError("PCD header: POINTS, SIZE and COUNT must be whole numbers", path) from None
+    if len(sizes) != n_fields or len(counts) != n_fields or len(header.get("TYPE", ["F"] * n_fields)) != n_fields:
+        raise InputError("PCD header: FIELDS, SIZE, TYPE and COUNT differ in length", path)
+    if points < 0 or any(s not in (1, 2, 4, 8) for s in sizes) or any(c < 1 for c in counts):
+        raise InputError("PCD header: POINTS must be 0 or more, SIZE 1, 2, 4 or 8 and COUNT 1 or more", path)
+    row = sum(s * c for s, c in zip(sizes, counts))
+    left = path.stat().st_size - data_offset
+    kind = header["DATA"][0]
+    room = left // row if kind == "binary" else (left + 1) // 2 if kind == "ascii" else (2**32 - 1) // row
+    if points > room:
+        raise InputError(f"PCD declares {points:,} points but the file cannot hold them (truncated?)", path)
 
 
 def normalise_intensity(raw: np.ndarray) -> np.ndarray:
@@ -60,8 +86,18 @@ def read_pcd(path: str | Path) -> Scan:
 
     path = Path(path)
     header = read_header(path)
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        cloud = o3d.t.io.read_point_cloud(str(path))
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error), native_output() as said:
+        try:
+            cloud = o3d.t.io.read_point_cloud(str(path))
+        except RuntimeError as exc:  # Open3D's error text carries its C++ function name and colour codes
+            said.append(str(exc))
+            cloud = None
+    if cloud is None:
+        import re
+
+        lines = [re.sub(r"\x1b\[[0-9;]*m|.*\.cpp:\d+:\s*|\[[0-9;]*m", "", ln).strip() for ln in said if "Error" in ln]
+        why = next((ln for ln in lines if ln), "unreadable")
+        raise InputError(f"could not read the PCD data ({why[:200]})", path)
     declared = int(header["POINTS"][0]) if header["POINTS"] and header["POINTS"][0].isdigit() else -1
     if "positions" not in cloud.point or len(cloud.point.positions) == 0:
         if declared == 0:

@@ -49,7 +49,10 @@ def _parse_header(path: Path, f) -> tuple[str, list[tuple[str, int, list]], list
         elif key == "comment":
             comments.append(line.decode("utf-8", errors="replace").strip()[len("comment") :].strip())
         elif key == "element" and len(words) == 3:
-            elements.append((words[1], int(words[2]), []))
+            count = int(words[2])
+            if count < 0:
+                raise InputError(f"PLY element '{words[1]}' has a negative count {count}", path)
+            elements.append((words[1], count, []))
         elif key == "property" and elements:
             if words[1] == "list" and len(words) == 5:
                 elements[-1][2].append((words[4], ("list", words[2], words[3])))
@@ -74,7 +77,12 @@ def _vertex_table(path: Path) -> tuple[np.ndarray, list[str]]:
             _, count, props = elements[names.index("vertex")]
             if any(isinstance(t, tuple) for _, t in props):
                 raise InputError("PLY vertex element has list properties", path)
+            left = os.fstat(f.fileno()).st_size - f.tell()
             if fmt == "ascii":
+                # a value takes at least 2 bytes ("0 "): a count beyond that is a truncated (or lying) file,
+                # found before anything is allocated or skipped
+                if sum(n * max(1, len(p)) for _, n, p in before) + count * len(props) > (left + 1) / 2:
+                    raise InputError(f"PLY file is truncated: {left:,} bytes of data cannot hold {count:,} vertices", path)
                 for _, n, _p in before:  # skip the lines of earlier elements
                     for _i in range(n):
                         f.readline()
@@ -83,8 +91,16 @@ def _vertex_table(path: Path) -> tuple[np.ndarray, list[str]]:
                 if raw.shape != (count, len(props)):
                     raise InputError(f"PLY ascii vertex data has shape {raw.shape}, expected ({count}, {len(props)})", path)
                 table = np.empty(count, dtype)
-                for j, (p, _t) in enumerate(props):
-                    table[p] = raw[:, j]
+                for j, (p, t) in enumerate(props):
+                    column = raw[:, j]
+                    bad = ~np.isfinite(column)
+                    if np.dtype(t).kind in "ui":
+                        info = np.iinfo(t)
+                        bad |= (column < info.min) | (column > info.max) | (column != np.round(column))
+                    if bad.any():
+                        k = int(np.flatnonzero(bad)[0])
+                        raise InputError(f"PLY vertex {k}: {p} = {column[k]} is not a valid {t}", path)
+                    table[p] = column
                 return table, comments
             order = "<" if fmt == "binary_little_endian" else ">"
             for name, n, p in before:
@@ -92,6 +108,8 @@ def _vertex_table(path: Path) -> tuple[np.ndarray, list[str]]:
                     raise InputError(f"PLY element '{name}' with list properties precedes the vertices", path)
                 f.seek(n * np.dtype([(q, order + t) for q, t in p]).itemsize, os.SEEK_CUR)
             dtype = np.dtype([(p, order + t) for p, t in props])
+            if count * dtype.itemsize > os.fstat(f.fileno()).st_size - f.tell():
+                raise InputError(f"PLY file is truncated: it cannot hold the {count:,} vertices it declares", path)
             table = np.fromfile(f, dtype=dtype, count=count)
             if table.shape[0] != count:
                 raise InputError(f"PLY file is truncated: {table.shape[0]} of {count} vertices", path)
@@ -137,13 +155,36 @@ def _intensity(table: np.ndarray) -> np.ndarray | None:
     return None
 
 
-def _origins(comments: list[str]) -> np.ndarray:
+def _origins(path: Path, comments: list[str]) -> np.ndarray:
+    """The scanner positions of `comment rgbd_gt origin K x y z` lines, (S, 3) metres."""
     rows = {}
     for c in comments:
         w = c.split()
         if len(w) == 6 and w[0] == "rgbd_gt" and w[1] == "origin":
-            rows[int(w[2])] = [float(x) for x in w[3:6]]
+            try:
+                k, xyz = int(w[2]), [float(x) for x in w[3:6]]
+            except ValueError:
+                raise InputError(f"PLY comment 'rgbd_gt origin' is not 'K x y z': {c}", path) from None
+            if not (0 <= k < 100_000 and np.isfinite(xyz).all()):
+                raise InputError(f"PLY comment 'rgbd_gt origin' has an invalid index or value: {c}", path)
+            rows[k] = xyz
+    if sorted(rows) != list(range(len(rows))):
+        raise InputError(f"PLY comments 'rgbd_gt origin' are not numbered 0..{len(rows) - 1}", path)
     return np.array([rows[k] for k in sorted(rows)], float).reshape(-1, 3)
+
+
+def _scan_ids(path: Path, table: np.ndarray, origins: np.ndarray) -> np.ndarray | None:
+    """The scan_id property: indices into the origins when they are given, else labels (made 0..S-1)."""
+    if "scan_id" not in table.dtype.names:
+        return None
+    ids = table["scan_id"]
+    if not np.isfinite(ids).all() or (ids.size and ids.min() < 0):
+        raise InputError("PLY scan_id must be whole numbers of 0 or more", path)
+    if len(origins):
+        if ids.size and ids.max() >= len(origins):
+            raise InputError(f"PLY scan_id {int(ids.max())} has no 'rgbd_gt origin' comment ({len(origins)} given)", path)
+        return ids.astype(np.int32)
+    return np.unique(ids, return_inverse=True)[1].astype(np.int32).ravel()
 
 
 def read_ply(path: str | os.PathLike) -> Scan:
@@ -157,14 +198,15 @@ def read_ply(path: str | os.PathLike) -> Scan:
     for j, c in enumerate("xyz"):
         xyz[:, j] = table[c]
     grid = "row" in names and "col" in names
+    origins = _origins(path, comments)
     scan = Scan(
         xyz=xyz,
         rgb=_colors(table),
         intensity=_intensity(table),
         row=table["row"].astype(np.int32) if grid else None,
         col=table["col"].astype(np.int32) if grid else None,
-        scan_id=table["scan_id"].astype(np.int32) if "scan_id" in names else None,
-        origins=_origins(comments),
+        scan_id=_scan_ids(path, table, origins),
+        origins=origins,
     )
     if all(c in names for c in ("nx", "ny", "nz")):
         from rgbd_gt.render.normals import scan_normals

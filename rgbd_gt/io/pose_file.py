@@ -12,6 +12,7 @@ from rgbd_gt.errors import InputError, require_file
 from rgbd_gt.io.atomic import atomic_output
 
 POSE_KEY = "T_cam_from_scan"
+MAX_TRANSLATION_M = 1e8  # georeferenced scans lie up to ~1e7 m from their origin; beyond is corruption
 
 
 def check_rigid(T: np.ndarray, path: object = None, tol: float = 1e-6) -> np.ndarray:
@@ -24,6 +25,8 @@ def check_rigid(T: np.ndarray, path: object = None, tol: float = 1e-6) -> np.nda
         raise InputError(f"{POSE_KEY} must be 4x4, got shape {T.shape}", path)
     if not np.isfinite(T).all():
         raise InputError(f"{POSE_KEY} has non-finite values", path)
+    if np.abs(T[:3, 3]).max() > MAX_TRANSLATION_M:
+        raise InputError(f"{POSE_KEY} translation {T[:3, 3].tolist()} is beyond {MAX_TRANSLATION_M:g} m", path)
     if not np.allclose(T[3], [0, 0, 0, 1], atol=tol, rtol=0):
         raise InputError(f"{POSE_KEY} last row must be 0 0 0 1, got {T[3].tolist()}", path)
     R = T[:3, :3]

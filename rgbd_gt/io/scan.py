@@ -107,7 +107,33 @@ def load_scan(path: str | os.PathLike, scan_index: int | None = None, progress=N
     scan = _load(Path(path), scan_index, progress)
     if require_points and len(scan) == 0:
         raise InputError("the scan has no points", path)
+    check_values(scan, path)
     return scan
+
+
+MAX_COORDINATE_M = 1e7  # georeferenced scans reach ~1e7 m (UTM northings); beyond is corruption
+
+
+def check_values(scan: Scan, path: object) -> None:
+    """InputError naming the first bad point: a non-finite or absurd coordinate, intensity or
+    normal, or grid indices that are negative. (Readers drop the points a format marks as
+    missing, like a PCD's NaN returns, before this.)"""
+    fields = [("coordinate", scan.xyz), ("intensity", scan.intensity), ("normal", scan.normals)]
+    for name, values in fields:
+        if values is None or values.size == 0:
+            continue
+        bad = ~np.isfinite(values)
+        if name == "coordinate":
+            bad |= np.abs(values) > MAX_COORDINATE_M
+        if bad.any():
+            k = int(np.flatnonzero(bad.reshape(len(values), -1).any(axis=1))[0])
+            raise InputError(f"point {k} has an invalid {name} ({np.asarray(values[k]).tolist()})", path)
+    if scan.row is not None and scan.col is not None and len(scan):
+        if min(scan.row.min(), scan.col.min()) < 0:
+            raise InputError("the scan's row and col indices must be 0 or more", path)
+        cells = (int(scan.row.max()) + 1) * (int(scan.col.max()) + 1)
+        if cells > 20 * len(scan) + 1_000_000:  # the grid is allocated: it must be mostly points
+            raise InputError(f"the scan's grid indices span {cells:,} cells for {len(scan):,} points", path)
 
 
 def _load(path: Path, scan_index: int | None, progress) -> Scan:

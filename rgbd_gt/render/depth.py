@@ -234,7 +234,8 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None)
     uv, z = uv[seen], z[seen]
     if len(z) < 4:
         zz = np.zeros((camera.height, camera.width), np.float32)
-        return DepthMap(zz, np.zeros(zz.shape + (3,), np.float32), "splats (nothing in view)")
+        colors = None if values is None else np.zeros(zz.shape + (values.shape[1],), values.dtype)
+        return DepthMap(zz, np.zeros(zz.shape + (3,), np.float32), "splats (nothing in view)", colors)
     vals = values[seen].astype(np.float32) if values is not None else np.zeros((len(z), 1), np.float32)
     normals = with_normals(scan).normals
     surfels, back = None, None

@@ -69,6 +69,17 @@ def visible_points(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cel
     return vis if facing is None else vis & facing
 
 
+def check_spread_in_view(uv: torch.Tensor, visible: torch.Tensor, need: int) -> None:
+    """InputError when the visible points (uv (N, 2) pixels, visible (N,) bool) fall on fewer than
+    `need` / 2 distinct pixels: identical or nearly identical points, which no pose can be fitted to."""
+    from rgbd_gt.errors import InputError
+
+    pixels = torch.unique(torch.round(uv[visible]).long(), dim=0).shape[0]
+    if pixels < need / 2:
+        raise InputError(f"the {int(visible.sum())} scan points in view of the initial pose fall on only {pixels} "
+                         "pixels (identical or nearly identical points): there is nothing to align")
+
+
 def cell_for_density(uv: torch.Tensor, size: tuple[int, int], per_cell: int = 3, largest: int = 64) -> int:
     """Cell side (pixels, a power of 2) at which the occupied cells of a projection uv (N, 2)
     hold at least `per_cell` points at the median: the projected spacing, measured in the image.

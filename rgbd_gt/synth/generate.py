@@ -54,6 +54,24 @@ class SynthConfig:
     init_rotation_deg: list[float] = field(default_factory=lambda: [0.7, 1.2])
     max_layout_tries: int = 40
 
+    def check(self) -> "SynthConfig":
+        for name, p in self.sizes.items():
+            if not (32 <= p.width <= 8192 and 32 <= p.height <= 8192 and 0.01 <= p.scan_step_deg <= 5
+                    and 16 <= p.texture_px <= 8192 and 1 <= p.supersample <= 8):
+                raise ValueError(f"sizes.{name}: width and height 32..8192, scan_step_deg 0.01..5, texture_px 16..8192, "
+                                 "supersample 1..8")
+        for name in ("hfov_deg", "board_distance_m", "scanner_distance_m", "init_translation_m", "init_rotation_deg"):
+            lo_hi = getattr(self, name)
+            if len(lo_hi) != 2 or not 0 <= lo_hi[0] <= lo_hi[1]:
+                raise ValueError(f"{name} must be [low, high] with 0 <= low <= high, got {lo_hi}")
+        if not (1 <= self.hfov_deg[0] and self.hfov_deg[1] < 170):
+            raise ValueError(f"hfov_deg must lie in 1..170, got {self.hfov_deg}")
+        if self.board_cols < 2 or self.board_rows < 2 or not self.square_m > 0 or not self.texel_m > 0:
+            raise ValueError("board_cols and board_rows at least 2, square_m and texel_m positive")
+        if self.range_noise_m < 0 or self.scan_margin_deg < 0 or self.max_layout_tries < 1:
+            raise ValueError("range_noise_m and scan_margin_deg 0 or more, max_layout_tries at least 1")
+        return self
+
 
 def random_camera(rng: np.random.Generator, preset: SizePreset, hfov_deg: list[float]) -> Camera:
     w, h = preset.width, preset.height

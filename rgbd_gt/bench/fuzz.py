@@ -1,0 +1,603 @@
+"""Fuzzing every command (tests/test_fuzz.py: a short run; `make bench`: docs/reliability.md).
+
+A trial runs one command line on seed files of which one may be mutated (truncated, bytes
+flipped, a header count or a value replaced, a wrong type in YAML, another format's bytes), or
+with odd argument values or output paths. Each runs in a forked child of a process that has
+already imported everything, so a trial costs what the command does, and a crash, a hang or an
+allocation that fails cannot take the harness down. A trial is judged:
+
+- crash: an exit code other than 0 and 2 (`run` may end 1 when every photo failed), or a
+  traceback on stderr;
+- hang: still running at the time limit;
+- accepted: exit 0 although the mutation made the input invalid for certain;
+- partial: an output exists after exit 2 that did not exist before (or changed);
+- overwritten: an input file changed;
+- noise: exit 2 with stderr other than one `error:` line (or click's usage message).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import random
+import re
+import shutil
+import signal
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import yaml
+
+OUTCOMES = ("crash", "hang", "accepted", "partial", "overwritten", "noise")
+NUMBER = re.compile(rb"(?<![A-Za-z_.\d])-?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?")
+
+
+@dataclass
+class Trial:
+    name: str  # what was done, for the report
+    argv: list[str]
+    inputs: list[Path]  # files that must not change
+    outputs: list[Path]  # files or folders the command may write
+    invalid: bool = False  # the input is certainly invalid: exit 0 is a failure
+    timeout_s: float = 60.0
+    serves: bool = False  # pick: a valid start serves until stopped
+
+
+@dataclass
+class Result:
+    trial: Trial
+    code: int | None
+    stderr: str
+    seconds: float
+    problems: list[str] = field(default_factory=list)
+
+
+# ---------------------------------------------------------------- seeds
+
+
+def make_seeds(folder: Path, data: Path | None) -> dict[str, Path]:
+    """Seed files: a small synthetic scene (exact truth) and, when present, small real files."""
+    from rgbd_gt.synth.generate import SynthConfig, generate
+    from rgbd_gt.io import load_scan, read_camera, read_pose
+    from rgbd_gt.camera import project
+    from rgbd_gt.pose import transform_points
+    from rgbd_gt.io.ply import write_ply
+    from rgbd_gt.io.scan import Scan
+
+    folder.mkdir(parents=True, exist_ok=True)
+    scene = folder / "scene"
+    if not (scene / "scene.json").is_file():
+        generate(scene, 3, "small", SynthConfig())
+    seeds = {k: scene / n for k, n in [("scan_e57", "scan.e57"), ("scan_ply", "scan.ply"), ("photo", "photo.png"),
+                                       ("camera", "camera.yaml"), ("gt", "gt_pose.yaml"), ("init", "init_pose.yaml"),
+                                       ("board", "board_corners.csv")]}
+    small = folder / "small.ply"  # every 9th point: commands on it take a fraction of a second
+    ascii_ply, pairs = folder / "ascii.ply", folder / "pairs.csv"
+    scan = load_scan(seeds["scan_ply"]) if not (small.is_file() and ascii_ply.is_file() and pairs.is_file()) else None
+    if not small.is_file():
+        keep = np.arange(0, len(scan.xyz), 9)
+        write_ply(small, Scan(scan.xyz[keep], scan.rgb[keep] if scan.rgb is not None else None,
+                              scan.intensity[keep] if scan.intensity is not None else None, origins=scan.origins))
+    seeds["scan_small"] = small
+    if not ascii_ply.is_file():
+        keep = np.arange(0, len(scan.xyz), 97)
+        write_ply(ascii_ply, Scan(scan.xyz[keep], scan.rgb[keep] if scan.rgb is not None else None, origins=scan.origins), ascii=True)
+    seeds["scan_ascii"] = ascii_ply
+    if not pairs.is_file():
+        cam = read_camera(seeds["camera"])
+        T, _ = read_pose(seeds["gt"])
+        rng = np.random.default_rng(0)
+        xyz = scan.xyz[rng.choice(len(scan.xyz), 4000, replace=False)]
+        uv, z = project(cam, transform_points(T, xyz))
+        ok = (z > 0) & (uv[:, 0] > 10) & (uv[:, 1] > 10) & (uv[:, 0] < cam.width - 10) & (uv[:, 1] < cam.height - 10)
+        rows = np.hstack([uv[ok][:12], xyz[ok][:12]])
+        pairs.write_text("u,v,x,y,z\n" + "".join(",".join(f"{v:.6f}" for v in r) + "\n" for r in rows))
+    seeds["pairs"] = pairs
+    refine_cfg = folder / "refine.yaml"  # fast settings: the fuzz is about inputs, not accuracy
+    refine_cfg.write_text("levels: 2\niterations: 3\nmax_points: 3000\nmin_points: 500\nupsample: 1\n"
+                          "verify:\n  repeats: 0\n")
+    seeds["refine_cfg"] = refine_cfg
+    run_cfg = folder / "run.yaml"
+    run_cfg.write_text(f"scan: {small}\ncamera: {seeds['camera']}\nphotos: [{seeds['photo']}]\noutput: run_out\n"
+                       f"board:\n  cols: 9\n  rows: 6\n  square: 0.05\n  points: {seeds['board']}\n"
+                       "device: cpu\nrefine:\n  levels: 2\n  iterations: 3\n  max_points: 3000\n  min_points: 500\n"
+                       "  upsample: 1\n  verify:\n    repeats: 0\n")
+    seeds["run_cfg"] = run_cfg
+    synth_cfg = Path(__file__).resolve().parents[2] / "configs" / "synth.yaml"
+    if synth_cfg.is_file():
+        seeds["synth_cfg"] = synth_cfg
+    if data is not None and data.is_dir():
+        real = {"pcd": data / "lidar_camera/pjlab_1/calib.pcd", "calib_txt": data / "lidar_camera/pjlab_1/calib.txt",
+                "jpg": data / "lidar_camera/pjlab_1/calib.jpg", "e57_real": data / "e57/bunnyInt32.e57",
+                "e57_images": data / "e57/tiny_pc_and_images.e57", "board_jpg": data / "checkerboard/left01.jpg"}
+        seeds.update({k: p for k, p in real.items() if p.is_file()})
+    return seeds
+
+
+# ---------------------------------------------------------------- mutators
+
+ODD_NUMBERS = [b"nan", b"inf", b"-inf", b"-1", b"0", b"1e30", b"1e12", b"abc", b"", b"-0.5", b"99999999999999999999"]
+CERTAINLY_BAD = {b"nan", b"inf", b"-inf", b"abc", b"", b"1e30", b"99999999999999999999"}
+YAML_ODD = [None, "five", [1, 2], {"a": 1}, True, float("nan"), float("inf"), -1, 0, 1e12, "", 123]
+TEXT_KINDS = {".yaml", ".yml", ".csv", ".txt"}
+
+
+def kind_of(path: Path) -> str:
+    suffix = path.suffix.lower()
+    if suffix in (".yaml", ".yml"):
+        return "yaml"
+    if suffix in (".csv", ".txt"):
+        return "text"
+    if suffix == ".ply" and path.read_bytes()[:64].find(b"format ascii") >= 0:
+        return "text"
+    return "binary"
+
+
+def _header_end(data: bytes) -> int:
+    for marker in (b"end_header\n", b"\nDATA "):
+        k = data.find(marker)
+        if k >= 0:
+            return k + len(marker)
+    return 0
+
+
+def mutate(src: Path, dst: Path, rng: random.Random, yaml_keys: set[str] | None = None) -> tuple[str, bool]:
+    """Write a mutant of `src` to `dst`. Returns (what was done, whether the result is certainly
+    invalid). `yaml_keys`: the keys whose value must be right (a wrong type there is invalid)."""
+    data = src.read_bytes()
+    kind = kind_of(src)
+    choices = ["truncate", "flip", "empty", "garbage", "foreign"]
+    if kind == "yaml":
+        choices += ["yaml_value"] * 4 + ["number"] * 2
+    elif kind == "text":
+        choices += ["number"] * 4 + ["drop_line"]
+    elif _header_end(data):
+        choices += ["header_number"] * 2
+    how = rng.choice(choices)
+    if how == "truncate":
+        cut = rng.randint(1, max(1, len(data) - 1))
+        dst.write_bytes(data[:cut])
+        return f"truncated to {cut}/{len(data)} bytes", kind == "binary"
+    if how == "flip":
+        buf = bytearray(data)
+        n = rng.randint(1, 8)
+        for _ in range(n):
+            buf[rng.randrange(len(buf))] = rng.randrange(256)
+        dst.write_bytes(bytes(buf))
+        return f"{n} bytes changed", False
+    if how == "empty":
+        dst.write_bytes(b"")
+        return "empty", not (kind == "yaml" and yaml_keys is CONFIG_KEYS)  # an empty config means the defaults
+    if how == "garbage":
+        dst.write_bytes(bytes(rng.randrange(256) for _ in range(rng.choice([7, 300, 5000]))))
+        return "random bytes", True
+    if how == "foreign":  # another format's bytes under this name
+        other = {".png": b"\xff\xd8\xff\xe0" + bytes(200), ".jpg": b"\x89PNG\r\n\x1a\n" + bytes(200)}.get(
+            src.suffix.lower(), b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nend_header\n")
+        dst.write_bytes(other)
+        return "another format's bytes", True
+    if how == "drop_line":
+        lines = data.splitlines(keepends=True)
+        k = rng.randrange(len(lines))
+        dst.write_bytes(b"".join(lines[:k] + lines[k + 1:]))
+        return f"line {k + 1} removed", False
+    if how in ("number", "header_number"):
+        end = _header_end(data) if how == "header_number" else len(data)
+        spans = [m.span() for m in NUMBER.finditer(data[:end])]
+        if not spans:
+            dst.write_bytes(data)
+            return "unchanged (no number)", False
+        a, b = rng.choice(spans)
+        new = rng.choice(ODD_NUMBERS + ([b"1000000000000", b"-5", b"1e30"] if how == "header_number" else []))
+        dst.write_bytes(data[:a] + new + data[b:])
+        bad = new in CERTAINLY_BAD and kind != "yaml"  # a YAML number may sit in a comment or free metadata
+        if how == "header_number":
+            line = data[data.rfind(b"\n", 0, a) + 1:data.find(b"\n", a)]
+            bad = line.startswith((b"element vertex", b"POINTS", b"WIDTH")) and new in (
+                b"1000000000000", b"1e30", b"-5", b"-1", b"abc", b"", b"nan", b"inf", b"-inf", b"99999999999999999999")
+        return f"number {data[a:b].decode(errors='replace')!r} at byte {a} -> {new.decode()!r}", bad
+    # yaml_value: a leaf replaced by a value of another type
+    doc = yaml.safe_load(data.decode(errors="replace"))
+    leaves = list(_leaves(doc, ()))
+    if not leaves:
+        dst.write_bytes(data)
+        return "unchanged (no leaf)", False
+    path, old = rng.choice(leaves)
+    new = rng.choice(YAML_ODD)
+    _set(doc, path, new)
+    dst.write_text(yaml.safe_dump(doc, sort_keys=False))
+    typed_old = "num" if isinstance(old, (int, float)) and not isinstance(old, bool) else type(old).__name__
+    typed_new = "num" if isinstance(new, (int, float)) and not isinstance(new, bool) else type(new).__name__
+    finite_new = typed_new != "num" or np.isfinite(new)
+    wrong_type = typed_old != typed_new and not (old is None or new is None)
+    key = ".".join(str(p) for p in path if isinstance(p, str))
+    bad = bool(yaml_keys is not None and any(key == k or key.startswith(k + ".") for k in yaml_keys)
+               and (wrong_type or not finite_new))
+    return f"{key or 'document'}: {old!r} -> {new!r}", bad
+
+
+def _leaves(doc, path):
+    if isinstance(doc, dict):
+        for k, v in doc.items():
+            yield from _leaves(v, path + (k,))
+    elif isinstance(doc, list) and doc and not all(isinstance(v, (int, float)) for v in doc):
+        for k, v in enumerate(doc):
+            yield from _leaves(v, path + (k,))
+    elif path:
+        yield path, doc
+
+
+def _set(doc, path, value):
+    for p in path[:-1]:
+        doc = doc[p]
+    doc[path[-1]] = value
+
+
+# ---------------------------------------------------------------- trials
+
+CAMERA_KEYS = {"fx", "fy", "cx", "cy", "width", "height", "distortion"}
+POSE_KEYS = {"T_cam_from_scan"}
+CONFIG_KEYS = {"levels", "iterations", "max_points", "min_points", "upsample", "verify", "scan", "camera", "photos", "output",
+               "board", "refine", "device", "sizes", "board_cols", "board_rows", "square_m", "hfov_deg", "range_noise_m",
+               "texel_m"}
+
+
+def templates(seeds: dict[str, Path]) -> list[dict]:
+    """Command lines over the seeds: {argv with {slot}s, the slots that are inputs, outputs}."""
+    s = {k: str(v) for k, v in seeds.items()}
+    t = [
+        dict(argv=["ingest", s["scan_small"], "-o", "{out}/merged.ply", "--voxel", "0.05"], outs=["merged.ply"]),
+        dict(argv=["ingest", s["scan_ascii"], "-o", "{out}/merged.ply"], outs=["merged.ply"]),
+        dict(argv=["ingest", s["scan_e57"], "-o", "{out}/merged.ply", "--voxel", "0.1", "--extract-images", "{out}/imgs"],
+             outs=["merged.ply", "imgs"]),
+        dict(argv=["init-pose", "--scan", s["scan_small"], "--image", s["photo"], "--camera", s["camera"],
+                   "--correspondences", s["pairs"], "-o", "{out}/init.yaml", "--report", "{out}/rep"], outs=["init.yaml", "rep"]),
+        dict(argv=["init-pose", "--scan", s["scan_small"], "--image", s["photo"], "--camera", s["camera"],
+                   "--board-points", s["board"], "-o", "{out}/init.yaml"], outs=["init.yaml"]),
+        dict(argv=["refine", "--scan", s["scan_small"], "--image", s["photo"], "--camera", s["camera"], "--init", s["init"],
+                   "--config", s["refine_cfg"], "--device", "cpu", "-o", "{out}/pose.yaml"], outs=["pose.yaml"]),
+        dict(argv=["export-depth", "--scan", s["scan_small"], "--camera", s["camera"], "--pose", s["gt"],
+                   "-o", "{out}/d.exr", "--png16", "{out}/d.png", "--mask", "{out}/m.png"], outs=["d.exr", "d.png", "m.png"]),
+        dict(argv=["qa-edges", "--scan", s["scan_small"], "--image", s["photo"], "--camera", s["camera"], "--pose", s["gt"],
+                   "-o", "{out}/qa.png", "--json", "{out}/qa.json"], outs=["qa.png", "qa.json"]),
+        dict(argv=["overlay", "--scan", s["scan_small"], "--image", s["photo"], "--camera", s["camera"], "--pose", s["gt"],
+                   "-o", "{out}/ov.png"], outs=["ov.png", "ov_blend.png"]),
+        dict(argv=["pick", "--scan", s["scan_small"], "--image", s["photo"], "--camera", s["camera"], "--no-browser",
+                   "-o", "{out}/picks.csv"], outs=["picks.csv"], serves=True),
+        dict(argv=["run", s["run_cfg"]], outs=["run_out"], slow=True),
+    ]
+    if "synth_cfg" in s:
+        t.append(dict(argv=["synth", "{out}/scene", "--size", "small", "--config", s["synth_cfg"]], outs=["scene"], slow=True))
+    if "pcd" in s:
+        t += [
+            dict(argv=["ingest", s["pcd"], "-o", "{out}/merged.ply", "--voxel", "0.2"], outs=["merged.ply"]),
+            dict(argv=["export-depth", "--scan", s["pcd"], "--camera", s["calib_txt"], "--pose", s["calib_txt"],
+                       "-o", "{out}/d.exr"], outs=["d.exr"], size_from=s["jpg"]),
+            dict(argv=["qa-edges", "--scan", s["pcd"], "--image", s["jpg"], "--camera", s["calib_txt"], "--pose", s["calib_txt"],
+                       "-o", "{out}/qa.png"], outs=["qa.png"]),
+            dict(argv=["ingest", s["e57_real"], "-o", "{out}/merged.ply"], outs=["merged.ply"]),
+            dict(argv=["ingest", s["e57_images"], "-o", "{out}/merged.ply", "--extract-images", "{out}/imgs"],
+                 outs=["merged.ply", "imgs"]),
+            dict(argv=["init-pose", "--scan", s["scan_small"], "--image", s["board_jpg"], "--camera", s["camera"],
+                       "--correspondences", s["pairs"], "-o", "{out}/init.yaml"], outs=["init.yaml"]),
+        ]
+    seed_paths = {str(v) for v in seeds.values()}
+    for tpl in t:
+        tpl["slots"] = [k for k, a in enumerate(tpl["argv"]) if a in seed_paths]
+        tpl.pop("size_from", None)
+    return t
+
+
+ODD_ARGS = ["nan", "inf", "-inf", "-1", "0", "abc", "", "1e308", "-0", "99999999999999999999", "0x10", "1,2"]
+
+
+def make_trial(k: int, tpls: list[dict], seeds: dict[str, Path], root: Path, rng: random.Random) -> Trial:
+    """Trial k: a template with one input mutated, one argument made odd, or an odd output path."""
+    tpl = rng.choice(tpls)
+    folder = root / f"t{k:04d}"
+    folder.mkdir(parents=True)
+    argv = [a.replace("{out}", str(folder)) for a in tpl["argv"]]
+    outs = [folder / o for o in tpl["outs"]]
+    inputs = [Path(argv[i]) for i in tpl["slots"]]
+    timeout = 120.0 if tpl.get("slow") else 60.0
+    what = rng.choices(["file", "arg", "output"], weights=[6, 2, 2])[0]
+    name, invalid = " ".join(a if "/" not in a else Path(a).name for a in argv[:2]), False
+    if what == "file" and tpl["slots"]:
+        i = rng.choice(tpl["slots"])
+        src = Path(argv[i])
+        dst = folder / ("in_" + src.name)
+        keys = None
+        if src.suffix in (".yaml", ".yml"):
+            keys = CAMERA_KEYS if "camera" in src.name else POSE_KEYS if "pose" in src.name else CONFIG_KEYS
+        change, invalid = mutate(src, dst, rng, keys)
+        for j in tpl["slots"]:  # a file given for two options (calib.txt: camera and pose) is one file
+            if argv[j] == str(src):
+                argv[j] = str(dst)
+                inputs[tpl["slots"].index(j)] = dst
+        name += f" | {src.name}: {change}"
+    elif what == "arg":
+        opts = [j for j, a in enumerate(argv) if a.startswith("--") and j + 1 < len(argv) and not argv[j + 1].startswith("-")
+                and a not in ("--scan", "--image", "--camera", "--pose", "--init", "--config", "--correspondences",
+                              "--board-points", "--report", "--extract-images", "--json", "--png16", "--mask")]
+        extra = rng.choice(["--levels", "--iterations", "--voxel", "--crop", "--max-depth", "--beta-max", "--square",
+                            "--ransac-px", "--max-points", "--repeats", "--scan-index", "--board", "--device",
+                            "--search-starts", "--upsample", "--port", "--seed", "--photos", "--size", "--marker"])
+        how = rng.choice(["value", "value", "add", "unknown", "drop", "command"])
+        if how == "value" and opts:
+            j = rng.choice(opts)
+            val = rng.choice(ODD_ARGS)
+            name += f" | {argv[j]} {val!r}"
+            invalid = val in ("nan", "inf", "-inf", "abc", "", "1e308", "99999999999999999999", "0x10", "1,2") or (
+                val in ("-1",) and argv[j] not in ("--max-depth",))
+            argv[j + 1] = val
+        elif how in ("value", "add"):
+            val = rng.choice(ODD_ARGS)
+            argv[1:1] = [extra, val]
+            name += f" | added {extra} {val!r}"
+            invalid = val in ("nan", "inf", "-inf", "abc", "", "99999999999999999999", "0x10", "1,2")
+        elif how == "unknown":
+            argv.append("--no-such-option")
+            name += " | unknown option"
+            invalid = True
+        elif how == "drop":
+            j = rng.choice([j for j, a in enumerate(argv) if a.startswith("-") and a != "--no-browser"] or [0])
+            if j:
+                name += f" | {argv[j]} left out"
+                del argv[j:j + 2]
+                invalid = argv[0] != "ingest" or True
+                invalid = tpl["argv"][j] in ("-o", "--scan", "--image", "--camera", "--pose", "--init")
+        else:
+            argv[0] = rng.choice(["bogus", "refin", "", "--help-me"])
+            name = f"command {argv[0]!r}"
+            invalid = True
+    elif what == "output":
+        o = [j for j, a in enumerate(argv) if a in ("-o", "--json", "--png16", "--mask", "--report", "--extract-images")]
+        how = rng.choice(["existing folder", "under a file", "missing folder", "extension", "an input", "another output"])
+        j = rng.choice(o) if o else None
+        if j is None:
+            pass
+        elif how == "existing folder":
+            (folder / "adir").mkdir()
+            argv[j + 1] = str(folder / "adir")
+            invalid = argv[j] not in ("--report", "--extract-images")
+        elif how == "under a file":
+            (folder / "afile").write_text("x")
+            inputs.append(folder / "afile")
+            argv[j + 1] = str(folder / "afile" / Path(argv[j + 1]).name)
+            invalid = True
+        elif how == "missing folder":
+            argv[j + 1] = str(folder / "new" / "deeper" / Path(argv[j + 1]).name)
+            outs.append(folder / "new")
+        elif how == "extension":
+            argv[j + 1] = str(Path(argv[j + 1]).with_suffix(rng.choice([".xyz", ".txt", "", ".png", ".exr"])))
+            outs.append(Path(argv[j + 1]))
+        elif how == "an input" and inputs:
+            argv[j + 1] = str(rng.choice(inputs))
+            invalid = True
+        elif how == "another output" and len(o) > 1:
+            other = rng.choice([i for i in o if i != j])
+            argv[j + 1] = argv[other + 1]
+            invalid = True
+        name += f" | {argv[j] if j is not None else 'output'}: {how}"
+    return Trial(name, argv, inputs, outs, invalid, 15.0 if tpl.get("serves") else timeout, bool(tpl.get("serves")))
+
+
+# ---------------------------------------------------------------- running
+
+
+def _digest(path: Path) -> str:
+    if path.is_dir():
+        return "dir:" + ",".join(sorted(f"{p.relative_to(path)}={_digest(p)}" for p in path.rglob("*") if p.is_file()))
+    if not path.exists():
+        return "-"
+    h = hashlib.sha1()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _snapshot(folder: Path) -> dict[str, str]:
+    return {str(p): _digest(p) for p in folder.rglob("*") if p.is_file()}
+
+
+def run_trial(trial: Trial, folder: Path, memory_gb: float = 6.0) -> Result:
+    """Run one trial in a forked child; judge it."""
+    before_in = {p: _digest(p) for p in trial.inputs}
+    before = _snapshot(folder)
+    err_path, out_path = folder / ".stderr", folder / ".stdout"
+    start = time.perf_counter()
+    pid = os.fork()
+    if pid == 0:  # the child: run the command, exit with its code
+        code = 1
+        try:
+            import resource
+
+            limit = int(memory_gb * 2**30)
+            resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+            os.chdir(folder)
+            with open(err_path, "wb") as e, open(out_path, "wb") as o:
+                os.dup2(e.fileno(), 2)
+                os.dup2(o.fileno(), 1)
+            from rgbd_gt.cli import main
+
+            try:
+                main(trial.argv)
+                code = 0
+            except SystemExit as exc:
+                code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+            except BaseException:
+                import traceback
+
+                traceback.print_exc()
+                code = 1
+        finally:
+            try:
+                sys.stdout.flush()
+                sys.stderr.flush()
+            finally:
+                os._exit(code)
+    code = None
+    while time.perf_counter() - start < trial.timeout_s:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            code = os.waitstatus_to_exitcode(status)
+            break
+        if trial.serves and out_path.exists() and b"serving the pick page" in out_path.read_bytes():
+            break  # pick started its server: a valid start, stopped here
+        time.sleep(0.02)
+    if code is None:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+    seconds = time.perf_counter() - start
+    stderr = err_path.read_text(errors="replace") if err_path.exists() else ""
+    stdout = out_path.read_text(errors="replace") if out_path.exists() else ""
+    for p in (err_path, out_path):
+        p.unlink(missing_ok=True)
+    res = Result(trial, code, stderr, seconds)
+    served = trial.serves and "serving the pick page" in stdout
+    if code is None and not served:
+        res.problems.append("hang")
+    elif code is not None:
+        allowed = (0, 2, 1) if trial.argv[:1] == ["run"] else (0, 2)
+        if code not in allowed or "Traceback (most recent call last)" in stderr:
+            res.problems.append("crash")
+        if code == 0 and trial.invalid:
+            res.problems.append("accepted")
+        if code == 2:
+            after = _snapshot(folder)
+            if any(after.get(p) != d for p, d in after.items() if before.get(p) != d) or any(
+                    p.exists() and str(p) not in before and not p.is_dir() for p in trial.outputs):
+                res.problems.append("partial")
+            elif any(p.is_dir() and not any(p.iterdir()) is False and str(p) not in before for p in trial.outputs if p.is_dir()):
+                res.problems.append("partial")
+            lines = [ln for ln in stderr.splitlines() if ln.strip()]
+            usage = any("Usage:" in ln for ln in lines)
+            if not usage and (len(lines) != 1 or not lines[0].startswith("error: ")):
+                res.problems.append("noise")
+    if any(_digest(p) != d for p, d in before_in.items()):
+        res.problems.append("overwritten")
+    return res
+
+
+def fuzz(trials: int, seed: int, root: Path, data: Path | None, log: Callable[[str], None] = lambda s: None,
+         only: Callable[[dict], bool] | None = None) -> list[Result]:
+    """`trials` seeded trials under `root` (its trials folder emptied first)."""
+    import rgbd_gt.cli  # noqa: F401  (imported once here, shared by every forked trial)
+    import cv2  # noqa: F401
+    import torch  # noqa: F401
+
+    shutil.rmtree(root / "trials", ignore_errors=True)
+    # the seeds are made in a child too: this process must not start torch's or OpenMP's thread
+    # pools, which a forked child would inherit locked
+    pid = os.fork()
+    if pid == 0:
+        code = 1
+        try:
+            make_seeds(root / "seeds", data)
+            code = 0
+        finally:
+            os._exit(code)
+    if os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1]) != 0:
+        raise RuntimeError("making the fuzz seeds failed")
+    seeds = make_seeds(root / "seeds", data)  # made: this only names them
+    tpls = [t for t in templates(seeds) if only is None or only(t)]
+    rng = random.Random(seed)
+    results = []
+    for k in range(trials):
+        trial = make_trial(k, tpls, seeds, root / "trials", rng)
+        res = run_trial(trial, root / "trials" / f"t{k:04d}")
+        results.append(res)
+        log(f"{k:4d} {res.code!s:>4} {res.seconds:5.1f}s {' '.join(res.problems) or 'fine':12s} {trial.name}")
+    return results
+
+
+def counts(results: list[Result]) -> dict[str, int]:
+    return {o: sum(o in r.problems for r in results) for o in OUTCOMES}
+
+
+def kind_of_trial(name: str) -> str:
+    """The class of a trial for the report, from its name."""
+    if name.startswith("command "):
+        return "unknown command"
+    if " | " not in name:
+        return "valid"
+    change = name.split(" | ", 1)[1]
+    if change.startswith("--") and ":" in change.split()[0]:
+        return "output path: " + change.split(": ", 1)[1]
+    if change.startswith(("--", "added", "unknown option")):
+        return "argument"
+    what = change.split(": ", 1)[1] if ": " in change else change
+    for key in ("truncated", "bytes changed", "empty", "random bytes", "another format", "number", "line", "->"):
+        if key in what:
+            return {"->": "YAML value of another type", "number": "number replaced", "line": "line removed"}.get(key, key)
+    return "other"
+
+
+def write_report(path: Path, results: list[Result], seed: int, seconds: float) -> None:
+    """docs/reliability.md: counts per outcome, per command and per kind of change, and every failure."""
+    import collections
+
+    c = counts(results)
+    lines = ["# Reliability: fuzzing every command", "",
+             f"`make bench` runs `python -m rgbd_gt.bench.fuzz` ({len(results)} trials, seed {seed}, {seconds / 60:.1f} min "
+             "on this machine); tests/test_fuzz.py runs a shorter one in CI. How a trial is made and judged: "
+             "rgbd_gt/bench/fuzz.py.", "",
+             "| outcome | trials | target |", "|---|---|---|"]
+    lines += [f"| {o} | {c[o]} | 0 |" for o in OUTCOMES]
+    exits = collections.Counter("hang" if r.code is None else str(r.code) for r in results)
+    lines += ["", "Exit codes: " + ", ".join(f"{k}: {v}" for k, v in sorted(exits.items())) + ".", "",
+              "| command | trials | exit 0 | exit 2 | failures |", "|---|---|---|---|---|"]
+    by_cmd = collections.defaultdict(list)
+    for r in results:
+        by_cmd[r.trial.argv[0] if r.trial.argv and not r.trial.name.startswith("command ") else "(unknown command)"].append(r)
+    for cmd, rs in sorted(by_cmd.items()):
+        lines.append(f"| {cmd} | {len(rs)} | {sum(r.code == 0 for r in rs)} | {sum(r.code == 2 for r in rs)} | "
+                     f"{sum(bool(r.problems) for r in rs)} |")
+    lines += ["", "| change | trials | certainly invalid | failures |", "|---|---|---|---|"]
+    by_kind = collections.defaultdict(list)
+    for r in results:
+        by_kind[kind_of_trial(r.trial.name)].append(r)
+    for kind, rs in sorted(by_kind.items()):
+        lines.append(f"| {kind} | {len(rs)} | {sum(r.trial.invalid for r in rs)} | {sum(bool(r.problems) for r in rs)} |")
+    failed = [r for r in results if r.problems]
+    lines += ["", "## Failures", ""]
+    lines += [f"- {', '.join(r.problems)}: `{r.trial.name}` (exit {r.code}): {r.stderr.strip().splitlines()[-1][:200] if r.stderr.strip() else ''}"
+              for r in failed] or ["None."]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """python -m rgbd_gt.bench.fuzz --trials N [--seed S] [--root DIR] [--data DIR] [--json F] [--report F]"""
+    import argparse
+    import json
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--trials", type=int, default=600)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--root", type=Path, default=Path("bench_out/fuzz"))
+    ap.add_argument("--data", type=Path, default=Path("../shared/data"))
+    ap.add_argument("--json", type=Path, help="write each trial's outcome here")
+    ap.add_argument("--report", type=Path, help="write the Markdown report here (docs/reliability.md)")
+    ap.add_argument("--quiet", action="store_true")
+    args = ap.parse_args(argv)
+    start = time.perf_counter()
+    results = fuzz(args.trials, args.seed, args.root, args.data if args.data.is_dir() else None,
+                   log=(lambda s: None) if args.quiet else (lambda s: print(s, flush=True)))
+    seconds = time.perf_counter() - start
+    if args.json:
+        args.json.write_text(json.dumps([{"name": r.trial.name, "argv": r.trial.argv, "code": r.code, "invalid": r.trial.invalid,
+                                          "problems": r.problems, "stderr": r.stderr[-2000:], "seconds": r.seconds}
+                                         for r in results], indent=1))
+    if args.report:
+        write_report(args.report, results, args.seed, seconds)
+    print(f"{len(results)} trials in {seconds:.0f} s: {counts(results)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

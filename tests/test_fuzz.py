@@ -1,0 +1,34 @@
+"""A short seeded fuzz of every command (rgbd_gt/bench/fuzz.py; `make bench` runs a long one):
+mutated real and synthetic inputs, odd arguments and output paths. Every trial must end with
+exit 0 or 2, no traceback, nothing half-written, no input changed, and exit 2 (never 0) for
+input that is certainly invalid."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from conftest import DATA
+
+pytestmark = pytest.mark.skipif(not hasattr(os, "fork"), reason="the fuzz runs each trial in a forked child")
+
+
+def test_fuzz_every_command(tmp_path):
+    # a fresh process: the forked trials must not inherit thread pools this one has started
+    report = tmp_path / "trials.json"
+    proc = subprocess.run([sys.executable, "-m", "rgbd_gt.bench.fuzz", "--trials", "110", "--seed", "7", "--quiet",
+                           "--root", str(tmp_path / "fuzz"), "--data", str(DATA), "--json", str(report)],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    trials = json.loads(report.read_text())
+    failures = [f"{t['problems']} exit {t['code']}: {t['name']}\n{t['stderr'][-600:]}" for t in trials if t["problems"]]
+    assert not failures, "\n\n".join(failures)
+    # the run covered every command, certainly invalid input and valid runs
+    commands = {t["argv"][0] for t in trials if not t["name"].startswith("command ")}
+    assert {"ingest", "init-pose", "refine", "export-depth", "qa-edges", "overlay", "pick"} <= commands
+    assert sum(t["invalid"] for t in trials) > 30
+    assert sum(t["code"] == 0 for t in trials) > 10
+    assert any(t["code"] == 2 and "Usage:" in t["stderr"] for t in trials)  # argument errors: click's usage message
