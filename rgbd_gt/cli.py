@@ -218,7 +218,7 @@ def init_pose(
     """Coarse pose of a photo from a checkerboard seen in both the photo and the scan (PnP), or
     from hand-picked correspondences (RANSAC PnP)."""
     from rgbd_gt.init.detect import BoardSpec
-    from rgbd_gt.init.run import (check_picks_in_scan, init_from_board, init_from_correspondences,
+    from rgbd_gt.init.run import (check_picks, init_from_board, init_from_correspondences,
                                   read_correspondences, read_csv_rows, write_report)
     from rgbd_gt.io import load_scan, read_camera, write_pose
     from rgbd_gt.io.camera_file import check_image_matches
@@ -252,7 +252,7 @@ def init_pose(
         the_scan = load_scan(scan, require_points=True)
         if correspondences is not None:
             picks = read_correspondences(correspondences)
-            check_picks_in_scan(picks, the_scan, correspondences)
+            check_picks(picks, cam, the_scan.xyz, correspondences)
             result = init_from_correspondences(picks, cam, estimate_focal, ransac_px)
         else:
             spec = BoardSpec(cols, rows, square, charuco, marker)
@@ -395,7 +395,7 @@ def refine(
     from rgbd_gt.align.config import RefineConfig
     from rgbd_gt.align.refine import camera_disagreement, load_inputs, read_pairs, refine_meta, refine_verified
     from rgbd_gt.config import load_config
-    from rgbd_gt.init.run import read_correspondences
+    from rgbd_gt.init.run import check_picks, read_correspondences
     from rgbd_gt.io import write_pose
     from rgbd_gt.io.outputs import Outputs
 
@@ -434,6 +434,7 @@ def refine(
     held_out = None
     if check is not None:
         picks = read_correspondences(check, minimum=1)
+        check_picks(picks, inputs[0].camera, inputs[0].points, check)
         held_out = (picks.img, picks.obj)
     with _progress(TextColumn("{task.fields[info]}")) as bar:
         task = bar.add_task("refine", total=None, info="")

@@ -96,6 +96,8 @@ def extract_images(path: Path, out_dir: Path | None) -> list[ImageSummary]:
         if im.pose is not None:
             entry["T_world_from_image"] = im.pose.tolist()
         intr = pinhole_intrinsics(im)
+        if intr is None and im.kind == "pinhole":
+            s.problem = "its pinhole parameters are missing or not positive: no camera file"
         if intr is not None:
             cam_path = out_dir / f"{stem}.camera.yaml"
             with atomic_output(cam_path) as tmp:

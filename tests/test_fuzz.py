@@ -7,7 +7,6 @@ import json
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
@@ -32,3 +31,5 @@ def test_fuzz_every_command(tmp_path):
     assert sum(t["invalid"] for t in trials) > 30
     assert sum(t["code"] == 0 for t in trials) > 10
     assert any(t["code"] == 2 and "Usage:" in t["stderr"] for t in trials)  # argument errors: click's usage message
+    kinds = {t["kind"].split(":")[0] for t in trials}
+    assert {"file", "argument", "output path"} <= kinds

@@ -9,6 +9,7 @@ import pytest
 import yaml
 
 from conftest import assert_one_line_error, run_cli
+from rgbd_gt.bench.fuzz import crc32c
 from rgbd_gt.io.ply import write_ply
 from rgbd_gt.io.scan import Scan
 from rgbd_gt.synth.generate import SynthConfig, generate
@@ -162,3 +163,16 @@ def test_e57_pose_must_be_a_rotation(tmp_path):
                        rotation=np.zeros(4), translation=np.zeros(3))
     e57.close()
     assert_one_line_error(run_cli("ingest", tmp_path / "zero_q.e57", "-o", tmp_path / "out.ply"), "zero_q.e57", "quaternion")
+
+
+def test_e57_nan_text_in_pose_is_refused(scene, tmp_path):
+    # libE57 reads the text 'nan' as 0; the page keeps a valid checksum, as a writer's bug would
+    raw = bytearray((scene / "scan.e57").read_bytes())
+    start = raw.index(b"<translation")
+    m = __import__("re").compile(rb'<x type="Float">([^<]+)<').search(bytes(raw), start)
+    a, b = m.span(1)
+    raw[a:b] = b"nan".ljust(b - a)
+    page = a - a % 1024
+    raw[page + 1020:page + 1024] = struct.pack(">I", crc32c(bytes(raw[page:page + 1020])))
+    (tmp_path / "nan.e57").write_bytes(bytes(raw))
+    assert_one_line_error(run_cli("ingest", tmp_path / "nan.e57", "-o", tmp_path / "out.ply"), "nan.e57", "'nan'")

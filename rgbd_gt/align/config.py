@@ -44,6 +44,10 @@ class VerifyConfig:
                 raise ValueError(f"verify.{f.name} must be a finite number, got {v}")
         if self.repeats < 0 or self.repeat_iterations < 1 or self.repeat_finest < 0 or self.sharpness_level < 0 or self.repeat_coarsest < self.repeat_finest:
             raise ValueError("verify: repeats >= 0, repeat_iterations >= 1 and 0 <= repeat_finest <= repeat_coarsest")
+        if self.repeats > 64 or self.repeat_iterations > 1_000 or self.repeat_coarsest > 12 or self.sharpness_level > 12:
+            raise ValueError("verify: repeats at most 64, repeat_iterations at most 1000, levels at most 12")
+        if self.edge_max_side > 8192 or self.min_edge_pixels < 0:
+            raise ValueError("verify: edge_max_side at most 8192, min_edge_pixels 0 or more")
         if self.edge_max_side < 64 or self.edge_shift_px < 1 or self.sharpness_step_px <= 0 or self.start_floor_px < 0:
             raise ValueError("verify: edge_max_side >= 64, edge_shift_px >= 1, sharpness_step_px > 0, start_floor_px >= 0")
         return self
@@ -105,6 +109,11 @@ class RefineConfig:
             raise ValueError("levels, upsample, iterations and max_points must be positive")
         if self.levels > 12 or self.upsample > 8:
             raise ValueError(f"levels at most 12 and upsample at most 8, got {self.levels} and {self.upsample}")
+        for name, most in (("iterations", 10_000), ("adam_iterations", 100_000), ("search_starts", 1_000),
+                           ("search_iterations", 10_000), ("max_points", 100_000_000), ("min_points", 100_000_000),
+                           ("nid_bins", 256)):  # beyond these a run would take days: a typo
+            if getattr(self, name) > most:
+                raise ValueError(f"{name} must be at most {most:,}, got {getattr(self, name)}")
         positive = ("adam_iterations", "adam_lr_rotation", "adam_lr_translation", "beta_max", "nu", "min_points",
                     "min_visible")
         not_negative = ("stop_rotation_deg", "stop_translation_m", "zbuffer_rel_tol", "zbuffer_abs_tol", "seed",

@@ -45,6 +45,7 @@ class Trial:
     invalid: bool = False  # the input is certainly invalid: exit 0 is a failure
     timeout_s: float = 60.0
     serves: bool = False  # pick: a valid start serves until stopped
+    kind: str = "valid"  # the class of change, for the report
 
 
 @dataclass
@@ -97,6 +98,26 @@ def make_seeds(folder: Path, data: Path | None) -> dict[str, Path]:
         rows = np.hstack([uv[ok][:12], xyz[ok][:12]])
         pairs.write_text("u,v,x,y,z\n" + "".join(",".join(f"{v:.6f}" for v in r) + "\n" for r in rows))
     seeds["pairs"] = pairs
+    mask = folder / "mask.png"
+    if not mask.is_file():
+        import cv2
+
+        m = np.zeros(cv2.imread(str(seeds["photo"])).shape[:2], np.uint8)
+        m[: m.shape[0] // 5] = 255  # the top fifth ignored
+        cv2.imwrite(str(mask), m)
+    seeds["mask"] = mask
+    xml = folder / "camera.xml"  # the same camera as an OpenCV calibration file
+    if not xml.is_file():
+        import cv2
+
+        cam = read_camera(seeds["camera"])
+        fs = cv2.FileStorage(str(xml), cv2.FILE_STORAGE_WRITE)
+        fs.write("camera_matrix", cam.K)
+        fs.write("distortion_coefficients", np.asarray(cam.distortion, float).reshape(1, -1))
+        fs.write("image_width", cam.width)
+        fs.write("image_height", cam.height)
+        fs.release()
+    seeds["camera_xml"] = xml
     refine_cfg = folder / "refine.yaml"  # fast settings: the fuzz is about inputs, not accuracy
     refine_cfg.write_text("levels: 2\niterations: 3\nmax_points: 3000\nmin_points: 500\nupsample: 1\n"
                           "verify:\n  repeats: 0\n")
@@ -110,6 +131,11 @@ def make_seeds(folder: Path, data: Path | None) -> dict[str, Path]:
     synth_cfg = Path(__file__).resolve().parents[2] / "configs" / "synth.yaml"
     if synth_cfg.is_file():
         seeds["synth_cfg"] = synth_cfg
+    if data is not None and data.is_dir() and (data / "lidar_camera/pjlab_1/calib.pcd").is_file():
+        rig = folder / "rig.yaml"  # refine --pairs: one LiDAR frame and its photo
+        rig.write_text(f"pairs:\n  - scan: {data / 'lidar_camera/pjlab_1/calib.pcd'}\n"
+                       f"    image: {data / 'lidar_camera/pjlab_1/calib.jpg'}\n")
+        seeds["rig"] = rig
     if data is not None and data.is_dir():
         real = {"pcd": data / "lidar_camera/pjlab_1/calib.pcd", "calib_txt": data / "lidar_camera/pjlab_1/calib.txt",
                 "jpg": data / "lidar_camera/pjlab_1/calib.jpg", "e57_real": data / "e57/bunnyInt32.e57",
@@ -119,6 +145,16 @@ def make_seeds(folder: Path, data: Path | None) -> dict[str, Path]:
 
 
 # ---------------------------------------------------------------- mutators
+
+
+def crc32c(data: bytes) -> int:
+    """CRC-32C (Castagnoli), the checksum of every E57 page (its last 4 bytes, big-endian)."""
+    crc = 0xFFFFFFFF
+    for byte in data:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ (0x82F63B78 if crc & 1 else 0)
+    return crc ^ 0xFFFFFFFF
 
 ODD_NUMBERS = [b"nan", b"inf", b"-inf", b"-1", b"0", b"1e30", b"1e12", b"abc", b"", b"-0.5", b"99999999999999999999"]
 CERTAINLY_BAD = {b"nan", b"inf", b"-inf", b"abc", b"", b"1e30", b"99999999999999999999"}
@@ -145,19 +181,27 @@ def _header_end(data: bytes) -> int:
     return 0
 
 
-def mutate(src: Path, dst: Path, rng: random.Random, yaml_keys: set[str] | None = None) -> tuple[str, bool]:
-    """Write a mutant of `src` to `dst`. Returns (what was done, whether the result is certainly
-    invalid). `yaml_keys`: the keys whose value must be right (a wrong type there is invalid)."""
+def mutate(src: Path, dst: Path, rng: random.Random, yaml_keys: set[str] | None = None) -> tuple[str, str, bool]:
+    """Write a mutant of `src` to `dst`. Returns (the kind of mutation, what was done, whether the
+    result is certainly invalid). `yaml_keys`: the keys whose value must be right (a wrong type
+    there is invalid)."""
     data = src.read_bytes()
     kind = kind_of(src)
     choices = ["truncate", "flip", "empty", "garbage", "foreign"]
     if kind == "yaml":
-        choices += ["yaml_value"] * 4 + ["number"] * 2
+        choices += ["yaml_value"] * 4 + ["number"] * 2 + ["drop_line"]
     elif kind == "text":
         choices += ["number"] * 4 + ["drop_line"]
+    elif data[:8] == b"ASTM-E57":
+        choices += ["e57_xml_number"] * 3
     elif _header_end(data):
         choices += ["header_number"] * 2
     how = rng.choice(choices)
+    return (how, *_mutate(how, data, kind, src, dst, rng, yaml_keys))
+
+
+def _mutate(how: str, data: bytes, kind: str, src: Path, dst: Path, rng: random.Random,
+            yaml_keys: set[str] | None) -> tuple[str, bool]:
     if how == "truncate":
         cut = rng.randint(1, max(1, len(data) - 1))
         dst.write_bytes(data[:cut])
@@ -180,11 +224,28 @@ def mutate(src: Path, dst: Path, rng: random.Random, yaml_keys: set[str] | None 
             src.suffix.lower(), b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nend_header\n")
         dst.write_bytes(other)
         return "another format's bytes", True
+    if how == "e57_xml_number":  # a value in the XML, with the page's checksum made right again
+        spans = [m.span(2) for m in re.finditer(rb'<(\w+) type="Float"[^>]*>([^<\s][^<]*)<', data)
+                 if m.start(2) % 1024 + (m.end(2) - m.start(2)) <= 1020]
+        if not spans:
+            dst.write_bytes(data)
+            return "unchanged (no XML number)", False
+        a, b = rng.choice(spans)
+        new = rng.choice([b"nan", b"inf", b"-inf", b"abc", b"-1", b"0", b"1e30"])
+        buf = bytearray(data)
+        buf[a:b] = new.ljust(b - a)[: b - a] if len(new) <= b - a else new[: b - a]
+        page = a - a % 1024
+        buf[page + 1020:page + 1024] = crc32c(bytes(buf[page:page + 1020])).to_bytes(4, "big")
+        dst.write_bytes(bytes(buf))
+        return f"E57 XML number {data[a:b].decode(errors='replace')!r} -> {bytes(buf[a:b]).decode().strip()!r}", \
+            bytes(buf[a:b]).strip() in (b"nan", b"inf", b"-inf", b"abc")
     if how == "drop_line":
         lines = data.splitlines(keepends=True)
         k = rng.randrange(len(lines))
         dst.write_bytes(b"".join(lines[:k] + lines[k + 1:]))
-        return f"line {k + 1} removed", False
+        key = lines[k].split(b":")[0].strip().decode(errors="replace")
+        required = yaml_keys in (CAMERA_KEYS, POSE_KEYS) and key in yaml_keys - {"distortion"}
+        return f"line {k + 1} removed ({key or 'blank'})", required  # a missing field
     if how in ("number", "header_number"):
         end = _header_end(data) if how == "header_number" else len(data)
         spans = [m.span() for m in NUMBER.finditer(data[:end])]
@@ -260,6 +321,14 @@ def templates(seeds: dict[str, Path]) -> list[dict]:
                    "--board-points", s["board"], "-o", "{out}/init.yaml"], outs=["init.yaml"]),
         dict(argv=["refine", "--scan", s["scan_small"], "--image", s["photo"], "--camera", s["camera"], "--init", s["init"],
                    "--config", s["refine_cfg"], "--device", "cpu", "-o", "{out}/pose.yaml"], outs=["pose.yaml"]),
+        dict(argv=["refine", "--scan", s["scan_small"], "--image", s["photo"], "--camera", s["camera"], "--init", s["init"],
+                   "--config", s["refine_cfg"], "--device", "cpu", "--mask", s["mask"], "--check", s["pairs"],
+                   "-o", "{out}/pose.yaml", "--report", "{out}/rep"], outs=["pose.yaml", "rep"]),
+        dict(argv=["qa-edges", "--scan", s["scan_small"], "--image", s["photo"], "--camera", s["camera"], "--pose", s["gt"],
+                   "--before", s["init"], "-o", "{out}/qa.png"], outs=["qa.png"]),
+        dict(argv=["export-depth", "--scan", s["scan_ascii"], "--camera", s["camera_xml"], "--pose", s["gt"],
+                   "-o", "{out}/d.exr"], outs=["d.exr"]),
+        dict(argv=["bench", "--data", "{out}/no_data", "--quick", "--out", "{out}/docs"], outs=["docs"]),
         dict(argv=["export-depth", "--scan", s["scan_small"], "--camera", s["camera"], "--pose", s["gt"],
                    "-o", "{out}/d.exr", "--png16", "{out}/d.png", "--mask", "{out}/m.png"], outs=["d.exr", "d.png", "m.png"]),
         dict(argv=["qa-edges", "--scan", s["scan_small"], "--image", s["photo"], "--camera", s["camera"], "--pose", s["gt"],
@@ -272,6 +341,10 @@ def templates(seeds: dict[str, Path]) -> list[dict]:
     ]
     if "synth_cfg" in s:
         t.append(dict(argv=["synth", "{out}/scene", "--size", "small", "--config", s["synth_cfg"]], outs=["scene"], slow=True))
+    if "rig" in s:
+        t.append(dict(argv=["refine", "--pairs", s["rig"], "--camera", s["calib_txt"], "--init", s["calib_txt"],
+                            "--config", s["refine_cfg"], "--search-starts", "1", "--device", "cpu", "-o", "{out}/pose.yaml"],
+                      outs=["pose.yaml"], slow=True))
     if "pcd" in s:
         t += [
             dict(argv=["ingest", s["pcd"], "-o", "{out}/merged.ply", "--voxel", "0.2"], outs=["merged.ply"]),
@@ -305,7 +378,7 @@ def make_trial(k: int, tpls: list[dict], seeds: dict[str, Path], root: Path, rng
     inputs = [Path(argv[i]) for i in tpl["slots"]]
     timeout = 120.0 if tpl.get("slow") else 60.0
     what = rng.choices(["file", "arg", "output"], weights=[6, 2, 2])[0]
-    name, invalid = " ".join(a if "/" not in a else Path(a).name for a in argv[:2]), False
+    name, invalid, kind = " ".join(a if "/" not in a else Path(a).name for a in argv[:2]), False, "valid"
     if what == "file" and tpl["slots"]:
         i = rng.choice(tpl["slots"])
         src = Path(argv[i])
@@ -313,7 +386,8 @@ def make_trial(k: int, tpls: list[dict], seeds: dict[str, Path], root: Path, rng
         keys = None
         if src.suffix in (".yaml", ".yml"):
             keys = CAMERA_KEYS if "camera" in src.name else POSE_KEYS if "pose" in src.name else CONFIG_KEYS
-        change, invalid = mutate(src, dst, rng, keys)
+        how, change, invalid = mutate(src, dst, rng, keys)
+        kind = f"file: {how}"
         for j in tpl["slots"]:  # a file given for two options (calib.txt: camera and pose) is one file
             if argv[j] == str(src):
                 argv[j] = str(dst)
@@ -327,6 +401,7 @@ def make_trial(k: int, tpls: list[dict], seeds: dict[str, Path], root: Path, rng
                             "--ransac-px", "--max-points", "--repeats", "--scan-index", "--board", "--device",
                             "--search-starts", "--upsample", "--port", "--seed", "--photos", "--size", "--marker"])
         how = rng.choice(["value", "value", "add", "unknown", "drop", "command"])
+        kind = "unknown command" if how == "command" else f"argument: {how}"
         if how == "value" and opts:
             j = rng.choice(opts)
             val = rng.choice(ODD_ARGS)
@@ -357,6 +432,7 @@ def make_trial(k: int, tpls: list[dict], seeds: dict[str, Path], root: Path, rng
     elif what == "output":
         o = [j for j, a in enumerate(argv) if a in ("-o", "--json", "--png16", "--mask", "--report", "--extract-images")]
         how = rng.choice(["existing folder", "under a file", "missing folder", "extension", "an input", "another output"])
+        kind = f"output path: {how}"
         j = rng.choice(o) if o else None
         if j is None:
             pass
@@ -383,7 +459,7 @@ def make_trial(k: int, tpls: list[dict], seeds: dict[str, Path], root: Path, rng
             argv[j + 1] = argv[other + 1]
             invalid = True
         name += f" | {argv[j] if j is not None else 'output'}: {how}"
-    return Trial(name, argv, inputs, outs, invalid, 15.0 if tpl.get("serves") else timeout, bool(tpl.get("serves")))
+    return Trial(name, argv, inputs, outs, invalid, 15.0 if tpl.get("serves") else timeout, bool(tpl.get("serves")), kind)
 
 
 # ---------------------------------------------------------------- running
@@ -409,6 +485,7 @@ def run_trial(trial: Trial, folder: Path, memory_gb: float = 6.0) -> Result:
     """Run one trial in a forked child; judge it."""
     before_in = {p: _digest(p) for p in trial.inputs}
     before = _snapshot(folder)
+    existed = {p for p in trial.outputs if p.exists()}
     err_path, out_path = folder / ".stderr", folder / ".stdout"
     start = time.perf_counter()
     pid = os.fork()
@@ -468,13 +545,16 @@ def run_trial(trial: Trial, folder: Path, memory_gb: float = 6.0) -> Result:
             res.problems.append("crash")
         if code == 0 and trial.invalid:
             res.problems.append("accepted")
+        staging_left = any(folder.rglob(".rgbd-gt-*"))
         if code == 2:
             after = _snapshot(folder)
-            if any(after.get(p) != d for p, d in after.items() if before.get(p) != d) or any(
-                    p.exists() and str(p) not in before and not p.is_dir() for p in trial.outputs):
+            changed = any(before.get(p) != d for p, d in after.items())
+            made = any(p.exists() and p not in existed for p in trial.outputs)
+            if changed or made or staging_left:
                 res.problems.append("partial")
-            elif any(p.is_dir() and not any(p.iterdir()) is False and str(p) not in before for p in trial.outputs if p.is_dir()):
-                res.problems.append("partial")
+        elif staging_left:
+            res.problems.append("partial")
+        if code == 2:
             lines = [ln for ln in stderr.splitlines() if ln.strip()]
             usage = any("Usage:" in ln for ln in lines)
             if not usage and (len(lines) != 1 or not lines[0].startswith("error: ")):
@@ -491,6 +571,7 @@ def fuzz(trials: int, seed: int, root: Path, data: Path | None, log: Callable[[s
     import cv2  # noqa: F401
     import torch  # noqa: F401
 
+    root = root.resolve()  # each trial runs in its own folder: relative paths would break there
     shutil.rmtree(root / "trials", ignore_errors=True)
     # the seeds are made in a child too: this process must not start torch's or OpenMP's thread
     # pools, which a forked child would inherit locked
@@ -520,24 +601,6 @@ def counts(results: list[Result]) -> dict[str, int]:
     return {o: sum(o in r.problems for r in results) for o in OUTCOMES}
 
 
-def kind_of_trial(name: str) -> str:
-    """The class of a trial for the report, from its name."""
-    if name.startswith("command "):
-        return "unknown command"
-    if " | " not in name:
-        return "valid"
-    change = name.split(" | ", 1)[1]
-    if change.startswith("--") and ":" in change.split()[0]:
-        return "output path: " + change.split(": ", 1)[1]
-    if change.startswith(("--", "added", "unknown option")):
-        return "argument"
-    what = change.split(": ", 1)[1] if ": " in change else change
-    for key in ("truncated", "bytes changed", "empty", "random bytes", "another format", "number", "line", "->"):
-        if key in what:
-            return {"->": "YAML value of another type", "number": "number replaced", "line": "line removed"}.get(key, key)
-    return "other"
-
-
 def write_report(path: Path, results: list[Result], seed: int, seconds: float) -> None:
     """docs/reliability.md: counts per outcome, per command and per kind of change, and every failure."""
     import collections
@@ -549,8 +612,10 @@ def write_report(path: Path, results: list[Result], seed: int, seconds: float) -
              "rgbd_gt/bench/fuzz.py.", "",
              "| outcome | trials | target |", "|---|---|---|"]
     lines += [f"| {o} | {c[o]} | 0 |" for o in OUTCOMES]
-    exits = collections.Counter("hang" if r.code is None else str(r.code) for r in results)
-    lines += ["", "Exit codes: " + ", ".join(f"{k}: {v}" for k, v in sorted(exits.items())) + ".", "",
+    exits = collections.Counter(("pick serving (stopped)" if r.trial.serves and "hang" not in r.problems else "hang")
+                                if r.code is None else str(r.code) for r in results)
+    lines += ["", "Exit codes: " + ", ".join(f"{k}: {v}" for k, v in sorted(exits.items())) + " (1: `run` with every "
+              "photo failed, its documented code).", "",
               "| command | trials | exit 0 | exit 2 | failures |", "|---|---|---|---|---|"]
     by_cmd = collections.defaultdict(list)
     for r in results:
@@ -561,9 +626,20 @@ def write_report(path: Path, results: list[Result], seed: int, seconds: float) -
     lines += ["", "| change | trials | certainly invalid | failures |", "|---|---|---|---|"]
     by_kind = collections.defaultdict(list)
     for r in results:
-        by_kind[kind_of_trial(r.trial.name)].append(r)
+        by_kind[r.trial.kind].append(r)
     for kind, rs in sorted(by_kind.items()):
         lines.append(f"| {kind} | {len(rs)} | {sum(r.trial.invalid for r in rs)} | {sum(bool(r.problems) for r in rs)} |")
+    lines += ["", "What a trial is: one command line of the seeds (a small synthetic scene with exact truth, and the "
+              "small real files of ../shared/data: a PJLab LiDAR frame with its calibration text and photo, two E57 "
+              "files, a checkerboard photo) with one change: a file mutated (truncated, bytes changed, emptied, random "
+              "or another format's bytes, a number, a header count or an E57 XML value replaced with its page checksum "
+              "made right, a YAML value of another type, a line removed), an odd argument (NaN, inf, negative, huge, "
+              "not a number, an unknown or a missing option, an unknown command) or an odd output path (an existing "
+              "folder, under a file, in a folder that does not exist, another suffix, an input, another output). "
+              "'Certainly invalid' trials must end with exit 2; the others may end either way but never crash, "
+              "hang, leave a partial output or change an input.", "",
+              "Decided here: `-o` in a folder that does not exist is created, at the end and only when the command "
+              "succeeds, by every command (README, Outputs)."]
     failed = [r for r in results if r.problems]
     lines += ["", "## Failures", ""]
     lines += [f"- {', '.join(r.problems)}: `{r.trial.name}` (exit {r.code}): {r.stderr.strip().splitlines()[-1][:200] if r.stderr.strip() else ''}"
@@ -590,7 +666,7 @@ def main(argv: list[str] | None = None) -> int:
                    log=(lambda s: None) if args.quiet else (lambda s: print(s, flush=True)))
     seconds = time.perf_counter() - start
     if args.json:
-        args.json.write_text(json.dumps([{"name": r.trial.name, "argv": r.trial.argv, "code": r.code, "invalid": r.trial.invalid,
+        args.json.write_text(json.dumps([{"name": r.trial.name, "argv": r.trial.argv, "code": r.code, "invalid": r.trial.invalid, "kind": r.trial.kind,
                                           "problems": r.problems, "stderr": r.stderr[-2000:], "seconds": r.seconds}
                                          for r in results], indent=1))
     if args.report:

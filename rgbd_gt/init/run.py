@@ -167,10 +167,16 @@ def read_correspondences(path: Path, minimum: int = 6) -> Picks:
     return Picks(data[:, :2], data[:, 2:], labels)
 
 
-def check_picks_in_scan(picks: Picks, scan, path: object) -> None:
-    """InputError when a picked scan point lies outside the scan's bounding box (with a 10 cm
-    margin): pairs picked on another scan, or a corrupt pairs file."""
-    lo, hi = scan.xyz.min(axis=0) - 0.1, scan.xyz.max(axis=0) + 0.1
+def check_picks(picks: Picks, camera: Camera, points: np.ndarray, path: object) -> None:
+    """InputError when a pick's pixel lies a photo's size or more outside the photo (a pick just
+    off it is a mis-click for RANSAC to drop), or its scan point outside the scan's bounding box
+    with a 10 cm margin (pairs picked on another scan, or a corrupt file). points: (N, 3) metres."""
+    size = np.array(camera.size, float)
+    far = np.flatnonzero(((picks.img < -size) | (picks.img > 2 * size)).any(axis=1))
+    if len(far):
+        raise InputError(f"pair {picks.labels[far[0]]}: pixel {picks.img[far[0]].tolist()} is far outside the "
+                         f"{camera.width}x{camera.height} photo", path)
+    lo, hi = points.min(axis=0) - 0.1, points.max(axis=0) + 0.1
     outside = np.flatnonzero(((picks.obj < lo) | (picks.obj > hi)).any(axis=1))
     if len(outside):
         k = outside[0]
@@ -184,12 +190,6 @@ def init_from_correspondences(picks: Picks, camera: Camera, focal: bool, ransac_
     uncertainty includes the focal length's."""
     start = time.perf_counter()
     img, obj = picks.img, picks.obj
-    # a pick just off the photo is a mis-click for RANSAC to drop; one a photo's size away is corrupt
-    size = np.array(camera.size, float)
-    outside = np.flatnonzero(((img < -size) | (img > 2 * size)).any(axis=1))
-    if len(outside):
-        raise InputError(f"pair {picks.labels[outside[0]]}: pixel {img[outside[0]].tolist()} is far outside the "
-                         f"{camera.width}x{camera.height} photo")
     check_spread(obj, img, "correspondences", 6)
     if focal:
         camera, T, mask = estimate_focal(obj, img, camera, ransac_px)

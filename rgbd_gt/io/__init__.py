@@ -1,6 +1,6 @@
 """Reading and writing every file rgbd-gt uses: scans, images, camera and pose files."""
 
-from rgbd_gt.io.atomic import atomic_output, check_not_input
+from rgbd_gt.io.atomic import atomic_output
 from rgbd_gt.io.camera_file import read_camera, write_camera
 from rgbd_gt.io.pose_file import read_pose, write_pose
 from rgbd_gt.io.scan import Scan, load_scan, save_scan
@@ -8,7 +8,6 @@ from rgbd_gt.io.scan import Scan, load_scan, save_scan
 __all__ = [
     "Scan",
     "atomic_output",
-    "check_not_input",
     "load_scan",
     "read_camera",
     "read_pose",

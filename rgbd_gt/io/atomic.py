@@ -8,7 +8,6 @@ import tempfile
 from pathlib import Path
 from typing import Iterator
 
-from rgbd_gt.errors import InputError
 
 
 @contextlib.contextmanager
@@ -34,13 +33,3 @@ def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
-
-
-def check_not_input(output: str | os.PathLike, inputs: list[str | os.PathLike]) -> None:
-    """Refuse to overwrite an input file with an output (same path or same file)."""
-    out = Path(output)
-    for inp in inputs:
-        inp = Path(inp)
-        same = out.resolve() == inp.resolve() or (out.exists() and inp.exists() and out.samefile(inp))
-        if same:
-            raise InputError("output would overwrite an input file", out)

@@ -27,6 +27,8 @@ def camera_from_values(path: Path, width, height, K: np.ndarray, dist) -> Camera
         raise InputError(f"distortion must have 4, 5, 8, 12 or 14 coefficients, got {len(dist)}", path)
     if not (np.isfinite(dist).all() and np.isfinite(K).all()):
         raise InputError("camera values must be finite numbers", path)
+    if K.shape != (3, 3) or np.abs(K[2] - [0, 0, 1]).max() > 1e-9 or K[1, 0] != 0 or abs(K[0, 1]) > 1e-6 * abs(K[0, 0]):
+        raise InputError(f"the camera matrix must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew), got {K.tolist()}", path)
     if np.abs(dist).max(initial=0) > 1000:  # even fisheye rational models stay far below
         raise InputError(f"distortion coefficients must lie within +-1000, got {max(dist, key=abs)}", path)
     sizes = []

@@ -8,6 +8,8 @@ memory (plus one chunk).
 from __future__ import annotations
 
 import os
+import re
+import struct
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,7 +50,45 @@ def _open(path: Path):
             imf.root()
     except Exception as exc:  # libE57 raises its own exception type for every failure
         raise InputError(f"cannot read E57: {_first_line(exc)}", path) from None
+    _check_xml_floats(path)
     return imf
+
+
+FLOAT_ELEMENT = re.compile(r'<(\w+) type="Float"[^>]*>([^<]*)<')
+
+
+def _xml(path: Path) -> str:
+    """The file's XML section (libE57 has checked the page checksums by now). An E57 file is
+    pages of `pageSize` bytes, the last 4 of each a CRC; the header (48 bytes) says where the XML
+    starts and how long it is."""
+    with open(path, "rb") as f:
+        head = f.read(48)
+        _, _, _, offset, length, page = struct.unpack("<IIQQQQ", head[8:48])
+        out, pos = bytearray(), offset
+        while len(out) < length:
+            start = pos - pos % page
+            f.seek(pos)
+            chunk = f.read(min(page - 4 - (pos - start), length - len(out)))
+            if not chunk:
+                break
+            out += chunk
+            pos = start + page
+    return out.decode("utf-8", errors="replace")
+
+
+def _check_xml_floats(path: Path) -> None:
+    """Every Float element's text must be a finite number: libE57 reads the text 'nan' in a pose
+    as 0, which turns a rotation into another one without a word."""
+    for m in FLOAT_ELEMENT.finditer(_xml(path)):
+        text = m.group(2).strip()
+        if not text:
+            continue
+        try:
+            ok = np.isfinite(float(text))
+        except ValueError:
+            ok = False
+        if not ok:
+            raise InputError(f"the E57 XML holds {m.group(1)} = {text!r}, not a finite number", path)
 
 
 def _child(node, name):
@@ -403,6 +443,9 @@ def pinhole_intrinsics(image: E57Image) -> dict | None:
     p = image.params
     if image.kind != "pinhole" or not all(k in p for k in ("focalLength", "pixelWidth", "pixelHeight")):
         return None
+    if not all(np.isfinite(p[k]) and p[k] > 0 for k in ("focalLength", "pixelWidth", "pixelHeight")) or not all(
+            np.isfinite(p.get(k, 0.0)) for k in ("principalPointX", "principalPointY")):
+        return None  # the caller says so
     return {
         "width": image.width,
         "height": image.height,

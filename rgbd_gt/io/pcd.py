@@ -42,6 +42,12 @@ def read_header(path: Path) -> dict[str, list[str]]:
     if not {"x", "y", "z"} <= set(header["FIELDS"]):
         raise InputError(f"PCD has no x y z fields (fields: {' '.join(header['FIELDS'])})", path)
     _check_sizes(path, header, f_tell)
+    try:
+        view = [float(v) for v in header.get("VIEWPOINT", ["0"] * 7)]
+    except ValueError:
+        view = []
+    if len(view) != 7 or not np.isfinite(view).all():
+        raise InputError(f"PCD VIEWPOINT must be 7 numbers (tx ty tz qw qx qy qz), got {' '.join(header['VIEWPOINT'])!r}", path)
     return header
 
 
