@@ -614,8 +614,8 @@ def write_report(path: Path, results: list[Result], seed: int, seconds: float) -
     lines += [f"| {o} | {c[o]} | 0 |" for o in OUTCOMES]
     exits = collections.Counter(("pick serving (stopped)" if r.trial.serves and "hang" not in r.problems else "hang")
                                 if r.code is None else str(r.code) for r in results)
-    lines += ["", "Exit codes: " + ", ".join(f"{k}: {v}" for k, v in sorted(exits.items())) + " (1: `run` with every "
-              "photo failed, its documented code).", "",
+    lines += ["", "Exit codes: " + ", ".join(f"{k}: {v}" for k, v in sorted(exits.items())) + " (an exit 1 is allowed only for `run`, its code when every "
+              "photo failed).", "",
               "| command | trials | exit 0 | exit 2 | failures |", "|---|---|---|---|---|"]
     by_cmd = collections.defaultdict(list)
     for r in results:
