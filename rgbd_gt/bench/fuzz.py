@@ -159,7 +159,6 @@ def crc32c(data: bytes) -> int:
 ODD_NUMBERS = [b"nan", b"inf", b"-inf", b"-1", b"0", b"1e30", b"1e12", b"abc", b"", b"-0.5", b"99999999999999999999"]
 CERTAINLY_BAD = {b"nan", b"inf", b"-inf", b"abc", b"", b"1e30", b"99999999999999999999"}
 YAML_ODD = [None, "five", [1, 2], {"a": 1}, True, float("nan"), float("inf"), -1, 0, 1e12, "", 123]
-TEXT_KINDS = {".yaml", ".yml", ".csv", ".txt"}
 
 
 def kind_of(path: Path) -> str:
@@ -348,8 +347,6 @@ def templates(seeds: dict[str, Path]) -> list[dict]:
     if "pcd" in s:
         t += [
             dict(argv=["ingest", s["pcd"], "-o", "{out}/merged.ply", "--voxel", "0.2"], outs=["merged.ply"]),
-            dict(argv=["export-depth", "--scan", s["pcd"], "--camera", s["calib_txt"], "--pose", s["calib_txt"],
-                       "-o", "{out}/d.exr"], outs=["d.exr"], size_from=s["jpg"]),
             dict(argv=["qa-edges", "--scan", s["pcd"], "--image", s["jpg"], "--camera", s["calib_txt"], "--pose", s["calib_txt"],
                        "-o", "{out}/qa.png"], outs=["qa.png"]),
             dict(argv=["ingest", s["e57_real"], "-o", "{out}/merged.ply"], outs=["merged.ply"]),
@@ -361,7 +358,6 @@ def templates(seeds: dict[str, Path]) -> list[dict]:
     seed_paths = {str(v) for v in seeds.values()}
     for tpl in t:
         tpl["slots"] = [k for k, a in enumerate(tpl["argv"]) if a in seed_paths]
-        tpl.pop("size_from", None)
     return t
 
 
@@ -423,7 +419,6 @@ def make_trial(k: int, tpls: list[dict], seeds: dict[str, Path], root: Path, rng
             if j:
                 name += f" | {argv[j]} left out"
                 del argv[j:j + 2]
-                invalid = argv[0] != "ingest" or True
                 invalid = tpl["argv"][j] in ("-o", "--scan", "--image", "--camera", "--pose", "--init")
         else:
             argv[0] = rng.choice(["bogus", "refin", "", "--help-me"])

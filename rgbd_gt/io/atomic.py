@@ -9,7 +9,6 @@ from pathlib import Path
 from typing import Iterator
 
 
-
 @contextlib.contextmanager
 def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path in the target's folder; on success rename it to `path`.

@@ -6,6 +6,7 @@ with a console warning and an empty cloud.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -99,8 +100,6 @@ def read_pcd(path: str | Path) -> Scan:
             said.append(str(exc))
             cloud = None
     if cloud is None:
-        import re
-
         lines = [re.sub(r"\x1b\[[0-9;]*m|.*\.cpp:\d+:\s*|\[[0-9;]*m", "", ln).strip() for ln in said if "Error" in ln]
         why = next((ln for ln in lines if ln), "unreadable")
         raise InputError(f"could not read the PCD data ({why[:200]})", path)

@@ -77,8 +77,8 @@ def _vertex_table(path: Path) -> tuple[np.ndarray, list[str]]:
             _, count, props = elements[names.index("vertex")]
             if any(isinstance(t, tuple) for _, t in props):
                 raise InputError("PLY vertex element has list properties", path)
-            left = os.fstat(f.fileno()).st_size - f.tell()
             if fmt == "ascii":
+                left = os.fstat(f.fileno()).st_size - f.tell()
                 # a value takes at least 2 bytes ("0 "): a count beyond that is a truncated (or lying) file,
                 # found before anything is allocated or skipped
                 if sum(n * max(1, len(p)) for _, n, p in before) + count * len(props) > (left + 1) / 2:
