@@ -252,7 +252,7 @@ def init_pose(
         the_scan = load_scan(scan, require_points=True)
         if correspondences is not None:
             picks = read_correspondences(correspondences)
-            check_picks(picks, cam, the_scan.xyz, correspondences)
+            check_picks(picks, cam, the_scan.xyz, correspondences, the_scan.origins)
             result = init_from_correspondences(picks, cam, estimate_focal, ransac_px)
         else:
             spec = BoardSpec(cols, rows, square, charuco, marker)
@@ -434,7 +434,8 @@ def refine(
     held_out = None
     if check is not None:
         picks = read_correspondences(check, minimum=1)
-        check_picks(picks, inputs[0].camera, inputs[0].points, check)
+        check_picks(picks, inputs[0].camera, inputs[0].points, check,
+                    inputs[0].scan.origins if inputs[0].scan is not None else None)
         held_out = (picks.img, picks.obj)
     with _progress(TextColumn("{task.fields[info]}")) as bar:
         task = bar.add_task("refine", total=None, info="")

@@ -176,3 +176,19 @@ def test_e57_nan_text_in_pose_is_refused(scene, tmp_path):
     raw[page + 1020:page + 1024] = struct.pack(">I", crc32c(bytes(raw[page:page + 1020])))
     (tmp_path / "nan.e57").write_bytes(bytes(raw))
     assert_one_line_error(run_cli("ingest", tmp_path / "nan.e57", "-o", tmp_path / "out.ply"), "nan.e57", "'nan'")
+
+
+def test_picked_scanner_position_is_a_fair_pick():
+    # pumpA's picks include the scanner head, seen in the photo, at the scan origin: outside the
+    # points' bounding box, inside the scan's (points and scanner positions)
+    from rgbd_gt.camera import Camera
+    from rgbd_gt.errors import InputError
+    from rgbd_gt.init.run import Picks, check_picks
+
+    points = np.random.default_rng(3).uniform([-3, -5, -2], [2, -1, 2], (500, 3))
+    picks = Picks(np.array([[100.0, 200.0], [300.0, 50.0]]), np.array([[0.5, -3.0, 0.1], [0.0, 0.0, 0.0]]),
+                  ["flange", "scanner head"])
+    cam = Camera(640, 480, 500.0, 500.0, 320.0, 240.0, ())
+    check_picks(picks, cam, points, "picks.csv", origins=np.zeros((1, 3)))
+    with pytest.raises(InputError, match="scanner head"):
+        check_picks(picks, cam, points, "picks.csv")

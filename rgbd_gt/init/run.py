@@ -167,16 +167,21 @@ def read_correspondences(path: Path, minimum: int = 6) -> Picks:
     return Picks(data[:, :2], data[:, 2:], labels)
 
 
-def check_picks(picks: Picks, camera: Camera, points: np.ndarray, path: object) -> None:
+def check_picks(picks: Picks, camera: Camera, points: np.ndarray, path: object,
+                origins: np.ndarray | None = None) -> None:
     """InputError when a pick's pixel lies a photo's size or more outside the photo (a pick just
-    off it is a mis-click for RANSAC to drop), or its scan point outside the scan's bounding box
-    with a 10 cm margin (pairs picked on another scan, or a corrupt file). points: (N, 3) metres."""
+    off it is a mis-click for RANSAC to drop), or its scan point outside the bounding box of the
+    scan and its scanner positions, with a 10 cm margin (pairs picked on another scan, or a corrupt
+    file; the scanner itself, seen in a photo, is a fair pick). points, origins: (N, 3), (S, 3) metres."""
     size = np.array(camera.size, float)
     far = np.flatnonzero(((picks.img < -size) | (picks.img > 2 * size)).any(axis=1))
     if len(far):
         raise InputError(f"pair {picks.labels[far[0]]}: pixel {picks.img[far[0]].tolist()} is far outside the "
                          f"{camera.width}x{camera.height} photo", path)
-    lo, hi = points.min(axis=0) - 0.1, points.max(axis=0) + 0.1
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    if origins is not None and len(origins):
+        lo, hi = np.minimum(lo, origins.min(axis=0)), np.maximum(hi, origins.max(axis=0))
+    lo, hi = lo - 0.1, hi + 0.1
     outside = np.flatnonzero(((picks.obj < lo) | (picks.obj > hi)).any(axis=1))
     if len(outside):
         k = outside[0]
