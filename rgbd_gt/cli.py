@@ -217,7 +217,7 @@ def init_pose(
 ) -> None:
     """Coarse pose of a photo from a checkerboard seen in both the photo and the scan (PnP), or
     from hand-picked correspondences (RANSAC PnP)."""
-    from rgbd_gt.init.detect import BoardSpec
+    from rgbd_gt.init.detect import MAX_SQUARE_M, BoardSpec
     from rgbd_gt.init.run import (check_picks, init_from_board, init_from_correspondences,
                                   read_correspondences, read_csv_rows, write_report)
     from rgbd_gt.io import load_scan, read_camera, write_pose
@@ -235,8 +235,8 @@ def init_pose(
     if not (np.isfinite(ransac_px) and ransac_px > 0):
         raise InputError(f"--ransac-px must be a positive number of pixels, got {ransac_px}")
     cols, rows = _board_shape(board)
-    if not square > 0:
-        raise InputError(f"--square must be positive, got {square}")
+    if not 0 < square <= MAX_SQUARE_M:
+        raise InputError(f"--square must lie between 0 and {MAX_SQUARE_M:g} m, got {square}")
     if charuco is not None:
         import cv2
 

@@ -30,8 +30,11 @@ class BoardConfig:
     def check(self) -> "BoardConfig":
         if not (2 <= self.cols <= 100 and 2 <= self.rows <= 100):
             raise ValueError(f"board: cols and rows are inner corners, 2..100 each, got {self.cols}x{self.rows}")
-        if not self.square > 0 or (self.marker is not None and not 0 < self.marker < self.square):
-            raise ValueError(f"board: square must be positive and marker between 0 and square, got {self.square}, {self.marker}")
+        from rgbd_gt.init.detect import MAX_SQUARE_M
+
+        if not 0 < self.square <= MAX_SQUARE_M or (self.marker is not None and not 0 < self.marker < self.square):
+            raise ValueError(f"board: square must lie between 0 and {MAX_SQUARE_M:g} m and marker between 0 and square, "
+                             f"got {self.square}, {self.marker}")
         return self
 
 

@@ -8,6 +8,9 @@ import cv2
 import numpy as np
 
 
+MAX_SQUARE_M = 10.0  # a board square larger than this is a typo (or millimetres given as metres)
+
+
 @dataclass(frozen=True)
 class BoardSpec:
     """cols x rows inner corners, `square` metres. For ChArUco, `charuco` names the ArUco
