@@ -30,4 +30,5 @@ bench: $(STAMP)
 	$(PY) benchmarks/lidar.py
 	$(PY) benchmarks/intrinsics.py
 	$(PY) benchmarks/big_photo.py
+	$(PY) benchmarks/scale.py
 	$(PY) -m rgbd_gt.bench.fuzz --trials 600 --seed 1 --root bench_out/fuzz --quiet --report docs/reliability.md

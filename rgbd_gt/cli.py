@@ -218,8 +218,8 @@ def init_pose(
     """Coarse pose of a photo from a checkerboard seen in both the photo and the scan (PnP), or
     from hand-picked correspondences (RANSAC PnP)."""
     from rgbd_gt.init.detect import MAX_SQUARE_M, BoardSpec
-    from rgbd_gt.init.run import (check_picks, init_from_board, init_from_correspondences,
-                                  read_correspondences, read_csv_rows, write_report)
+    from rgbd_gt.init.run import (board_in_scan, check_picks, detect_photo_board, init_from_board,
+                                  init_from_correspondences, read_correspondences, read_csv_rows, write_report)
     from rgbd_gt.io import load_scan, read_camera, write_pose
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import read_image
@@ -257,7 +257,8 @@ def init_pose(
         else:
             spec = BoardSpec(cols, rows, square, charuco, marker)
             corners = read_csv_rows(board_points, "x,y,z") if board_points else None
-            result = init_from_board(the_scan, photo, cam, spec, corners, scan, image)
+            found = detect_photo_board(photo, spec, image)
+            result = init_from_board(board_in_scan(the_scan, spec, corners, scan), photo, cam, spec, found)
     meta = result.pose_meta()
     with outs:
         if camera_out is not None:
@@ -522,7 +523,9 @@ def export_depth(
     start = time.perf_counter()
     cam = read_camera(camera)
     T, _ = read_pose(pose)
-    the_scan = load_scan(scan, require_points=True)
+    from rgbd_gt.render.blocks import view_of
+
+    the_scan = view_of(load_scan(scan, require_points=True), cam, [T])
     with _progress() as bar:
         bar.add_task("rendering depth", total=None)
         depth = render_depth(the_scan, cam, T, max_depth, normals=normals is not None)
@@ -587,7 +590,9 @@ def qa_edges(
     check_image_matches(cam, photo.shape, image, camera)
     T, _ = read_pose(pose)
     T_before = read_pose(before)[0] if before else None
-    the_scan = load_scan(scan, require_points=True)
+    from rgbd_gt.render.blocks import view_of
+
+    the_scan = view_of(load_scan(scan, require_points=True), cam, [T] if T_before is None else [T, T_before])
     colors = scan_colors(the_scan, scan)
     with _progress() as bar:
         bar.add_task("edges", total=None)
@@ -646,7 +651,9 @@ def overlay(
     cam = read_camera(camera, (photo.shape[1], photo.shape[0]))
     check_image_matches(cam, photo.shape, image, camera)
     T, _ = read_pose(pose)
-    the_scan = load_scan(scan, require_points=True)
+    from rgbd_gt.render.blocks import view_of
+
+    the_scan = view_of(load_scan(scan, require_points=True), cam, [T])
     with _progress() as bar:
         bar.add_task("rendering the scan", total=None)
         checker, mixed, covered = make_overlay(the_scan, photo, cam, T, max_depth)
@@ -663,60 +670,99 @@ def overlay(
 
 @app.command("run")
 def run_workflow(
-    config: Path = typer.Argument(..., help="Workflow config (see configs/example.yaml): scan, camera, board, photos, output."),
+    config: Path = typer.Argument(..., help="Workflow config: one scan with its photos (configs/example.yaml) or a site, several scans each with its photos (configs/site.yaml)."),
     export_failed: bool = typer.Option(False, "--export-failed", help="Also write depth maps for photos whose pose verdict is 'failed'."),
+    workers: int = typer.Option(1, "--workers", min=1, max=256, help="Local worker processes, one photo each at a time (the cores are shared out among them)."),
+    ray_address: Optional[str] = typer.Option(None, "--ray", help="Run one task per photo on a Ray cluster: 'auto' (the cluster running on this machine) or its ADDRESS (host:port). Every node must see the config's files and the output folder at the same paths (docs/scale.md)."),
 ) -> None:
-    """The whole workflow for one scan and many photos: init-pose -> refine -> export-depth ->
-    qa-edges per photo. Every refined pose gets a verdict (ok | suspect | failed); depth maps are
-    written for ok and suspect poses only (unless --export-failed). Steps whose outputs exist are
-    skipped (a rerun resumes); a photo that fails is reported and the others go on. Writes
-    OUTPUT/<photo>/... and OUTPUT/summary.csv."""
-    from rgbd_gt.config import load_config
-    from rgbd_gt.io import load_scan, read_camera
-    from rgbd_gt.io.scan import scan_colors
-    from rgbd_gt.render.normals import with_normals
+    """The whole workflow for one scan or a site of scans, many photos each: init-pose -> refine ->
+    export-depth -> qa-edges -> overlay per photo. Each scan is prepared once (normals, spatial
+    index, board; cached in OUTPUT/.scan-cache and reused while the scan file is unchanged) and
+    every photo works on the part of it its view reaches. Every refined pose gets a verdict
+    (ok | suspect | failed); depth maps are written for ok and suspect poses only (unless
+    --export-failed). Steps whose outputs exist are skipped (a rerun resumes, with any engine); a
+    photo that fails is reported and the others go on. Writes OUTPUT/<photo>/... (a site:
+    OUTPUT/<scan>/<photo>/...) and OUTPUT/summary.csv."""
     import dataclasses
 
-    from rgbd_gt.workflow import PhotoResult, RunConfig, resolve, run_photo, shared_camera, verdict_counts, write_summary
-
-    cfg = load_config(RunConfig, config)  # checked there
-    scan_path, camera_path, photos, out_dir = resolve(config, cfg)
+    from rgbd_gt.config import load_config
+    from rgbd_gt.engine import CACHE_FOLDER, PhotoTask, failed, prepare_job, run_local, run_ray
+    from rgbd_gt.io import read_camera
     from rgbd_gt.io.outputs import Outputs
+    from rgbd_gt.workflow import RunConfig, resolve, shared_camera, verdict_counts, write_run_record, write_summary
 
+    if ray_address is not None and workers != 1:
+        raise InputError("--workers is for local runs; on Ray every photo is a task (give one or the other)")
+    cfg = load_config(RunConfig, config)  # checked there
+    jobs, out_dir = resolve(config, cfg)
+    inputs = [config] + [p for j in jobs for p in (j.scan, j.camera, *j.photos)]
     # checked only: each step commits its own files, so that a rerun resumes where one stopped
-    Outputs([config, scan_path, camera_path, *photos]).folder(out_dir, "output")
-    camera = read_camera(camera_path)
-    scan = with_normals(load_scan(scan_path, require_points=True))  # once, for every photo
-    colors = scan_colors(scan, scan_path)
-    results = []
+    Outputs(inputs).folder(out_dir, "output")
+    cameras = {j.name: read_camera(j.camera) for j in jobs}
+    cache_root = out_dir / CACHE_FOLDER
+    results: list = []
+    prepared: list = []
+    start = time.perf_counter()
     with _progress(TextColumn("{task.fields[step]}")) as bar:
-        task = bar.add_task("photos", total=len(photos), step="")
-        if cfg.refine.refine_intrinsics != "none":  # one camera for all photos, then their poses with it
-            out_dir.mkdir(parents=True, exist_ok=True)
-            camera = shared_camera(photos, scan, colors, camera, cfg, scan_path, out_dir, lambda step: bar.update(task, step=step))
-            out.print(f"camera refined over the photos ({cfg.refine.refine_intrinsics}): fx {camera.fx:.2f} px, "
-                      f"cx {camera.cx:.1f}, cy {camera.cy:.1f}; wrote {out_dir / 'camera.yaml'}")
-            cfg = dataclasses.replace(cfg, refine=dataclasses.replace(cfg.refine, refine_intrinsics="none"))
-        for photo in photos:
-            bar.update(task, description=photo.name)
-            try:
-                results.append(run_photo(photo, scan, colors, camera, cfg, scan_path, out_dir,
-                                         lambda step: bar.update(task, step=step), export_failed))
-            except InputError as exc:
-                results.append(PhotoResult(photo.name, status="failed", error=str(exc)))
-                err.print(f"{photo.name}: failed: {exc}", markup=False, highlight=False)
+        task = bar.add_task("photos", total=sum(len(j.photos) for j in jobs), step="")
+
+        def step(text: str) -> None:
+            bar.update(task, step=text)
+
+        def done(r) -> None:
             bar.advance(task)
+            if r.error:
+                err.print(f"{r.photo}: failed: {r.error}", markup=False, highlight=False)
+
+        def report(p) -> None:
+            prepared.append(p)
+            if p.error:
+                err.print(f"{p.job.scan}: failed: {p.error}", markup=False, highlight=False)
+            else:
+                out.print(f"{p.job.name}: {p.points:,} points {'reopened from the cache' if p.cached else 'prepared'} "
+                          f"in {p.seconds:.1f} s", highlight=False)
+
+        def tasks_of(p) -> list[PhotoTask]:
+            camera, run_cfg = cameras[p.job.name], cfg
+            if cfg.refine.refine_intrinsics != "none":  # one camera for all photos, then their poses with it
+                from rgbd_gt.prepared import open_prepared
+
+                p.job.out.mkdir(parents=True, exist_ok=True)
+                camera = shared_camera(p.job.photos, open_prepared(p.folder, p.job.scan), camera, p.job.board, cfg,
+                                       p.job.out, step)
+                out.print(f"camera refined over the photos ({cfg.refine.refine_intrinsics}): fx {camera.fx:.2f} px, "
+                          f"cx {camera.cx:.1f}, cy {camera.cy:.1f}; wrote {p.job.out / 'camera.yaml'}")
+                run_cfg = dataclasses.replace(cfg, refine=dataclasses.replace(cfg.refine, refine_intrinsics="none"))
+            return [PhotoTask(photo, p.job, p.folder, camera, run_cfg, export_failed) for photo in p.job.photos]
+
+        if ray_address is not None:
+            results = run_ray(jobs, tasks_of, cache_root, ray_address, report, done)
+        else:
+            for job in jobs:
+                bar.update(task, description=job.name)
+                p = prepare_job(job, cache_root, step)
+                report(p)
+                if p.error:
+                    for r in failed(job, p.error):
+                        results.append(r)
+                        done(r)
+                    continue
+                results += run_local(tasks_of(p), workers, done, step)
     write_summary(out_dir / "summary.csv", results)
-    table = Table(title=f"rgbd-gt run: {len(photos)} photo(s)")
-    for col in ("photo", "status", "verdict", "init rms px", "edges vs chance", "edge mean px before -> after", "within 1 px", "s", "skipped"):
+    seconds = time.perf_counter() - start
+    write_run_record(out_dir / "run.json", prepared, seconds, "ray" if ray_address is not None else "local", workers)
+    table = Table(title=f"rgbd-gt run: {len(results)} photo(s) in {seconds:.0f} s")
+    site = len(jobs) > 1 or bool(cfg.scans)
+    for col in (["scan"] if site else []) + ["photo", "status", "verdict", "init rms px", "edges vs chance",
+                                             "edge mean px before -> after", "within 1 px", "s", "skipped"]:
         table.add_column(col)
 
     def f(v, fmt):
         return "-" if v is None else format(v, fmt)
 
     for r in results:
-        table.add_row(r.photo, r.status if not r.error else f"failed: {r.error}", _verdict_text(r.verdict), f(r.init_rms_px, ".3f"),
-                      f(r.edge_ratio, ".2f"),
+        table.add_row(*([r.scan] if site else []), r.photo, r.status if not r.error else f"failed: {r.error}",
+                      _verdict_text(r.verdict), f(r.init_rms_px, ".3f"), f(r.edge_ratio, ".2f"),
                       f"{f(r.edge_before_px, '.2f')} -> {f(r.edge_after_px, '.2f')}",
                       f"{f(r.within_1px_before, '.0%')} -> {f(r.within_1px_after, '.0%')}", f(r.seconds, ".1f"), " ".join(r.skipped))
     out.print(table)
@@ -724,7 +770,9 @@ def run_workflow(
         if r.reasons:
             out.print(f"{r.photo}: {r.verdict}: {r.reasons}", markup=False, highlight=False)
     out.print(f"verdicts: {verdict_counts(results)}")
-    out.print(f"outputs in {out_dir}/<photo>/ (init.yaml, pose.yaml, depth.exr, depth.png, qa.png, qa.json); summary in {out_dir / 'summary.csv'}")
+    where = "<scan>/<photo>" if site else "<photo>"
+    out.print(f"outputs in {out_dir}/{where}/ (init.yaml, pose.yaml, depth.exr, depth.png, qa.png, qa.json, overlay.png); "
+              f"summary in {out_dir / 'summary.csv'}")
     if all(r.status == "failed" for r in results):
         raise typer.Exit(1)
 

@@ -53,8 +53,11 @@ def _name(value: Any) -> str:
 
 
 def _typed(value: Any, hint: Any, where: str) -> Any:
-    """`value` as type `hint` (str, int, float, bool, X | None, list[X]); InputError otherwise."""
+    """`value` as type `hint` (str, int, float, bool, a dataclass, X | None, list[X]); InputError
+    otherwise."""
     origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if dataclasses.is_dataclass(hint):
+        return from_dict(hint, {} if value is None else value, where)
     if origin in (typing.Union, types.UnionType):
         if value is None and type(None) in args:
             return None

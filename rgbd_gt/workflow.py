@@ -39,8 +39,21 @@ class BoardConfig:
 
 
 @dataclass
+class SiteScan:
+    """One scan of a site config (`scans:`) with its photos; camera and board default to the
+    config's own."""
+
+    scan: str = ""
+    photos: list[str] = field(default_factory=list)  # files or glob patterns
+    camera: str | None = None
+    name: str | None = None  # its outputs go to OUTPUT/<name>/ (default: the scan file's stem)
+    board: BoardConfig | None = None
+
+
+@dataclass
 class RunConfig:
-    """configs/example.yaml. Relative paths are relative to the config file's folder."""
+    """configs/example.yaml (one scan) or configs/site.yaml (`scans:`, several). Relative paths are
+    relative to the config file's folder."""
 
     scan: str = ""
     camera: str = ""
@@ -50,6 +63,7 @@ class RunConfig:
     refine: RefineConfig = field(default_factory=RefineConfig)
     device: str = "auto"
     max_depth: float | None = None
+    scans: list[SiteScan] = field(default_factory=list)
 
     def check(self) -> "RunConfig":
         if not self.output:
@@ -58,12 +72,31 @@ class RunConfig:
             raise ValueError(f"device must be auto, cpu or cuda, got {self.device!r}")
         if self.max_depth is not None and self.max_depth < 0:
             raise ValueError(f"max_depth must be 0 or more, got {self.max_depth}")
+        if self.scans and (self.scan or self.photos):
+            raise ValueError("give either scan and photos (one scan) or scans (a site), not both")
         self.board.check()
+        for k, s in enumerate(self.scans):
+            if s.board is not None:
+                s.board.check()
+            if s.name is not None and (not s.name or s.name in (".", "..") or "/" in s.name or s.name.startswith(".")):
+                raise ValueError(f"scans[{k}].name must be a plain folder name, got {s.name!r}")
         try:
             self.refine.check()
         except ValueError as exc:
             raise ValueError(f"refine: {exc}") from None
         return self
+
+
+@dataclass
+class ScanJob:
+    """A scan with its photos, paths resolved: outputs in out/<photo stem>/."""
+
+    name: str
+    scan: Path
+    camera: Path
+    photos: list[Path]
+    out: Path
+    board: BoardConfig
 
 
 STEPS = ("init", "refine", "depth", "qa", "overlay")
@@ -87,42 +120,81 @@ class PhotoResult:
     seconds: float = 0.0
     skipped: list[str] = field(default_factory=list)
     error: str = ""
+    scan: str = ""  # the scan's name (a site's folder)
+    view_points: int | None = None  # of the scan, the points the photo's steps worked on
+    steps: dict[str, float] = field(default_factory=dict)  # seconds per step run (init, view, aligner, verify, depth, qa, overlay)
 
 
-def resolve(config_path: Path, cfg: RunConfig) -> tuple[Path, Path, list[Path], Path]:
-    """(scan, camera, photos, output folder) with the config's relative paths resolved."""
-    base = config_path.parent
+def resolve(config_path: Path, cfg: RunConfig) -> tuple[list[ScanJob], Path]:
+    """The config's scans with their paths resolved, and the output folder. One scan writes to
+    OUTPUT/<photo stem>/, a site's scans to OUTPUT/<name>/<photo stem>/. Paths are made absolute:
+    workers elsewhere (Ray) do not share this process's working folder."""
+    base = config_path.absolute().parent
 
     def norm(p: Path) -> Path:
         return Path(os.path.normpath(p))
 
-    if not cfg.scan or not cfg.camera or not cfg.photos:
-        raise InputError("the config needs scan, camera and photos", config_path)
-    photos: list[Path] = []
-    for pattern in cfg.photos:
-        hits = sorted(glob.glob(str(base / pattern)))
-        if not hits:
-            raise InputError(f"no photo matches '{pattern}'", config_path)
-        photos += [norm(Path(h)) for h in hits]
-    return norm(base / cfg.scan), norm(base / cfg.camera), photos, norm(base / cfg.output)
+    def photos_of(patterns: list[str]) -> list[Path]:
+        found: list[Path] = []
+        for pattern in patterns:
+            hits = sorted(glob.glob(str(base / pattern)))
+            if not hits:
+                raise InputError(f"no photo matches '{pattern}'", config_path)
+            found += [norm(Path(h)) for h in hits]
+        return found
+
+    output = norm(base / cfg.output)
+    if not cfg.scans:
+        if not cfg.scan or not cfg.camera or not cfg.photos:
+            raise InputError("the config needs scan, camera and photos (or scans: a list of them)", config_path)
+        scan = norm(base / cfg.scan)
+        return [ScanJob(scan.stem, scan, norm(base / cfg.camera), photos_of(cfg.photos), output, cfg.board)], output
+    jobs = []
+    for k, s in enumerate(cfg.scans):
+        camera = s.camera or cfg.camera
+        if not s.scan or not camera or not s.photos:
+            raise InputError(f"scans[{k}] needs scan, photos and a camera (its own or the config's)", config_path)
+        scan = norm(base / s.scan)
+        name = s.name or scan.stem
+        jobs.append(ScanJob(name, scan, norm(base / camera), photos_of(s.photos), output / name, s.board or cfg.board))
+    names = [j.name for j in jobs]
+    if len(set(names)) < len(names):
+        raise InputError(f"two scans would write to the same folder ({', '.join(sorted({n for n in names if names.count(n) > 1}))}): "
+                         "give them names", config_path)
+    return jobs, output
 
 
-def run_photo(photo: Path, scan, colors: np.ndarray, camera, cfg: RunConfig, scan_path: Path, out: Path,
-              progress: Callable[[str], None], export_failed: bool = False) -> PhotoResult:
-    """The four steps for one photo into out/<photo stem>/. The depth map is written only for a
-    pose whose verdict is ok or suspect, unless export_failed."""
+def board_spec(b: BoardConfig):
+    from rgbd_gt.init.detect import BoardSpec
+
+    return BoardSpec(b.cols, b.rows, b.square, b.charuco, b.marker)
+
+
+def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig, out: Path,
+              progress: Callable[[str], None] = lambda step: None, export_failed: bool = False) -> PhotoResult:
+    """The steps for one photo into out/<photo stem>/, on the points of the prepared scan
+    (`prepared.PreparedScan`) its view can reach. The depth map is written only for a pose whose
+    verdict is ok or suspect, unless export_failed."""
     from rgbd_gt.align.refine import RefineInputs, refine_meta, refine_verified
     from rgbd_gt.io import read_pose, write_pose
     from rgbd_gt.io.atomic import atomic_output
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.depth_file import write_depth_exr, write_depth_png16
     from rgbd_gt.io.image import read_image, write_image
+    from rgbd_gt.io.scan import scan_colors
     from rgbd_gt.qa.edges import qa, side_by_side
     from rgbd_gt.qa.overlay import overlay
     from rgbd_gt.render.depth import back_facing_fraction, render_depth
 
     start = time.perf_counter()
     res = PhotoResult(photo.name)
+    clock = [start]
+
+    def lap(step: str) -> None:
+        now = time.perf_counter()
+        res.steps[step] = round(now - clock[0], 3)
+        clock[0] = now
+
     d = out / photo.stem
     d.mkdir(parents=True, exist_ok=True)
     files = {"init": d / "init.yaml", "refine": d / "pose.yaml", "depth": d / "depth.exr", "qa": d / "qa.json",
@@ -133,8 +205,15 @@ def run_photo(photo: Path, scan, colors: np.ndarray, camera, cfg: RunConfig, sca
     progress("init-pose")
     if files["init"].exists():
         res.skipped.append("init")
-    T_init, init_meta = initial_pose(photo, image, scan, camera, cfg, scan_path, files["init"])
+    T_init, init_meta = initial_pose(photo, image, prepared, camera, board, files["init"])
     res.init_rms_px = init_meta.get("reprojection_rms_px")
+    lap("init")
+    scan = prepared.view(camera, T_init)
+    res.view_points = len(scan)
+    if len(scan) == 0:
+        raise InputError("no scan points in view of the initial pose", files["init"])
+    colors = scan_colors(scan, prepared.source)
+    lap("view")
 
     progress("refine")
     if files["refine"].exists():
@@ -143,7 +222,9 @@ def run_photo(photo: Path, scan, colors: np.ndarray, camera, cfg: RunConfig, sca
         inputs = RefineInputs(scan.xyz, colors, image, camera, T_init, None, scan, init_meta)
         r, verification = refine_verified(inputs, cfg.refine, cfg.device)
         write_pose(files["refine"], r.T_cam_from_scan, **refine_meta(r, cfg.refine, T_init, files["init"], verification,
-                                                                             camera=camera))
+                                                                     camera=camera))
+        res.steps["aligner"] = round(r.seconds, 3)
+        lap("refine")
     T, meta = read_pose(files["refine"])
     res.refine_loss, res.inlier_fraction = meta.get("final_loss"), meta.get("inlier_fraction")
     res.verdict, res.reasons = meta.get("verdict"), "; ".join(meta.get("reasons") or [])
@@ -152,13 +233,18 @@ def run_photo(photo: Path, scan, colors: np.ndarray, camera, cfg: RunConfig, sca
     progress("export-depth")
     if files["depth"].exists():
         res.skipped.append("depth")
+        from rgbd_gt.io.depth_file import read_depth_exr
+
+        behind = read_depth_exr(files["depth"])[1].get("rgbd_gt_seen_from_behind")  # so that a resumed summary says it too
+        res.seen_from_behind = float(behind) if behind is not None else None
     elif res.verdict == "failed" and not export_failed:
         res.skipped.append("depth (failed)")
     else:
         depth = render_depth(scan, camera, T, cfg.max_depth, normals=False)
         res.seen_from_behind = back_facing_fraction(depth)
         write_depth_png16(d / "depth.png", depth.z)
-        write_depth_exr(files["depth"], depth.z, camera, T, scan_path.name)
+        write_depth_exr(files["depth"], depth.z, camera, T, prepared.source.name, seen_from_behind=res.seen_from_behind)
+        lap("depth")
 
     progress("qa-edges")
     if files["qa"].exists():
@@ -169,6 +255,7 @@ def run_photo(photo: Path, scan, colors: np.ndarray, camera, cfg: RunConfig, sca
         write_image(d / "qa.png", side_by_side(img_b, img_a))
         with atomic_output(files["qa"]) as tmp:
             tmp.write_text(json.dumps({**after.as_dict(), **before.as_dict("before_")}, indent=1))
+        lap("qa")
     progress("overlay")
     if files["overlay"].exists():
         res.skipped.append("overlay")
@@ -176,6 +263,7 @@ def run_photo(photo: Path, scan, colors: np.ndarray, camera, cfg: RunConfig, sca
         checker, mixed, _ = overlay(scan, image, camera, T, cfg.max_depth)
         write_image(d / "overlay_blend.png", mixed)
         write_image(files["overlay"], checker)
+        lap("overlay")
     score = json.loads(files["qa"].read_text())
     res.edge_before_px, res.edge_after_px = score["before_mean_distance_px"], score["mean_distance_px"]
     res.within_1px_before, res.within_1px_after = score["before_within_1px"], score["within_1px"]
@@ -183,24 +271,34 @@ def run_photo(photo: Path, scan, colors: np.ndarray, camera, cfg: RunConfig, sca
     return res
 
 
-def initial_pose(photo: Path, image: np.ndarray, scan, camera, cfg: RunConfig, scan_path: Path,
-                 path: Path) -> tuple[np.ndarray, dict]:
-    """The photo's initial pose file `path`: read when it exists, else made from the board (and
-    written)."""
-    from rgbd_gt.init.detect import BoardSpec
-    from rgbd_gt.init.run import init_from_board, read_csv_rows
+def initial_pose(photo: Path, image: np.ndarray, prepared, camera, board: BoardConfig, path: Path) -> tuple[np.ndarray, dict]:
+    """The photo's initial pose file `path`: read when it exists, else made from the board (found
+    once per scan, `scan_board`) and written."""
+    from rgbd_gt.init.run import detect_photo_board, init_from_board
     from rgbd_gt.io import read_pose, write_pose
 
     if not path.exists():
-        b = cfg.board
-        spec = BoardSpec(b.cols, b.rows, b.square, b.charuco, b.marker)
-        corners = read_csv_rows(Path(b.points), "x,y,z") if b.points else None
-        r = init_from_board(scan, image, camera, spec, corners, scan_path, photo)
+        spec = board_spec(board)
+        found = detect_photo_board(image, spec, photo)
+        r = init_from_board(scan_board(prepared, board), image, camera, spec, found)
         write_pose(path, r.T_cam_from_scan, **r.pose_meta())
     return read_pose(path)
 
 
-def shared_camera(photos: list[Path], scan, colors: np.ndarray, camera, cfg: RunConfig, scan_path: Path, out: Path,
+def scan_board(prepared, board: BoardConfig):
+    """The board in the prepared scan (`init.run.BoardInScan`): its given corners (board.points)
+    with the scan points around them, or found in the scan (cached beside the prepared scan)."""
+    from rgbd_gt.init.run import board_in_scan, read_csv_rows
+
+    spec = board_spec(board)
+    if board.points:
+        corners = read_csv_rows(Path(board.points), "x,y,z")
+        pad = 2 * spec.square + 0.02
+        return board_in_scan(prepared.near(corners.min(0) - pad, corners.max(0) + pad), spec, corners, prepared.source)
+    return prepared.board(spec, prepared.source)
+
+
+def shared_camera(photos: list[Path], prepared, camera, board: BoardConfig, cfg: RunConfig, out: Path,
                   progress: Callable[[str], None] = lambda step: None):
     """With cfg.refine.refine_intrinsics, the one camera of all the photos: per photo its initial
     pose (kept for the run) and the camera corrections refined with its pose, then their
@@ -214,6 +312,7 @@ def shared_camera(photos: list[Path], scan, colors: np.ndarray, camera, cfg: Run
     from rgbd_gt.io.atomic import atomic_output
     from rgbd_gt.io.camera_file import check_image_matches, write_camera
     from rgbd_gt.io.image import read_image
+    from rgbd_gt.io.scan import scan_colors
 
     if (out / "camera.yaml").exists():
         return read_camera(out / "camera.yaml")
@@ -224,8 +323,9 @@ def shared_camera(photos: list[Path], scan, colors: np.ndarray, camera, cfg: Run
             image = read_image(photo)
             check_image_matches(camera, image.shape, photo, "the camera file")
             (out / photo.stem).mkdir(parents=True, exist_ok=True)
-            T_init, init_meta = initial_pose(photo, image, scan, camera, cfg, scan_path, out / photo.stem / "init.yaml")
-            inputs = RefineInputs(scan.xyz, colors, image, camera, T_init, None, scan, init_meta)
+            T_init, init_meta = initial_pose(photo, image, prepared, camera, board, out / photo.stem / "init.yaml")
+            scan = prepared.view(camera, T_init)
+            inputs = RefineInputs(scan.xyz, scan_colors(scan, prepared.source), image, camera, T_init, None, scan, init_meta)
             r = make_aligner(inputs, cfg.refine, cfg.device).refine(T_init)
         except InputError:
             continue  # the photo's own run reports why
@@ -252,16 +352,34 @@ def write_summary(path: Path, results: list[PhotoResult]) -> None:
     from rgbd_gt.io.atomic import atomic_output
 
     cols = ["photo", "status", "verdict", "init_rms_px", "refine_loss", "inlier_fraction", "edge_ratio", "edge_before_px",
-            "edge_after_px", "within_1px_before", "within_1px_after", "seen_from_behind", "seconds", "skipped", "reasons", "error"]
+            "edge_after_px", "within_1px_before", "within_1px_after", "seen_from_behind", "seconds", "skipped", "reasons", "error",
+            "scan", "view_points", "steps"]
     with atomic_output(path) as tmp, open(tmp, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(cols)
         for r in results:
             row = [getattr(r, c) for c in cols]
             row[cols.index("skipped")] = " ".join(r.skipped)
+            row[cols.index("steps")] = " ".join(f"{k}={v:.2f}" for k, v in r.steps.items())
             w.writerow(["" if v is None else (f"{v:.6g}" if isinstance(v, float) else v) for v in row])
         # the count, in a last row that no photo name can take
         w.writerow(["# verdicts", "", verdict_counts(results)] + [""] * (len(cols) - 3))
+
+
+def write_run_record(path: Path, prepared: list, seconds: float, engine: str, workers: int) -> None:
+    """OUTPUT/run.json: how the run went as a whole: the engine, each scan's preparation
+    (`engine.Prepared`: seconds, from the cache or not, and the parts of it) and the wall time."""
+    from rgbd_gt.io.atomic import atomic_output
+
+    scans = []
+    for p in prepared:
+        entry = {"name": p.job.name, "scan": str(p.job.scan), "points": p.points, "cached": p.cached,
+                 "seconds": round(p.seconds, 3), "steps": p.steps, "error": p.error}
+        if p.folder is not None and not p.cached:
+            entry["prepare_seconds"] = json.loads((p.folder / "meta.json").read_text()).get("seconds")
+        scans.append(entry)
+    with atomic_output(path) as tmp:
+        tmp.write_text(json.dumps({"engine": engine, "workers": workers, "seconds": round(seconds, 3), "scans": scans}, indent=1))
 
 
 def verdict_counts(results: list[PhotoResult]) -> str:

@@ -167,6 +167,9 @@ def _valid_at(valid: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     return valid[v0, u0] & valid[v0, u0 + 1] & valid[v0 + 1, u0] & valid[v0 + 1, u0 + 1]
 
 
+POOL = 16  # x max_points: the most scan points an aligner keeps (drawn at random)
+
+
 class Aligner:
     """Refines one photo's pose against one colored scan.
 
@@ -186,6 +189,11 @@ class Aligner:
         self.device = pyramid[0].image.device
         self.dtype = torch.float32
         self.model = ColorModel(cfg.color_model)
+        if len(points) > POOL * cfg.max_points:
+            # a big scan's view: a random pool, so that setting up costs what max_points needs
+            keep = np.sort(np.random.default_rng(cfg.seed).choice(len(points), POOL * cfg.max_points, replace=False))
+            points, colors = points[keep], colors[keep]
+            normals = None if normals is None else normals[keep]
         # a local frame keeps float32 exact for georeferenced coordinates
         self.centre = points.mean(axis=0)
         self.points = torch.as_tensor(points - self.centre, dtype=self.dtype, device=self.device)

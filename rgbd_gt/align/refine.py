@@ -28,6 +28,9 @@ def resolve_device(name: str):
     return torch.device(name)
 
 
+REFINE_VIEW_MARGIN = 0.5  # of the photo's extent on every side: the scan points refine keeps
+
+
 @dataclass
 class RefineInputs:
     points: np.ndarray  # (N, 3) scan frame, metres
@@ -54,6 +57,7 @@ def load_inputs(scan_path: Path, image_path: Path, camera_path: Path, init_path:
     from rgbd_gt.io import load_scan, read_camera, read_pose
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import read_image, read_mask
+    from rgbd_gt.render.blocks import view_of
     from rgbd_gt.render.normals import with_normals
 
     photo = read_image(image_path)
@@ -62,6 +66,12 @@ def load_inputs(scan_path: Path, image_path: Path, camera_path: Path, init_path:
     T_init, init_meta = read_pose(init_path)
     ignore = read_mask(mask_path, photo.shape[:2]) if mask_path is not None else None
     scan = with_normals(load_scan(scan_path, require_points=True))
+    # what the photo can see from poses well around T_init (searches included): a big scan's
+    # renders then cost what the photo sees
+    scan = view_of(scan, camera, [T_init], REFINE_VIEW_MARGIN)
+    if len(scan) == 0:
+        raise InputError("no scan points in view of the initial pose (nor near it): check the pose, the camera file "
+                         "and the scan", init_path)
     return RefineInputs(scan.xyz, scan_colors(scan, scan_path), photo, camera, T_init, ignore, scan, init_meta)
 
 

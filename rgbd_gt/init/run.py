@@ -13,7 +13,7 @@ from rgbd_gt.camera import Camera, project
 from rgbd_gt.errors import InputError, require_file
 from rgbd_gt.init.detect import BoardSpec, detect_corners
 from rgbd_gt.init.pnp import board_pose, check_spread, estimate_focal, pnp_ransac, pose_uncertainty, reprojection_rms
-from rgbd_gt.init.scan_board import ScanBoard, angular_step, find_board_in_scan, in_convex_polygon
+from rgbd_gt.init.scan_board import ScanBoard, find_board_in_scan, in_convex_polygon, scan_step
 from rgbd_gt.io.scan import Scan, colors_to_gray, scan_colors
 from rgbd_gt.pose import transform_points
 
@@ -64,35 +64,60 @@ def board_neighbourhood(scan: Scan, corners: np.ndarray, square: float) -> np.nd
     return idx[in_convex_polygon(uv, grow)]
 
 
-def init_from_board(scan: Scan, photo: np.ndarray, camera: Camera, spec: BoardSpec,
-                    board_points: np.ndarray | None = None, scan_path=None, image_path=None) -> InitResult:
-    """Board corners in the photo and in the scan (found in virtual views, or given), then PnP."""
-    from rgbd_gt.scan_ops import median_spacing
+@dataclass
+class BoardInScan:
+    """The board's corners in the scan (n, 3) (ids into BoardSpec.object_points()) and the scan
+    points on it, xyz (m, 3) with their gray levels (m,) (which of a checkerboard's two turns
+    fits the photo): found once per scan and used for every photo."""
 
-    start = time.perf_counter()
-    photo_gray = cv2.cvtColor(photo, cv2.COLOR_RGB2GRAY)
-    found = detect_corners(photo_gray, spec)
-    if found is None:
-        raise InputError(f"no {spec.cols}x{spec.rows} {'ChArUco board' if spec.charuco else 'checkerboard'} found in the photo", image_path)
-    img_corners, img_ids = found
+    corners: np.ndarray
+    ids: np.ndarray
+    near_xyz: np.ndarray
+    near_gray: np.ndarray
+    method: str
+    plane_rms_m: float | None = None
+    scan_board: ScanBoard | None = None  # the virtual view it was found in (for the init report)
+
+
+def board_in_scan(scan: Scan, spec: BoardSpec, board_points: np.ndarray | None = None, scan_path=None) -> BoardInScan:
+    """The board found in the scan's virtual views from its first scanner position (one pixel
+    per angular step of the scan), or given as its corners `board_points`."""
     colors = scan_colors(scan, scan_path)
     sb = None
     if board_points is not None:
         if len(board_points) != spec.cols * spec.rows:
             raise InputError(f"--board-points has {len(board_points)} corners, the {spec.cols}x{spec.rows} board has {spec.cols * spec.rows}")
-        scan_corners, scan_ids, method = board_points, np.arange(len(board_points)), "board corners given"
+        corners, ids, method = board_points, np.arange(len(board_points)), "board corners given"
     else:
         if len(scan.origins) == 0:
             raise InputError("the scan records no scanner position to render views from; give --board-points", scan_path)
         origin = scan.origins[0]
-        sb = find_board_in_scan(scan.xyz, colors, origin, spec, angular_step(scan.xyz, origin, median_spacing(scan)))
-        scan_corners, scan_ids, method = sb.corners, sb.ids, "board found in the scan's virtual views"
-    near = board_neighbourhood(scan, scan_corners, spec.square)
-    T, rms, corr, sigma = board_pose(img_corners, img_ids, scan_corners, scan_ids, spec.cols * spec.rows, camera,
-                              scan.xyz[near], colors_to_gray(colors[near]), photo_gray, symmetric=spec.charuco is None)
-    return InitResult(T, f"{'charuco' if spec.charuco else 'checkerboard'} PnP ({method})", rms, len(img_ids), camera,
-                      corr, img_corners, scan_corners, sb, time.perf_counter() - start,
-                      {"board_plane_rms_mm": sb.plane_rms_m * 1e3 if sb else None}, sigma)
+        sb = find_board_in_scan(scan.xyz, colors, origin, spec, scan_step(scan))
+        corners, ids, method = sb.corners, sb.ids, "board found in the scan's virtual views"
+    near = board_neighbourhood(scan, corners, spec.square)
+    return BoardInScan(corners, ids, scan.xyz[near], colors_to_gray(colors[near]), method,
+                       sb.plane_rms_m if sb else None, sb)
+
+
+def detect_photo_board(photo: np.ndarray, spec: BoardSpec, image_path=None) -> tuple[np.ndarray, np.ndarray]:
+    """The board's corners (n, 2) in the photo and their ids (n,); InputError when not found."""
+    found = detect_corners(cv2.cvtColor(photo, cv2.COLOR_RGB2GRAY), spec)
+    if found is None:
+        raise InputError(f"no {spec.cols}x{spec.rows} {'ChArUco board' if spec.charuco else 'checkerboard'} found in the photo", image_path)
+    return found
+
+
+def init_from_board(board: BoardInScan, photo: np.ndarray, camera: Camera, spec: BoardSpec,
+                    found: tuple[np.ndarray, np.ndarray]) -> InitResult:
+    """PnP of the board's corners in the photo (`detect_photo_board`) against those in the scan."""
+    start = time.perf_counter()
+    img_corners, img_ids = found
+    T, rms, corr, sigma = board_pose(img_corners, img_ids, board.corners, board.ids, spec.cols * spec.rows, camera,
+                                     board.near_xyz, board.near_gray, cv2.cvtColor(photo, cv2.COLOR_RGB2GRAY),
+                                     symmetric=spec.charuco is None)
+    return InitResult(T, f"{'charuco' if spec.charuco else 'checkerboard'} PnP ({board.method})", rms, len(img_ids), camera,
+                      corr, img_corners, board.corners, board.scan_board, time.perf_counter() - start,
+                      {"board_plane_rms_mm": board.plane_rms_m * 1e3 if board.plane_rms_m is not None else None}, sigma)
 
 
 def _is_number(cell: str) -> bool:

@@ -51,9 +51,10 @@ def _view_rotation(az: float, el: float) -> np.ndarray:
     return np.stack([right, down, fwd], 1)
 
 
-def candidate_views(points: np.ndarray, origin: np.ndarray) -> list[tuple[float, float]]:
-    """(azimuth, elevation) of views on a 30-degree grid that hold a useful share of the points."""
-    d = points - origin
+def candidate_views(points: np.ndarray, origin: np.ndarray, sample: int = 1 << 20) -> list[tuple[float, float]]:
+    """(azimuth, elevation) of views on a 30-degree grid that hold a useful share of the points
+    (counted on an even sample of about `sample` points)."""
+    d = points[:: max(1, len(points) // sample)] - origin
     az = np.arctan2(d[:, 1], d[:, 0])
     el = np.arctan2(d[:, 2], np.linalg.norm(d[:, :2], axis=1))
     hx, hy = np.deg2rad(VIEW_FOV_DEG[0]) / 2, np.deg2rad(VIEW_FOV_DEG[1]) / 2
@@ -81,7 +82,13 @@ def render_view(points: np.ndarray, gray: np.ndarray, origin: np.ndarray, az: fl
     w = int(2 * f * np.tan(np.deg2rad(VIEW_FOV_DEG[0]) / 2))
     h = int(2 * f * np.tan(np.deg2rad(VIEW_FOV_DEG[1]) / 2))
     R = _view_rotation(az, el)
-    cam = torch.as_tensor((points - origin) @ R, dtype=torch.float64)
+    # the points in the view's cone first (float32 is exact to microns around the scanner): a
+    # 40-million-point scan then costs one pass per view
+    cam = (points - np.asarray(origin, points.dtype)).astype(np.float32, copy=False) @ R.astype(np.float32)
+    reach = cam[:, 2] * np.float32(1.05 * max(w, h) / (2 * f))
+    cone = (cam[:, 2] > 0.05) & (np.abs(cam[:, 0]) < reach) & (np.abs(cam[:, 1]) < reach)
+    gray = np.asarray(gray)[cone]
+    cam = torch.as_tensor(cam[cone], dtype=torch.float64)
     K = torch.tensor([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]], dtype=torch.float64)
     uv, z = project_pinhole(cam, K)
     px = torch.round(uv).long()
@@ -105,9 +112,15 @@ def _lift(view: ScanView, pixels: np.ndarray, points: np.ndarray) -> tuple[np.nd
     project inside the detected corners' outline. Returns (corners (n, 3) world, plane rms m)."""
     import cv2
 
-    cam = (points - view.origin) @ view.R
-    front = cam[:, 2] > 0
-    cam = cam[front]
+    # float32 around the scanner is exact to microns; only the points that land near the
+    # corners' outline are kept (in float64) for the plane fit
+    cam = (points - view.origin.astype(points.dtype)).astype(np.float32, copy=False) @ view.R.astype(np.float32)
+    z = np.maximum(cam[:, 2], np.float32(1e-6))
+    lo, hi = pixels.min(0) - 2, pixels.max(0) + 2
+    u = cam[:, 0] / z * np.float32(view.f) + np.float32(view.cx)
+    v = cam[:, 1] / z * np.float32(view.f) + np.float32(view.cy)
+    near = (cam[:, 2] > 0) & (u >= lo[0]) & (u <= hi[0]) & (v >= lo[1]) & (v <= hi[1])
+    cam = cam[near].astype(np.float64)
     uv = cam[:, :2] / cam[:, 2:3] * view.f + [view.cx, view.cy]
     hull = cv2.convexHull(pixels.astype(np.float32))
     centre = pixels.mean(axis=0)
@@ -142,14 +155,24 @@ def in_convex_polygon(pts: np.ndarray, poly: np.ndarray) -> np.ndarray:
     return inside
 
 
+COARSE_SIDE = 1024  # pixels: views wider than this are searched at a reduced scale first
+
+
 def find_board_in_scan(points: np.ndarray, colors: np.ndarray, origin: np.ndarray, spec: BoardSpec,
                        step_rad: float) -> ScanBoard:
     """Search the virtual views (most populated first) for the board; lift the corners of the
-    detection that lies farthest inside its view."""
+    detection that lies farthest inside its view.
+
+    A dense scan (views over COARSE_SIDE pixels wide) is searched in views k times coarser made
+    from every k^2-th point (the board detector's cost grows with the pixels, the rendering's
+    with the points); the view that holds the board is then rendered at the scan's own
+    resolution and the board detected again there, around where it was found."""
     gray = colors_to_gray(colors)
+    width = 2 * np.tan(np.deg2rad(VIEW_FOV_DEG[0]) / 2) / step_rad
+    k = max(1, int(np.ceil(width / COARSE_SIDE)))
     best = None
     for az, el in candidate_views(points, origin):
-        view = render_view(points, gray, origin, az, el, step_rad)
+        view = render_view(points[:: k * k], gray[:: k * k], origin, az, el, step_rad * k)
         found = detect_corners(view.image, spec)
         if found is None:
             continue
@@ -157,17 +180,36 @@ def find_board_in_scan(points: np.ndarray, colors: np.ndarray, origin: np.ndarra
         h, w = view.image.shape
         margin = min(px[:, 0].min(), px[:, 1].min(), w - px[:, 0].max(), h - px[:, 1].max())
         if best is None or margin > best[0]:
-            best = (margin, view, px, ids)
+            best = (margin, view, px, ids, az, el)
         if margin > 0.1 * w:
             break
     if best is None:
         raise InputError(f"no {spec.cols}x{spec.rows} board found in the scan's virtual views")
-    _, view, px, ids = best
+    _, view, px, ids, az, el = best
+    if k > 1:
+        view, px, ids = _detect_again(points, gray, origin, az, el, step_rad, view, px, ids, spec)
     lifted, rms = _lift(view, px, points)
     # the board is a rigid, known grid: fitting it to all lifted corners averages their errors
     model = spec.object_points()[ids]
     T = rigid_fit(model, lifted)
     return ScanBoard(transform_points(T, model), ids, view, px, rms)
+
+
+def _detect_again(points, gray, origin, az, el, step_rad, coarse: ScanView, px: np.ndarray, ids: np.ndarray,
+                  spec: BoardSpec) -> tuple[ScanView, np.ndarray, np.ndarray]:
+    """The board's view at the scan's own resolution and the corners detected in it, within the
+    region where the coarse view `coarse` found them at px (the coarse corners, carried over,
+    when the detector fails there)."""
+    view = render_view(points, gray, origin, az, el, step_rad)
+    fine = (px - [coarse.cx, coarse.cy]) / coarse.f * view.f + [view.cx, view.cy]
+    pad = 0.25 * (fine.max(0) - fine.min(0)) + 8
+    h, w = view.image.shape
+    x0, y0 = np.maximum(np.floor(fine.min(0) - pad), 0).astype(int)
+    x1, y1 = np.minimum(np.ceil(fine.max(0) + pad), [w, h]).astype(int)
+    found = detect_corners(np.ascontiguousarray(view.image[y0:y1, x0:x1]), spec)
+    if found is None:
+        return view, fine, ids
+    return view, found[0] + [x0, y0], found[1]
 
 
 def rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -177,6 +219,20 @@ def rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
     R = Vt.T @ D @ U.T
     return rigid(R, cd - R @ cs)
+
+
+def scan_step(scan) -> float:
+    """The angular spacing (radians) of a scan's points seen from its first scanner position: its
+    grid's, or the median point spacing over the median range (`io.Scan` with origins)."""
+    from rgbd_gt.render.mesh import grid_image, row_step
+
+    origin = scan.origins[0]
+    if scan.has_grid:
+        first = None if scan.scan_id is None else np.flatnonzero(scan.scan_id == scan.scan_id.min())
+        return row_step(scan.xyz, grid_image(scan.row, scan.col, first), origin)
+    from rgbd_gt.scan_ops import median_spacing
+
+    return angular_step(scan.xyz, origin, median_spacing(scan))
 
 
 def angular_step(points: np.ndarray, origin: np.ndarray, spacing_m: float) -> float:

@@ -12,9 +12,10 @@ from rgbd_gt.io.atomic import atomic_output
 
 
 def write_depth_exr(path: str | os.PathLike, z: np.ndarray, camera: Camera, T_cam_from_scan: np.ndarray,
-                    scan_name: str, normals: np.ndarray | None = None) -> None:
+                    scan_name: str, normals: np.ndarray | None = None, seen_from_behind: float | None = None) -> None:
     """Write z (H, W) metres as channel Z (float32; 0 where there is no depth), with the
-    intrinsics, distortion, pose and scan file name as header attributes. With `normals`
+    intrinsics, distortion, pose and scan file name as header attributes (and the fraction of
+    the view seen from behind, `render.depth.back_facing_fraction`, when known). With `normals`
     (H, W, 3), also channels N.X, N.Y, N.Z (camera frame)."""
     import OpenEXR
 
@@ -27,6 +28,8 @@ def write_depth_exr(path: str | os.PathLike, z: np.ndarray, camera: Camera, T_ca
         "rgbd_gt_scan": str(scan_name),
         "rgbd_gt_units": "metres, z along the optical axis; 0 = no depth",
     }
+    if seen_from_behind is not None:
+        header["rgbd_gt_seen_from_behind"] = repr(float(seen_from_behind))
     channels = {"Z": np.ascontiguousarray(z, np.float32)}
     if normals is not None:
         for k, c in enumerate("XYZ"):

@@ -37,6 +37,9 @@ class Scan:
     scan_id: np.ndarray | None = None
     origins: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     normals: np.ndarray | None = None
+    # what renderers derive from this scan once and reuse (its grid mesh and ray-casting
+    # scene): not copied by `subset` or dataclasses.replace
+    derived: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     PER_POINT = ("xyz", "rgb", "intensity", "row", "col", "scan_id", "normals")
 

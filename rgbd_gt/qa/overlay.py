@@ -17,18 +17,20 @@ def render_scale(scan: Scan, camera: Camera, T: np.ndarray, per_step: float = 2.
     """The scale (at most 1) at which `per_step` pixels span one step between neighbouring scan
     points in view: finer rendering only interpolates. Measured in the image: the side of the
     square cells whose occupied ones hold 3 points at the median, over sqrt(3)."""
-    from rgbd_gt.camera import project
-    from rgbd_gt.pose import transform_points
-
-    uv, z = project(camera, transform_points(T, scan.xyz))
+    p = scan.xyz @ T[:3, :3].T + T[:3, 3]
+    z = np.maximum(p[:, 2], 1e-9)
+    # pinhole: the lens distortion hardly changes how densely points land
+    u, v = camera.fx * p[:, 0] / z + camera.cx, camera.fy * p[:, 1] / z + camera.cy
     w, h = camera.size
-    uv = uv[(z > 0) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] < w) & (uv[:, 1] < h)]
-    if len(uv) < 100:
+    inside = (p[:, 2] > 0) & (u >= 0) & (v >= 0) & (u < w) & (v < h)
+    u, v = u[inside], v[inside]
+    if len(u) < 100:
         return 1.0
     cell = 1
     while cell < 256:
-        key = (uv[:, 1] // cell).astype(np.int64) * (w // cell + 1) + (uv[:, 0] // cell).astype(np.int64)
-        if np.median(np.unique(key, return_counts=True)[1]) >= 3:
+        cw = w // cell + 1
+        counts = np.bincount((v // cell).astype(np.int64) * cw + (u // cell).astype(np.int64), minlength=(h // cell + 1) * cw)
+        if np.median(counts[counts > 0]) >= 3:
             break
         cell *= 2
     return float(min(1.0, per_step * np.sqrt(3) / cell))

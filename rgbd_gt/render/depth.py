@@ -106,34 +106,61 @@ def render_depth(scan: Scan, camera: Camera, T_cam_from_scan: np.ndarray, max_de
     return out
 
 
+@dataclass
+class GridMesh:
+    """A structured scan's grid mesh, ready to ray-cast: tris (T, 3) int32 into the scan's
+    points, the Open3D scene of them in a local frame around `centre` (float32 stays exact for
+    georeferenced coordinates), and the scanner position of each triangle's first vertex (None
+    when the scan records none)."""
+
+    tris: np.ndarray
+    scene: object
+    centre: np.ndarray
+    origin: np.ndarray | None
+
+
+def grid_mesh(scan: Scan) -> GridMesh:
+    """The scan's `GridMesh`, built on first use and kept in scan.derived: every render of a
+    photo's view (depth, the edge checks, the overlay) casts against the same one."""
+    if "grid_mesh" not in scan.derived:
+        import open3d as o3d
+
+        from rgbd_gt.render.mesh import grid_triangles
+
+        tris = grid_triangles(scan).astype(np.int32)
+        centre = scan.xyz.mean(axis=0) if len(scan) else np.zeros(3)
+        scene = o3d.t.geometry.RaycastingScene()
+        if len(tris):
+            mesh = o3d.t.geometry.TriangleMesh()
+            mesh.vertex.positions = o3d.core.Tensor((scan.xyz - centre).astype(np.float32))
+            mesh.triangle.indices = o3d.core.Tensor(tris)
+            scene.add_triangles(mesh)
+        origin = None
+        if len(scan.origins):
+            sid = scan.scan_id[tris[:, 0]] if scan.scan_id is not None else np.zeros(len(tris), np.int64)
+            origin = np.minimum(sid, len(scan.origins) - 1)
+        scan.derived["grid_mesh"] = GridMesh(tris, scene, centre, origin)
+    return scan.derived["grid_mesh"]
+
+
 def _raycast_mesh(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None, want_normals: bool,
                   block: int = 1 << 20) -> DepthMap:
-    """Ray-cast the grid mesh (triangles turned toward their scanner) pixel by pixel, `block`
-    pixels at a time so that memory stays near the outputs' own."""
+    """Ray-cast the grid mesh pixel by pixel, `block` pixels at a time so that memory stays near
+    the outputs' own. A hit triangle whose front (the side its scanner saw) faces away from the
+    camera is seen from behind."""
     import open3d as o3d
 
-    from rgbd_gt.render.mesh import grid_triangles
-    from rgbd_gt.render.normals import oriented_triangles, scan_origin_per_point
-
-    tris = _triangles_in_view(scan, grid_triangles(scan), camera, T)
-    tris = oriented_triangles(scan, tris)
-    knows_sides = scan_origin_per_point(scan) is not None
+    mesh = grid_mesh(scan)
+    tris = mesh.tris
+    knows_sides = mesh.origin is not None
     h, w = camera.height, camera.width
     if len(tris) == 0:
         return DepthMap(np.zeros((h, w), np.float32), np.zeros((h, w, 3), np.float32) if want_normals else None,
                         "ray-cast grid mesh (nothing in view)",
                         np.zeros((h, w, values.shape[1]), values.dtype) if values is not None else None,
                         back_facing=0 if knows_sides else None)
-    # a local frame keeps float32 exact for georeferenced coordinates
-    centre = scan.xyz.mean(axis=0)
-    used, local = np.unique(tris, return_inverse=True)  # only the vertices of triangles in view
-    mesh = o3d.t.geometry.TriangleMesh()
-    mesh.vertex.positions = o3d.core.Tensor((scan.xyz[used] - centre).astype(np.float32))
-    mesh.triangle.indices = o3d.core.Tensor(local.reshape(-1, 3).astype(np.int32))
-    rc = o3d.t.geometry.RaycastingScene()
-    rc.add_triangles(mesh)
     T_sc = invert(T)
-    origin = (T_sc[:3, 3] - centre).astype(np.float32)
+    origin = (T_sc[:3, 3] - mesh.centre).astype(np.float32)
     R = T_sc[:3, :3]
     z = np.zeros(h * w, np.float32)
     n = np.zeros((h * w, 3), np.float32) if want_normals else None
@@ -147,46 +174,39 @@ def _raycast_mesh(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray 
         d_cam = pixel_rays(camera, (r0, r1), xy)
         d_world = d_cam @ R.T.astype(np.float32)  # unnormalised: t_hit is then z-depth directly
         rays = np.concatenate([np.broadcast_to(origin, d_world.shape), d_world], 1)
-        hit = rc.cast_rays(o3d.core.Tensor(rays))
+        hit = mesh.scene.cast_rays(o3d.core.Tensor(rays))
         zb = hit["t_hit"].numpy()
         zb = np.where(np.isfinite(zb), zb, 0).astype(np.float32)
-        nb = hit["primitive_normals"].numpy() @ T[:3, :3].T.astype(np.float32)
+        ok = zb > 0
+        prim = hit["primitive_ids"].numpy()[ok].astype(np.int64)
+        n_scan = hit["primitive_normals"].numpy()[ok]
+        nb = np.zeros((len(zb), 3), np.float32)
+        nb[ok] = n_scan @ T[:3, :3].T.astype(np.float32)
         facing = np.sum(nb * d_cam, axis=1)
-        if knows_sides:  # triangles face their scanner: one facing away is seen from behind
-            behind = (zb > 0) & (facing > 0)
+        if knows_sides:  # is the camera on the side of the hit triangle that its scanner saw?
+            scanner = scan.origins[mesh.origin[prim]]
+            front = np.sign(np.einsum("ij,ij->i", n_scan, scanner - scan.xyz[tris[prim, 0]]))
+            behind = np.zeros(len(zb), bool)
+            behind[ok] = facing[ok] * front > 0
             zb[behind] = 0
             back += int(behind.sum())
+            ok &= ~behind
         sl = slice(r0 * w, r1 * w)
         z[sl] = zb
-        ok = zb > 0
         if n is not None:
             nb *= -np.sign(facing + 1e-12)[:, None]
             nb[~ok] = 0
             n[sl] = nb
         if colors is not None and ok.any():  # barycentric interpolation of the hit triangle's vertex values
-            tri = tris[hit["primitive_ids"].numpy()[ok].astype(np.int64)]
+            tri = tris[hit["primitive_ids"].numpy()[ok].astype(np.int64)]  # ok: hits seen from the front
             bary = hit["primitive_uvs"].numpy()[ok]
             c = (1 - bary[:, :1] - bary[:, 1:]) * vals[tri[:, 0]] + bary[:, :1] * vals[tri[:, 1]] + bary[:, 1:] * vals[tri[:, 2]]
             block_colors = np.zeros((len(zb), c.shape[1]), colors.dtype)
             block_colors[ok] = np.rint(c) if np.issubdtype(colors.dtype, np.integer) else c
             colors[sl] = block_colors
     return DepthMap(z.reshape(h, w), n.reshape(h, w, 3) if n is not None else None,
-                    f"ray-cast grid mesh ({len(tris):,} triangles in view)",
+                    f"ray-cast grid mesh ({len(tris):,} triangles)",
                     colors.reshape(h, w, -1) if colors is not None else None, back_facing=back if knows_sides else None)
-
-
-def _triangles_in_view(scan: Scan, tris: np.ndarray, camera: Camera, T: np.ndarray, margin: float = 0.25) -> np.ndarray:
-    """The triangles with a vertex in front of the camera and near the image (pinhole, a margin of
-    `margin` x the image size for distortion and long triangles): the rest cannot be hit, and
-    building the ray-casting structure costs with every triangle."""
-    p = transform_points(T, scan.xyz)
-    z = p[:, 2]
-    zs = np.maximum(z, 1e-9)
-    u = camera.fx * p[:, 0] / zs + camera.cx
-    v = camera.fy * p[:, 1] / zs + camera.cy
-    mu, mv = margin * camera.width, margin * camera.height
-    near = (z > 1e-6) & (u > -mu) & (u < camera.width + mu) & (v > -mv) & (v < camera.height + mv)
-    return tris[near[tris].any(axis=1)]
 
 
 def local_spacing(points: np.ndarray, k: int = 3) -> np.ndarray:

@@ -15,47 +15,109 @@ def grid_triangles(scan: Scan, max_stretch: float = 8.0) -> np.ndarray:
     step): it then spans a depth discontinuity (or a surface seen at over ~83 degrees), and
     keeping it would paint a false surface between foreground and background.
     """
-    sid = scan.scan_id if scan.scan_id is not None else np.zeros(len(scan), np.int32)
-    origins = scan.origins if len(scan.origins) else np.zeros((1, 3))
-    tris = []
-    for s in np.unique(sid):
-        idx = np.nonzero(sid == s)[0]
-        row, col = scan.row[idx].astype(np.int64), scan.col[idx].astype(np.int64)
-        r0, c0 = row.min(), col.min()
-        rows, cols = row.max() - r0 + 1, col.max() - c0 + 1
-        grid = np.full((rows, cols), -1, np.int64)
-        grid[row - r0, col - c0] = idx
-        origin = origins[min(int(s), len(origins) - 1)]
-        # per grid vertex its point and range, per grid edge its length: each edge serves up to
-        # four triangles, so this is cheaper than measuring every triangle's three edges
-        have = grid >= 0
-        xyz = np.zeros((rows, cols, 3))
-        xyz[have] = scan.xyz[grid[have]]
-        rng = np.where(have, np.linalg.norm(xyz - origin, axis=2), np.inf)
+    bands = list(grid_triangle_bands(scan, max_stretch))
+    return np.concatenate(bands).astype(np.int64) if bands else np.zeros((0, 3), np.int64)
 
-        def length(p, q):
-            return np.linalg.norm(p - q, axis=2)
 
-        ab, cd = length(xyz[:-1, :-1], xyz[:-1, 1:]), length(xyz[1:, :-1], xyz[1:, 1:])
-        ac, bd = length(xyz[:-1, :-1], xyz[1:, :-1]), length(xyz[:-1, 1:], xyz[1:, 1:])
-        bc = length(xyz[:-1, 1:], xyz[1:, :-1])
-        ra, rb, rc, rd = rng[:-1, :-1], rng[:-1, 1:], rng[1:, :-1], rng[1:, 1:]
-        limit = max_stretch * _angular_step(scan.xyz[idx], row, col, origin)
-        ha, hb, hc, hd = have[:-1, :-1], have[:-1, 1:], have[1:, :-1], have[1:, 1:]
-        keep1 = (ha & hb & hc & (np.maximum(np.maximum(ab, bc), ac) <= limit * np.minimum(np.minimum(ra, rb), rc))).ravel()
-        keep2 = (hc & hb & hd & (np.maximum(np.maximum(bc, bd), cd) <= limit * np.minimum(np.minimum(rc, rb), rd))).ravel()
+def grid_triangle_bands(scan: Scan, max_stretch: float = 8.0):
+    """`grid_triangles` band by band of grid rows, as (t, 3) int32 arrays: a 40-million-point
+    grid is triangulated in bounded memory."""
+    for grid, _, keep1, keep2 in _bands(scan, max_stretch):
         a, b = grid[:-1, :-1].ravel(), grid[:-1, 1:].ravel()
         c, d = grid[1:, :-1].ravel(), grid[1:, 1:].ravel()
-        tris.append(np.concatenate([np.stack([a, b, c], 1)[keep1], np.stack([c, b, d], 1)[keep2]]))
-    return np.concatenate(tris) if tris else np.zeros((0, 3), np.int64)
+        tris = np.concatenate([np.stack([a, b, c], 1)[keep1.ravel()], np.stack([c, b, d], 1)[keep2.ravel()]])
+        if len(tris):
+            yield tris
 
 
-def _angular_step(xyz: np.ndarray, row: np.ndarray, col: np.ndarray, origin: np.ndarray) -> float:
-    """Median angle (radians) between grid neighbours along a row, seen from the origin."""
-    order = np.lexsort((col, row))
-    r, c = row[order], col[order]
-    nb = (np.diff(r) == 0) & (np.diff(c) == 1)
-    u = xyz[order] - origin
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    cos = np.sum(u[:-1][nb] * u[1:][nb], axis=1)
-    return float(np.median(np.arccos(np.clip(cos, -1, 1)))) if nb.any() else 1e-3
+def grid_normals(scan: Scan, max_stretch: float = 8.0) -> np.ndarray:
+    """(N, 3) float32 unit normals of a structured scan: per point the area-weighted sum of its
+    `grid_triangles`, each turned toward its scanner (0 for a point in no triangle). Summed on
+    the grid itself, band by band: no triangle list is made."""
+    out = np.zeros((len(scan), 3), np.float32)
+    for grid, xyz, keep1, keep2 in _bands(scan, max_stretch):
+        a, b, c, d = xyz[:-1, :-1], xyz[:-1, 1:], xyz[1:, :-1], xyz[1:, 1:]
+        acc = np.zeros_like(xyz)
+        # triangles (a, b, c) and (c, b, d) of each cell; xyz is relative to the scanner, so a
+        # normal faces it when n . (0 - a) >= 0
+        for (p, q, r), keep, at in (((a, b, c), keep1, ((0, 0), (0, 1), (1, 0))),
+                                    ((c, b, d), keep2, ((1, 0), (0, 1), (1, 1)))):
+            n = np.cross(q - p, r - p)
+            n *= np.where(keep & (np.einsum("ijk,ijk->ij", n, p) > 0), -1, keep.astype(np.float32))[..., None]
+            h, w = keep.shape
+            for i, j in at:
+                acc[i:i + h, j:j + w] += n
+        have = grid >= 0
+        out[grid[have]] += acc[have]
+    length = np.linalg.norm(out, axis=1, keepdims=True)
+    return np.where(length > 0, out / np.maximum(length, 1e-30), 0).astype(np.float32)
+
+
+def _bands(scan: Scan, max_stretch: float, cells: int = 1 << 22):
+    """Per scan of `scan`, per band of about `cells` grid cells: (grid band (r, c) of point indices
+    (-1: none), its points (r, c, 3) float32 relative to the scanner, keep1 and keep2 (r-1, c-1):
+    the cells' triangles (a, b, c) and (c, b, d) that `grid_triangles` keeps). Bands share their
+    boundary row."""
+    if len(scan) == 0:
+        return
+    sid = scan.scan_id if scan.scan_id is not None else np.zeros(len(scan), np.int32)
+    origins = scan.origins if len(scan.origins) else np.zeros((1, 3))
+    one = sid.min() == sid.max()
+    for s in [sid.min()] if one else np.unique(sid):
+        idx = None if one else np.flatnonzero(sid == s)
+        grid = grid_image(scan.row, scan.col, idx)
+        origin = origins[min(int(s), len(origins) - 1)]
+        limit = max_stretch * row_step(scan.xyz, grid, origin)
+        rows, cols = grid.shape
+        step = max(1, cells // cols)
+        for b0 in range(0, rows - 1, step):
+            band = grid[b0:min(b0 + step + 1, rows)]
+            yield (band, *_band(scan.xyz, band, origin, limit))
+
+
+def grid_image(row: np.ndarray, col: np.ndarray, index: np.ndarray | None = None) -> np.ndarray:
+    """(rows, cols) int32 point index per cell of the grid spanned by the points `index` (all when
+    None) with grid indices row, col (N,); -1 where no point is."""
+    r, c = (row, col) if index is None else (row[index], col[index])
+    r0, c0 = int(r.min()), int(c.min())
+    grid = np.full((int(r.max()) - r0 + 1, int(c.max()) - c0 + 1), -1, np.int32)
+    grid[r - r0, c - c0] = np.arange(len(r), dtype=np.int32) if index is None else index
+    return grid
+
+
+def _band(points: np.ndarray, grid: np.ndarray, origin: np.ndarray, limit: float):
+    """(xyz (r, c, 3) float32 relative to the origin, keep1, keep2 (r-1, c-1) bool) for the grid
+    band (r, c) of point indices (-1: none); `limit` is the longest edge per metre of range."""
+    # per grid vertex its point and range, per grid edge its length: each edge serves up to four
+    # triangles, so this is cheaper than measuring every triangle's three edges
+    have = grid >= 0
+    xyz = np.zeros(grid.shape + (3,), np.float32)  # relative to the origin: float32 is exact to microns
+    xyz[have] = points[grid[have]] - origin
+    rng2 = np.where(have, np.einsum("ijk,ijk->ij", xyz, xyz), np.inf)
+
+    def length2(p, q):
+        d = p - q
+        return np.einsum("ijk,ijk->ij", d, d)
+
+    ab, cd = length2(xyz[:-1, :-1], xyz[:-1, 1:]), length2(xyz[1:, :-1], xyz[1:, 1:])
+    ac, bd = length2(xyz[:-1, :-1], xyz[1:, :-1]), length2(xyz[:-1, 1:], xyz[1:, 1:])
+    bc = length2(xyz[:-1, 1:], xyz[1:, :-1])
+    ra, rb, rc, rd = rng2[:-1, :-1], rng2[:-1, 1:], rng2[1:, :-1], rng2[1:, 1:]
+    ha, hb, hc, hd = have[:-1, :-1], have[:-1, 1:], have[1:, :-1], have[1:, 1:]
+    lim2 = np.float32(limit * limit)  # squared lengths against squared ranges: no square roots
+    keep1 = ha & hb & hc & (np.maximum(np.maximum(ab, bc), ac) <= lim2 * np.minimum(np.minimum(ra, rb), rc))
+    keep2 = hc & hb & hd & (np.maximum(np.maximum(bc, bd), cd) <= lim2 * np.minimum(np.minimum(rc, rb), rd))
+    return xyz, keep1, keep2
+
+
+def row_step(points: np.ndarray, grid: np.ndarray, origin: np.ndarray, pairs: int = 1 << 20) -> float:
+    """Median angle (radians) between grid neighbours along a row, seen from the origin (from
+    evenly spaced rows holding about `pairs` neighbour pairs)."""
+    rows = grid[:: max(1, grid.size // pairs)]
+    a, b = rows[:, :-1].ravel(), rows[:, 1:].ravel()
+    nb = (a >= 0) & (b >= 0)
+    if not nb.any():
+        return 1e-3
+    u, v = points[a[nb]] - origin, points[b[nb]] - origin
+    cos = np.sum(u * v, axis=1) / np.maximum(np.linalg.norm(u, axis=1) * np.linalg.norm(v, axis=1), 1e-30)
+    return float(np.median(np.arccos(np.clip(cos, -1, 1))))

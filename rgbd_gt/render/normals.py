@@ -26,33 +26,6 @@ def scan_origin_per_point(scan: Scan) -> np.ndarray | None:
     return scan.origins[np.minimum(sid, len(scan.origins) - 1)]
 
 
-def oriented_triangles(scan: Scan, tris: np.ndarray) -> np.ndarray:
-    """tris (T, 3) with the vertex order of each triangle swapped where needed so that its
-    normal (b - a) x (c - a) faces the scanner of its first vertex (unchanged without origins)."""
-    origin = scan_origin_per_point(scan)
-    if origin is None or len(tris) == 0:
-        return tris
-    a, b, c = (scan.xyz[tris[:, k]] for k in range(3))
-    n = np.cross(b - a, c - a)
-    away = np.einsum("ij,ij->i", n, origin[tris[:, 0]] - a) < 0
-    out = tris.copy()
-    out[away, 1], out[away, 2] = tris[away, 2], tris[away, 1]
-    return out
-
-
-def vertex_normals(xyz: np.ndarray, tris: np.ndarray) -> np.ndarray:
-    """(N, 3) float32 unit normals: the area-weighted sum of the (oriented) triangles around each
-    vertex; 0 for a vertex in no triangle."""
-    a, b, c = (xyz[tris[:, k]] for k in range(3))
-    n = np.cross(b - a, c - a)  # length = 2 x area: the weight
-    out = np.zeros((len(xyz), 3))
-    for k in range(3):
-        for j in range(3):
-            out[:, j] += np.bincount(tris[:, k], weights=n[:, j], minlength=len(xyz))
-    length = np.linalg.norm(out, axis=1, keepdims=True)
-    return np.where(length > 0, out / np.maximum(length, 1e-30), 0).astype(np.float32)
-
-
 def knn_normals(xyz: np.ndarray, k: int = 16, chunk: int = 1 << 20) -> np.ndarray:
     """(N, 3) float32 unit normals of a scan without a grid: the least-variance direction of each
     point's k nearest neighbours (unoriented). 0 where the neighbourhood is not a surface patch:
@@ -83,9 +56,9 @@ def scan_normals(scan: Scan) -> np.ndarray | None:
     elif origin is None:
         return None
     elif scan.has_grid:
-        from rgbd_gt.render.mesh import grid_triangles
+        from rgbd_gt.render.mesh import grid_normals
 
-        return vertex_normals(scan.xyz, oriented_triangles(scan, grid_triangles(scan)))
+        return grid_normals(scan)
     else:
         n = knn_normals(scan.xyz)
     if origin is not None:

@@ -74,7 +74,8 @@ def check_spread_in_view(uv: torch.Tensor, visible: torch.Tensor, need: int) -> 
     `need` / 2 distinct pixels: identical or nearly identical points, which no pose can be fitted to."""
     from rgbd_gt.errors import InputError
 
-    pixels = torch.unique(torch.round(uv[visible]).long(), dim=0).shape[0]
+    px = torch.round(uv[visible]).long()
+    pixels = torch.unique((px[:, 1] - px[:, 1].min()) * (px[:, 0].max() - px[:, 0].min() + 1) + px[:, 0]).numel() if px.numel() else 0
     if pixels < need / 2:
         raise InputError(f"the {int(visible.sum())} scan points in view of the initial pose fall on only {pixels} "
                          "pixels (identical or nearly identical points): there is nothing to align")

@@ -19,7 +19,7 @@ from rgbd_gt.io.image import write_image
 from rgbd_gt.pose import rigid, transform_points
 from rgbd_gt.synth import color
 from rgbd_gt.synth.scene import Scene, make_layout
-from rgbd_gt.synth.sensors import build_raycaster, cast, grid_covering, laser_scan, render_photo_radiance
+from rgbd_gt.synth.sensors import ScanGrid, build_raycaster, cast, grid_covering, laser_scan, render_photo_radiance
 from rgbd_gt.synth.textures import make_texture
 
 FILES = ("scan.e57", "scan.ply", "photo.png", "camera.yaml", "gt_pose.yaml", "init_pose.yaml", "board_corners.csv", "scene.json")
@@ -32,6 +32,9 @@ class SizePreset:
     scan_step_deg: float = 0.1
     texture_px: int = 1024
     supersample: int = 3
+    # [horizontal, vertical] degrees the scan covers, centred on what the cameras see, level
+    # (a FARO-like dome); None: only what the cameras see plus scan_margin_deg
+    scan_fov_deg: list[float] | None = None
 
 
 @dataclass
@@ -60,6 +63,9 @@ class SynthConfig:
                     and 16 <= p.texture_px <= 8192 and 1 <= p.supersample <= 8):
                 raise ValueError(f"sizes.{name}: width and height 32..8192, scan_step_deg 0.01..5, texture_px 16..8192, "
                                  "supersample 1..8")
+            fov = p.scan_fov_deg
+            if fov is not None and not (len(fov) == 2 and 1 <= fov[0] <= 360 and 1 <= fov[1] <= 180):
+                raise ValueError(f"sizes.{name}.scan_fov_deg: [horizontal 1..360, vertical 1..180], got {fov}")
         for name in ("hfov_deg", "board_distance_m", "scanner_distance_m", "init_translation_m", "init_rotation_deg"):
             lo_hi = getattr(self, name)
             if len(lo_hi) != 2 or not 0 <= lo_hi[0] <= lo_hi[1]:
@@ -114,6 +120,13 @@ def perturb_pose(T: np.ndarray, rng: np.random.Generator, trans_m: list[float], 
     tdir = rng.normal(size=3)
     tdir /= np.linalg.norm(tdir)
     return rigid(R, tdir * rng.uniform(*trans_m)) @ T
+
+
+def dome_grid(covering: ScanGrid, step: float, fov: np.ndarray) -> ScanGrid:
+    """A grid of `fov` (horizontal, vertical) radians, level, centred on `covering`'s azimuths."""
+    cols, rows = int(round(fov[0] / step)), int(round(fov[1] / step))
+    az_centre = covering.az0 + (covering.cols - 1) * covering.step / 2
+    return ScanGrid(az_centre - (cols - 1) * step / 2, (rows - 1) * step / 2, step, cols, rows)
 
 
 def extra_cameras(scene: Scene, rc, camera: Camera, count: int, rng: np.random.Generator) -> list[np.ndarray]:
@@ -197,6 +210,8 @@ def generate(out_dir: Path, seed: int, size: str, cfg: SynthConfig,
     seen = np.concatenate([_seen_points(rc, camera, pose) for pose in [cam_pose] + more_poses])
     Rws, s = scan_pose[:3, :3], scan_pose[:3, 3]
     grid = grid_covering((seen - s) @ Rws, np.deg2rad(preset.scan_step_deg), np.deg2rad(cfg.scan_margin_deg))
+    if preset.scan_fov_deg is not None:
+        grid = dome_grid(grid, np.deg2rad(preset.scan_step_deg), np.deg2rad(preset.scan_fov_deg))
     local, _world, srad, cos_inc, row, col = laser_scan(scene, rc, grid, cfg.range_noise_m, rng)
     rgb = color.scanner_forward(scan_resp, srad)
     reflect = np.clip(srad @ np.array([0.5, 0.3, 0.2]), 0, 1)

@@ -104,10 +104,11 @@ class ScanGrid:
     cols: int
     rows: int
 
-    def angles(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(row, col, azimuth, elevation), each (rows*cols,)."""
-        row, col = np.mgrid[0 : self.rows, 0 : self.cols]
-        row, col = row.ravel(), col.ravel()
+    def angles(self, start: int = 0, stop: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(row, col, azimuth, elevation) of the grid's cells [start, stop) in row-major order,
+        row and col int32 (a 40-million-cell grid is cast in chunks)."""
+        idx = np.arange(start, self.rows * self.cols if stop is None else stop, dtype=np.int64)
+        row, col = (idx // self.cols).astype(np.int32), (idx % self.cols).astype(np.int32)
         return row, col, self.az0 + col * self.step, self.el0 - row * self.step
 
 
@@ -128,11 +129,10 @@ def laser_scan(scene: Scene, rc, grid: ScanGrid, range_noise: float, rng: np.ran
     Gaussian range noise), world xyz (N, 3) without noise, radiance (N, 3), incidence cosine
     (N,), row (N,), col (N,)."""
     Rws, s = scene.scanner_pose[:3, :3], scene.scanner_pose[:3, 3]
-    row, col, az, el = grid.angles()
-    d_local = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], 1)
     parts = []
-    for i0 in range(0, row.size, CHUNK):
-        dl = d_local[i0 : i0 + CHUNK]
+    for i0 in range(0, grid.rows * grid.cols, CHUNK):
+        row, col, az, el = grid.angles(i0, min(i0 + CHUNK, grid.rows * grid.cols))
+        dl = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], 1)
         d = dl @ Rws.T
         t, gid, n = cast(rc, s, d)
         ok = gid >= 0
@@ -140,5 +140,5 @@ def laser_scan(scene: Scene, rc, grid: ScanGrid, range_noise: float, rng: np.ran
         rad = radiance(scene, world, n[ok], gid[ok], blurred=True)
         cos_inc = np.abs(np.sum(n[ok] * d[ok], axis=1))
         noisy = t[ok] + rng.normal(0, range_noise, ok.sum())
-        parts.append((noisy[:, None] * dl[ok], world, rad, cos_inc, row[i0 : i0 + CHUNK][ok], col[i0 : i0 + CHUNK][ok]))
+        parts.append((noisy[:, None] * dl[ok], world, rad, cos_inc, row[ok], col[ok]))
     return tuple(np.concatenate(p) for p in zip(*parts))

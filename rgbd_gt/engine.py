@@ -1,0 +1,166 @@
+"""Where `rgbd-gt run` does its work: in this process, in local worker processes (--workers N)
+or as tasks on a Ray cluster (--ray auto|ADDRESS). Each scan is prepared once (the on-disk cache
+beside the outputs, `prepared.py`), then every photo is one task that maps it. All engines run
+the same steps into the same files (`workflow.run_photo`), so a run stopped on one resumes on
+another."""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from rgbd_gt.errors import InputError
+from rgbd_gt.workflow import PhotoResult, RunConfig, ScanJob
+
+CACHE_FOLDER = ".scan-cache"  # under the run's output folder: beside the outputs it serves
+
+
+@dataclass
+class PhotoTask:
+    """One photo's steps: everything a worker needs, as plain picklable data."""
+
+    photo: Path
+    job: ScanJob
+    prepared: Path  # the prepared scan's cache folder
+    camera: object
+    cfg: RunConfig
+    export_failed: bool = False
+    threads: int | None = None  # torch threads in this task (None: as configured)
+
+
+@dataclass
+class Prepared:
+    """A scan's preparation: its cache folder, or why it failed; seconds it took."""
+
+    job: ScanJob
+    folder: Path | None = None
+    error: str = ""
+    seconds: float = 0.0
+    cached: bool = False
+    points: int = 0
+    steps: dict[str, float] = field(default_factory=dict)
+
+
+def prepare_job(job: ScanJob, cache_root: Path, progress: Callable[[str], None] = lambda m: None) -> Prepared:
+    """Prepare a scan (or reopen its cache) and find its board when a photo still needs an
+    initial pose; an InputError becomes the result's error (its photos then fail with it)."""
+    from rgbd_gt.prepared import prepare_scan
+    from rgbd_gt.workflow import scan_board
+
+    start = time.perf_counter()
+    out = Prepared(job)
+    try:
+        before = {p.name for p in cache_root.glob("*")} if cache_root.exists() else set()
+        prepared = prepare_scan(job.scan, cache_root, progress)
+        out.cached = prepared.folder.name in before
+        out.folder, out.points = prepared.folder, len(prepared)
+        out.steps["scan"] = round(time.perf_counter() - start, 3)
+        if any(not (job.out / p.stem / "init.yaml").exists() for p in job.photos):
+            progress("finding the board")
+            t = time.perf_counter()
+            scan_board(prepared, job.board)
+            out.steps["board"] = round(time.perf_counter() - t, 3)
+    except InputError as exc:
+        out.error = str(exc)
+    out.seconds = time.perf_counter() - start
+    return out
+
+
+def photo_task(task: PhotoTask, progress: Callable[[str], None] = lambda step: None) -> PhotoResult:
+    """Run one photo's steps; bad input becomes a failed result, as in a local run."""
+    from rgbd_gt.prepared import open_prepared
+    from rgbd_gt.workflow import run_photo
+
+    if task.threads:
+        import torch
+
+        torch.set_num_threads(task.threads)
+    try:
+        prepared = open_prepared(task.prepared, task.job.scan)
+        result = run_photo(task.photo, prepared, task.camera, task.job.board, task.cfg, task.job.out, progress,
+                           task.export_failed)
+    except InputError as exc:
+        result = PhotoResult(task.photo.name, status="failed", error=str(exc))
+    result.scan = task.job.name
+    return result
+
+
+def failed(job: ScanJob, error: str) -> list[PhotoResult]:
+    return [PhotoResult(p.name, status="failed", error=error, scan=job.name) for p in job.photos]
+
+
+def run_local(tasks: list[PhotoTask], workers: int, on_result: Callable[[PhotoResult], None],
+              on_step: Callable[[str], None]) -> list[PhotoResult]:
+    """The tasks in this process (workers 1) or in `workers` local processes, in order."""
+    if workers <= 1:
+        results = []
+        for t in tasks:
+            results.append(photo_task(t, on_step))
+            on_result(results[-1])
+        return results
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    threads = max(1, (os.cpu_count() or 1) // workers)  # the cores shared out: no oversubscription
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        futures = [pool.submit(photo_task, PhotoTask(**{**t.__dict__, "threads": threads})) for t in tasks]
+        results = []
+        for f in futures:
+            results.append(f.result())
+            on_result(results[-1])
+    return results
+
+
+def connect_ray(address: str):
+    """ray, connected to the cluster at `address` ('auto': the one running on this machine)."""
+    try:
+        import ray
+    except ImportError:
+        raise InputError("--ray needs the ray package (pip install ray)") from None
+    import logging
+
+    try:
+        ray.init(address=address, logging_level=logging.ERROR, log_to_driver=False, configure_logging=True)
+    except (ConnectionError, RuntimeError, ValueError) as exc:
+        raise InputError(f"--ray {address}: cannot connect to a Ray cluster ({str(exc).splitlines()[0]})") from None
+    return ray
+
+
+def run_ray(jobs: list[ScanJob], make_tasks: Callable[[Prepared], list[PhotoTask]], cache_root: Path, address: str,
+            on_prepared: Callable[[Prepared], None], on_result: Callable[[PhotoResult], None]) -> list[PhotoResult]:
+    """Every scan prepared by one Ray task, then every photo of it one task; the prepared scan is
+    shared through the cache folder, which every node must see at the same path (docs/scale.md).
+    Results in the order of the jobs' photos."""
+    ray = connect_ray(address)
+    try:
+        # a worker that dies (a node lost) is retried on another; bad input is a result, not an error
+        prepare = ray.remote(num_cpus=1, max_retries=2)(prepare_job)
+        photo = ray.remote(num_cpus=1, max_retries=2)(photo_task)
+        pending = {prepare.remote(job, cache_root): k for k, job in enumerate(jobs)}
+        results: dict[tuple[int, int], PhotoResult] = {}
+        index: dict = {}
+        while pending:
+            done, _ = ray.wait(list(pending), num_returns=1)
+            ref = done[0]
+            k = pending.pop(ref)
+            value = ray.get(ref)
+            if isinstance(value, Prepared):
+                on_prepared(value)
+                if value.error:
+                    for j, r in enumerate(failed(value.job, value.error)):
+                        results[(k, j)] = r
+                        on_result(r)
+                    continue
+                for j, task in enumerate(make_tasks(value)):
+                    ref = photo.remote(PhotoTask(**{**task.__dict__, "threads": 1}))
+                    pending[ref] = k
+                    index[ref] = j
+            else:
+                results[(k, index.pop(ref))] = value
+                on_result(value)
+        return [results[key] for key in sorted(results)]
+    finally:
+        ray.shutdown()

@@ -1,0 +1,224 @@
+"""A scan prepared once and shared by every photo and step, cached on disk.
+
+Preparing reads the scan file, computes what depends on the scan alone (normals facing the
+scanner, the voxel-block index, the board) and writes it as plain .npy files in a folder keyed
+by the file's size, time and content hash. Reopening maps those files (seconds for 40 million
+points), and each photo then gathers only the blocks its view can reach (`PreparedScan.view`),
+so that its steps scale with what it sees. The grid mesh is not stored: the view's part of it
+is rebuilt from the view's grid (its cost grows with the view, and storing 2 triangles a point
+would double the cache).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from rgbd_gt.camera import Camera
+from rgbd_gt.io.scan import Scan
+from rgbd_gt.render.blocks import VIEW_MARGIN, Blocks, block_order, block_points, blocks_in_view, points_in_view
+
+CACHE_VERSION = 1
+ARRAYS = ("xyz", "rgb", "intensity", "row", "col", "scan_id", "normals")  # per point, block-ordered
+
+
+def file_key(path: Path) -> dict:
+    """What identifies a scan file's content: its size, modification time and SHA-1."""
+    st = path.stat()
+    with open(path, "rb") as f:
+        digest = hashlib.file_digest(f, "sha1").hexdigest()
+    return {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "sha1": digest}
+
+
+@dataclass
+class PreparedScan:
+    """A block-ordered scan: arrays (memory-mapped .npy) with xyz as float32 metres from
+    `centre` (float64, the first scanner position: float32 is then exact to microns within a
+    few hundred metres); blocks in the scan's frame; origins (S, 3) the scanner positions."""
+
+    folder: Path
+    source: Path
+    centre: np.ndarray
+    origins: np.ndarray
+    arrays: dict[str, np.ndarray]
+    blocks: Blocks
+    angular_step: float | None  # radians between neighbouring points seen from the scanner (`scan_step`)
+
+    def __len__(self) -> int:
+        return len(self.arrays["xyz"])
+
+    def subset(self, index: np.ndarray) -> Scan:
+        """The points `index` (into the block order) as a `Scan` in the scan's frame (float64)."""
+        fields = {k: np.asarray(a[index]) for k, a in self.arrays.items() if k != "xyz"}
+        xyz = self.arrays["xyz"][index].astype(np.float64) + self.centre
+        return Scan(xyz=xyz, origins=self.origins, **fields)
+
+    def view(self, camera: Camera, T_cam_from_scan: np.ndarray, margin: float = VIEW_MARGIN,
+             far: float | None = None) -> Scan:
+        """The points a photo can see from about T_cam_from_scan (`render.blocks.points_in_view`),
+        found through the blocks: every step of that photo works on this subset."""
+        idx = block_points(self.blocks, blocks_in_view(self.blocks, camera, T_cam_from_scan, margin, far))
+        T_local = T_cam_from_scan.copy()
+        T_local[:3, 3] += T_local[:3, :3] @ self.centre  # the pose of the local (float32) frame
+        keep = points_in_view(np.asarray(self.arrays["xyz"][idx]), camera, T_local, margin, far)
+        return self.subset(idx[keep])
+
+    def near(self, lo: np.ndarray, hi: np.ndarray) -> Scan:
+        """The points of the blocks that meet the box [lo, hi] (metres, scan frame)."""
+        meet = np.all((self.blocks.hi >= lo) & (self.blocks.lo <= hi), axis=1)
+        return self.subset(block_points(self.blocks, meet))
+
+    def board(self, spec, scan_path=None):
+        """The board (`init.run.BoardInScan`) found in the scan: searched once, then read from
+        the cache folder."""
+        from rgbd_gt.init.run import BoardInScan, board_in_scan, board_neighbourhood
+        from rgbd_gt.init.scan_board import find_board_in_scan
+        from rgbd_gt.io.scan import colors_to_gray, scan_colors
+
+        name = f"board-{spec.cols}x{spec.rows}-{spec.square:g}-{spec.charuco or 'chess'}-{spec.marker or 0:g}.npz"
+        path = self.folder / name
+        if path.exists():
+            with np.load(path) as z:
+                return BoardInScan(z["corners"], z["ids"], z["near_xyz"], z["near_gray"], str(z["method"]),
+                                   float(z["plane_rms_m"]))
+        if len(self.origins) == 0:  # no scanner position to render views from: the error it gives
+            board = board_in_scan(self.subset(slice(None)), spec, None, scan_path)
+        else:
+            xyz = np.asarray(self.arrays["xyz"])  # local float32: the search needs no float64 copy
+            colors = scan_colors(Scan(xyz=xyz, rgb=self.arrays.get("rgb"), intensity=self.arrays.get("intensity")), scan_path)
+            sb = find_board_in_scan(xyz, colors, self.origins[0] - self.centre, spec, self.angular_step)
+            sb.corners = sb.corners + self.centre
+            sb.view.origin = sb.view.origin + self.centre
+            pad = 2 * spec.square + 0.02
+            local = self.near(sb.corners.min(0) - pad, sb.corners.max(0) + pad)
+            near = board_neighbourhood(local, sb.corners, spec.square)
+            board = BoardInScan(sb.corners, sb.ids, local.xyz[near], colors_to_gray(scan_colors(local, scan_path)[near]),
+                                "board found in the scan's virtual views", sb.plane_rms_m, sb)
+        _write_npz(path, corners=board.corners, ids=board.ids, near_xyz=board.near_xyz, near_gray=board.near_gray,
+                   method=np.array(board.method), plane_rms_m=np.array(board.plane_rms_m or np.nan))
+        return board
+
+
+def cache_folder(root: Path, scan_path: Path, key: dict) -> Path:
+    """Where the scan's prepared files live under `root`: one folder per scan content."""
+    return root / f"{scan_path.stem}-{key['sha1'][:16]}"
+
+
+def prepare_scan(scan_path: Path, root: Path, progress: Callable[[str], None] = lambda msg: None) -> PreparedScan:
+    """The prepared scan of `scan_path`, from the cache under `root` when its key matches, else
+    built there (and the folders of earlier versions of this file removed)."""
+    scan_path = Path(scan_path)
+    progress("hashing the scan file")
+    key = file_key(scan_path)
+    folder = cache_folder(root, scan_path, key)
+    meta_path = folder / "meta.json"
+    if meta_path.exists():
+        try:
+            meta = json.loads(meta_path.read_text())
+            if meta.get("key") == key and meta.get("version") == CACHE_VERSION:
+                return _open(folder, scan_path, meta)
+        except (OSError, ValueError, KeyError):
+            pass  # an unreadable cache is rebuilt
+    progress("preparing the scan (once)")
+    _build(scan_path, folder, key, progress)
+    for old in root.glob(f"{scan_path.stem}-*/meta.json"):  # this file's earlier contents: stale
+        try:
+            stale = old.parent != folder and json.loads(old.read_text()).get("source") == str(scan_path.absolute())
+        except (OSError, ValueError):
+            stale = False
+        if stale:
+            shutil.rmtree(old.parent, ignore_errors=True)
+    return _open(folder, scan_path, json.loads(meta_path.read_text()))
+
+
+def open_prepared(folder: Path, scan_path: Path) -> PreparedScan:
+    """A prepared scan's cache folder, opened without checking it against the scan file (the
+    caller prepared it: `prepare_scan`)."""
+    return _open(folder, scan_path, json.loads((folder / "meta.json").read_text()))
+
+
+def _open(folder: Path, scan_path: Path, meta: dict) -> PreparedScan:
+    arrays = {k: np.load(folder / f"{k}.npy", mmap_mode="r") for k in meta["arrays"]}
+    with np.load(folder / "blocks.npz") as z:
+        blocks = Blocks(z["start"], z["lo"], z["hi"])
+    return PreparedScan(folder, scan_path, np.array(meta["centre"]), np.array(meta["origins"]).reshape(-1, 3), arrays,
+                        blocks, meta.get("angular_step"))
+
+
+def _build(scan_path: Path, folder: Path, key: dict, progress: Callable[[str], None]) -> None:
+    """Read the scan, compute its normals and block order, write every array block-ordered into a
+    staging folder and move it into place (a crash leaves no half-written cache)."""
+    import time
+
+    from rgbd_gt.init.scan_board import scan_step
+    from rgbd_gt.io.scan import load_scan
+    from rgbd_gt.render.normals import with_normals
+
+    seconds: dict[str, float] = {}
+    clock = [time.perf_counter()]
+
+    def phase(name: str) -> None:  # what each part of preparing costs, kept in meta.json
+        now = time.perf_counter()
+        seconds[name] = round(now - clock[0], 2)
+        clock[0] = now
+
+    progress("reading the scan")
+    scan = load_scan(scan_path, require_points=True)
+    phase("read")
+    progress("normals")
+    scan = with_normals(scan)
+    step = scan_step(scan) if len(scan.origins) else None
+    phase("normals")
+    centre = scan.origins[0].copy() if len(scan.origins) else (scan.xyz.min(0) + scan.xyz.max(0)) / 2
+    progress("spatial index")
+    local = (scan.xyz - centre).astype(np.float32)
+    scan.xyz = None  # the float64 copy is no longer needed: memory stays near the scan's own
+    order, blocks = block_order(local)
+    phase("index")
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=".rgbd-gt-", dir=folder.parent))
+    try:
+        progress("writing the cache")
+        names = []
+        for name in ARRAYS:
+            values = local if name == "xyz" else getattr(scan, name)
+            if values is None:
+                continue
+            np.save(stage / f"{name}.npy", values[order])
+            names.append(name)
+            if name == "xyz":
+                del local, values
+            else:
+                setattr(scan, name, None)
+        np.savez(stage / "blocks.npz", start=blocks.start, lo=blocks.lo + centre, hi=blocks.hi + centre)
+        phase("write")
+        meta = {"seconds": seconds, "version": CACHE_VERSION, "key": key, "source": str(scan_path.absolute()), "points": int(len(order)),
+                "arrays": names, "centre": centre.tolist(), "origins": scan.origins.tolist(), "angular_step": step,
+                "blocks": len(blocks)}
+        (stage / "meta.json").write_text(json.dumps(meta, indent=1))
+        if folder.exists():
+            shutil.rmtree(folder)
+        os.replace(stage, folder)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise
+
+
+def _write_npz(path: Path, **arrays) -> None:
+    """np.savez, atomically (a run stopped while writing leaves no broken file)."""
+    tmp = path.with_name(f".{path.name}.tmp.npz")
+    try:
+        np.savez(tmp, **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+

@@ -1,0 +1,155 @@
+"""Scale: the prepared scan (cache, spatial index, views) gives what the whole scan gives, and a
+site of several scans runs the same in this process, in local workers and on a Ray cluster
+started on loopback."""
+
+import csv
+import os
+import shutil
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from conftest import run_cli
+from rgbd_gt.init.detect import BoardSpec
+from rgbd_gt.init.run import board_in_scan
+from rgbd_gt.io import load_scan, read_camera, read_pose, save_scan
+from rgbd_gt.prepared import prepare_scan
+from rgbd_gt.render.blocks import points_in_view
+from rgbd_gt.render.depth import render_depth
+from rgbd_gt.render.normals import with_normals
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory):
+    root = tmp_path_factory.mktemp("scale")
+    for seed, photos in ((2, 2), (5, 1)):
+        proc = run_cli("synth", root / f"s{seed}", "--size", "small", "--seed", seed, "--photos", photos)
+        assert proc.returncode == 0, proc.stderr
+    return root
+
+
+def test_prepared_scan_gives_what_the_whole_scan_gives(scenes, tmp_path):
+    path = scenes / "s2" / "scan.e57"
+    scan = with_normals(load_scan(path))
+    cache = tmp_path / "cache"
+    p = prepare_scan(path, cache)
+    assert len(p) == len(scan) and p.arrays["xyz"].dtype == np.float32
+    # the same points, block-ordered: matched through their grid cells
+    whole = p.subset(slice(None))
+    a, b = np.lexsort((scan.col, scan.row)), np.lexsort((whole.col, whole.row))
+    np.testing.assert_allclose(whole.xyz[b], scan.xyz[a], atol=2e-6)
+    np.testing.assert_array_equal(whole.rgb[b], scan.rgb[a])
+    np.testing.assert_allclose(whole.normals[b], scan.normals[a], atol=1e-6)
+    # reopening reads the cache; nothing is rebuilt
+    stamp = (p.folder / "xyz.npy").stat().st_mtime_ns
+    assert prepare_scan(path, cache).folder == p.folder and (p.folder / "xyz.npy").stat().st_mtime_ns == stamp
+
+    camera = read_camera(scenes / "s2" / "camera.yaml")
+    T = read_pose(scenes / "s2" / "gt_pose.yaml")[0]
+    view = p.view(camera, T)
+    inside = points_in_view(scan.xyz, camera, T)
+    assert len(view) == inside.sum() and 0 < len(view) < len(scan)
+    # the photo's depth from its view is the depth from the whole scan
+    d_view, d_all = render_depth(view, camera, T, normals=False), render_depth(scan, camera, T, normals=False)
+    # (a ray through a shared triangle edge may hit or miss by float rounding: a few pixels in 10^5)
+    both = (d_view.z > 0) & (d_all.z > 0)
+    assert both.sum() > 0.9999 * (d_all.z > 0).sum() and abs(int((d_view.z > 0).sum()) - int((d_all.z > 0).sum())) < 20
+    # float32 rounding of the cached coordinates and of the two meshes' local frames: microns,
+    # tens of microns where a ray grazes a crease between two triangles
+    diff = np.abs(d_view.z[both] - d_all.z[both])
+    assert np.median(diff) < 1e-6 and diff.max() < 5e-5
+    assert d_view.back_facing == d_all.back_facing
+
+    # the board: found once, the same as the search on the loaded scan, then read from the cache
+    spec = BoardSpec(9, 6, 0.05)
+    board = p.board(spec)
+    direct = board_in_scan(scan, spec)
+    np.testing.assert_allclose(board.corners, direct.corners, atol=1e-4)
+    assert len(board.near_xyz) == len(direct.near_xyz)
+    np.testing.assert_allclose(p.board(spec).corners, board.corners)
+
+
+def test_a_changed_scan_file_is_prepared_again(scenes, tmp_path):
+    path = tmp_path / "scan.ply"
+    shutil.copy(scenes / "s5" / "scan.ply", path)
+    cache = tmp_path / "cache"
+    first = prepare_scan(path, cache)
+    scan = load_scan(path)
+    scan.xyz = scan.xyz + [0.01, 0, 0]
+    save_scan(path, scan)
+    second = prepare_scan(path, cache)
+    assert second.folder != first.folder and not first.folder.exists()  # the stale cache is gone
+    np.testing.assert_allclose(np.sort(second.subset(slice(None)).xyz[:, 0]), np.sort(scan.xyz[:, 0]), atol=2e-6)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _rows(out: Path) -> dict:
+    drop = ("seconds", "steps", "skipped")  # how long it took (and, resumed, what was done) differs; what it found must not
+    return {(r["scan"], r["photo"]): {k: v for k, v in r.items() if k not in drop}
+            for r in csv.DictReader(open(out / "summary.csv"))}
+
+
+def _outputs(out: Path) -> set:
+    return {p.relative_to(out) for p in out.rglob("*") if p.is_file() and ".scan-cache" not in p.parts}
+
+
+def test_site_runs_the_same_locally_in_workers_and_on_ray(scenes, tmp_path):
+    pytest.importorskip("ray")
+    site = {"camera": str(scenes / "s2" / "camera.yaml"), "refine": {"max_points": 20000},
+            "scans": [{"scan": str(scenes / "s2" / "scan.e57"), "photos": [str(scenes / "s2" / "photo*.png")], "name": "room_a"},
+                      {"scan": str(scenes / "s5" / "scan.ply"), "camera": str(scenes / "s5" / "camera.yaml"),
+                       "photos": [str(scenes / "s5" / "photo.png")], "name": "room_b"}]}
+    outs = {}
+    for name, extra in (("local", []), ("workers", ["--workers", "2"])):
+        (tmp_path / f"{name}.yaml").write_text(yaml.safe_dump({**site, "output": f"out_{name}"}))
+        proc = run_cli("run", tmp_path / f"{name}.yaml", *extra)
+        assert proc.returncode == 0, proc.stderr
+        outs[name] = tmp_path / f"out_{name}"
+
+    port = _free_port()
+    temp = Path(f"/tmp/rgbd-gt-ray-{os.getpid()}")
+    ray_cli = [sys.executable, "-m", "ray.scripts.scripts"]
+    env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
+    subprocess.run(ray_cli + ["start", "--head", "--node-ip-address", "127.0.0.1", "--port", str(port), "--num-cpus", "2",
+                              "--include-dashboard", "false", "--temp-dir", str(temp), "--disable-usage-stats"],
+                   check=True, capture_output=True, env=env, timeout=180)
+    try:
+        (tmp_path / "ray.yaml").write_text(yaml.safe_dump({**site, "output": "out_ray"}))
+        proc = run_cli("run", tmp_path / "ray.yaml", "--ray", f"127.0.0.1:{port}")
+        assert proc.returncode == 0, proc.stderr
+        outs["ray"] = tmp_path / "out_ray"
+        again = run_cli("run", tmp_path / "ray.yaml", "--ray", f"127.0.0.1:{port}")  # resumes: nothing left to do
+        assert again.returncode == 0, again.stderr
+    finally:
+        subprocess.run(ray_cli + ["stop", "--force"], capture_output=True, env=env, timeout=120)
+        shutil.rmtree(temp, ignore_errors=True)
+    assert "ray" in outs
+
+    rows = _rows(outs["local"])
+    assert {k[0] for k in rows if k[0]} == {"room_a", "room_b"} and len([k for k in rows if k[0]]) == 3
+    assert all(r["verdict"] == "ok" for k, r in rows.items() if k[0]), rows
+    for name in ("workers", "ray"):
+        assert _outputs(outs[name]) == _outputs(outs["local"]), name
+        other = _rows(outs[name])
+        assert other.keys() == rows.keys()
+        for key, r in rows.items():  # torch's thread count differs: sums in another order
+            for col, v in r.items():
+                try:
+                    assert abs(float(v) - float(other[key][col])) <= 1e-3 * max(1.0, abs(float(v))), (name, key, col)
+                except ValueError:
+                    assert v == other[key][col], (name, key, col)
+        for scan, photo in (("room_a", "photo"), ("room_a", "photo_1"), ("room_b", "photo")):
+            T = read_pose(outs["local"] / scan / photo / "pose.yaml")[0]
+            np.testing.assert_allclose(read_pose(outs[name] / scan / photo / "pose.yaml")[0], T, atol=1e-5)
+    resumed = {r["photo"]: r["skipped"] for r in csv.DictReader(open(outs["ray"] / "summary.csv"))}
+    assert resumed["photo_1.png"] == "init refine depth qa overlay"
