@@ -121,7 +121,15 @@ def connect_ray(address: str):
     except ImportError:
         raise InputError("--ray needs the ray package (pip install ray)") from None
     import logging
+    import socket
 
+    if address != "auto":  # Ray retries an unreachable address for minutes: ask it once first
+        host, _, port = address.split("://")[-1].rpartition(":")
+        try:
+            socket.create_connection((host or "127.0.0.1", int(port)), timeout=10).close()
+        except (OSError, ValueError) as exc:
+            raise InputError(f"--ray {address}: no Ray cluster answers there ({exc}); give HOST:PORT of its head, "
+                             "or auto") from None
     try:
         ray.init(address=address, logging_level=logging.ERROR, log_to_driver=False, configure_logging=True)
     except (ConnectionError, RuntimeError, ValueError) as exc:
