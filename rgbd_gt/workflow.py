@@ -99,9 +99,6 @@ class ScanJob:
     board: BoardConfig
 
 
-STEPS = ("init", "refine", "depth", "qa", "overlay")
-
-
 @dataclass
 class PhotoResult:
     photo: str
