@@ -126,10 +126,12 @@ def origin_panorama(scan: Scan, width: int = VIEW_SIDE) -> ClickView:
 
 def pose_view(scan: Scan, camera: Camera, T: np.ndarray, longest: int = VIEW_SIDE) -> ClickView:
     """The scan rendered with the photo's camera at pose T (scaled to at most `longest`)."""
+    from rgbd_gt.render.blocks import view_of
     from rgbd_gt.render.depth import render_depth
 
     s = min(1.0, longest / max(camera.size))
     cam = rescale(camera, max(1, round(camera.width * s)), max(1, round(camera.height * s)))
+    scan = view_of(scan, cam, [T])  # a render costs what the photo sees
     values = np.concatenate([_gray_to_rgb(scan_colors(scan)), scan.xyz], 1)
     depth = render_depth(scan, cam, T, values=values, normals=False)
     have = depth.z > 0

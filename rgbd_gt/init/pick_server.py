@@ -53,6 +53,7 @@ class PickSession:
         """The live pose and its overlay (the blend, at most OVERLAY_SIDE)."""
         from rgbd_gt.camera import rescale
         from rgbd_gt.qa.overlay import blend, render_colors
+        from rgbd_gt.render.blocks import view_of
 
         if self.camera is None:
             raise InputError("the live pose needs --camera")
@@ -61,7 +62,8 @@ class PickSession:
         s = min(1.0, OVERLAY_SIDE / max(cam.size))
         small = rescale(cam, max(1, round(cam.width * s)), max(1, round(cam.height * s)))
         photo = cv2.resize(self.photo, small.size, interpolation=cv2.INTER_AREA)
-        rendered, have = render_colors(self.scan, small, np.array(out["T_cam_from_scan"]))
+        T = np.array(out["T_cam_from_scan"])
+        rendered, have = render_colors(view_of(self.scan, small, [T]), small, T)  # a render costs what the photo sees
         ok, png = cv2.imencode(".png", cv2.cvtColor(blend(photo, rendered, have), cv2.COLOR_RGB2BGR))
         with self.lock:
             self.overlay_png = png.tobytes()
