@@ -113,9 +113,10 @@ def main() -> None:
               f"| finding the board (once) | {prep['steps'].get('board', 0):.1f} |",
               f"| reopening the cache (a new process, with the hash) | {reload:.1f} |", ""]
     steps = [dict(kv.split("=") for kv in r["steps"].split()) for r in rows]
-    names = ["init", "view", "aligner", "refine", "depth", "qa", "overlay"]
-    lines += ["Per photo (seconds; `refine` is the whole step: the aligner, then the verdict's evidence, "
-              "which builds the view's mesh first):", "",
+    names = ["init", "view", "aligner", "refine", "mesh", "depth", "qa", "overlay"]
+    lines += ["Per photo (seconds; `refine` is the whole step: the aligner, then the verdict's evidence; `mesh` is "
+              "the view's ray-casting scene, one for the refined and the initial pose, built by the first render: "
+              "within refine (the verdict's edge check)):", "",
               "| photo | view points | " + " | ".join(names) + " | total | verdict |", "|---" * (len(names) + 4) + "|"]
     for r, s in zip(rows, steps):
         lines.append(f"| {r['photo']} | {int(r['view_points']):,} | " + " | ".join(f"{float(s.get(k, 'nan')):.1f}" for k in names)

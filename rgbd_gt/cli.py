@@ -29,6 +29,8 @@ app = typer.Typer(
 )
 out = Console()
 err = Console(stderr=True)
+CACHE_HELP = ("Prepare the scan once into this folder (or reuse it: `run` keeps its in OUTPUT/.scan-cache) and read "
+              "only what this view needs: seconds instead of reading a large scan file again.")
 
 
 def _version(value: bool) -> None:
@@ -214,6 +216,7 @@ def init_pose(
     camera_out: Optional[Path] = typer.Option(None, "--camera-out", help="With --estimate-focal: write the camera with the estimated focal here (YAML), for refine and export-depth."),
     ransac_px: float = typer.Option(4.0, "--ransac-px", help="With --correspondences: a pair farther than this (pixels) from where the pose puts its scan point is an outlier."),
     report: Optional[Path] = typer.Option(None, "--report", help="Folder for the photo with its corners or picks (used / dropped) and their reprojections, and the virtual scan view."),
+    cache: Optional[Path] = typer.Option(None, "--cache", help=CACHE_HELP + " The board found in the scan is kept there too: the next photo of this scan skips the search."),
 ) -> None:
     """Coarse pose of a photo from a checkerboard seen in both the photo and the scan (PnP), or
     from hand-picked correspondences (RANSAC PnP)."""
@@ -232,6 +235,8 @@ def init_pose(
             raise InputError("--camera-out writes the camera of --estimate-focal: give both")
         staged_camera = outs.file(camera_out, "--camera-out", POSE_SUFFIXES)
     report_dir = outs.folder(report, "--report") if report is not None else None
+    if cache is not None:
+        outs.checked_folder(cache, "--cache")
     if not (np.isfinite(ransac_px) and ransac_px > 0):
         raise InputError(f"--ransac-px must be a positive number of pixels, got {ransac_px}")
     cols, rows = _board_shape(board)
@@ -249,8 +254,12 @@ def init_pose(
     check_image_matches(cam, photo.shape, image, camera)
     with _progress() as bar:
         bar.add_task("init-pose", total=None)
-        the_scan = load_scan(scan, require_points=True)
+        if cache is not None:
+            from rgbd_gt.prepared import prepare_scan
+
+            prepared = prepare_scan(scan, cache)
         if correspondences is not None:
+            the_scan = load_scan(scan, require_points=True) if cache is None else prepared.whole()
             picks = read_correspondences(correspondences)
             check_picks(picks, cam, the_scan.xyz, correspondences, the_scan.origins)
             result = init_from_correspondences(picks, cam, estimate_focal, ransac_px)
@@ -258,7 +267,12 @@ def init_pose(
             spec = BoardSpec(cols, rows, square, charuco, marker)
             corners = read_csv_rows(board_points, "x,y,z") if board_points else None
             found = detect_photo_board(photo, spec, image)
-            result = init_from_board(board_in_scan(the_scan, spec, corners, scan), photo, cam, spec, found)
+            if cache is not None and corners is None:
+                in_scan = prepared.board(spec, scan)
+            else:
+                in_scan = board_in_scan(load_scan(scan, require_points=True) if cache is None else prepared.whole(),
+                                        spec, corners, scan)
+            result = init_from_board(in_scan, photo, cam, spec, found)
     meta = result.pose_meta()
     with outs:
         if camera_out is not None:
@@ -298,6 +312,7 @@ def pick(
     ransac_px: float = typer.Option(4.0, "--ransac-px", help="Outlier threshold of the live solve (pixels)."),
     port: int = typer.Option(0, "--port", help="Port on 127.0.0.1 (0: any free one)."),
     no_browser: bool = typer.Option(False, "--no-browser", help="Do not open the page in a browser (the address is printed)."),
+    cache: Optional[Path] = typer.Option(None, "--cache", help=CACHE_HELP),
 ) -> None:
     """Pick correspondences between the photo and the scan in a local web page: the photo on the
     left, the scan as an image on the right; a click in each makes a pair. Saving writes
@@ -311,7 +326,10 @@ def pick(
     from rgbd_gt.io.outputs import Outputs
 
     # checked only: the page saves the file itself (atomically) each time it is asked to
-    Outputs([scan, image, camera, init]).file(output, "-o", (".csv",))
+    outs = Outputs([scan, image, camera, init])
+    outs.file(output, "-o", (".csv",))
+    if cache is not None:
+        outs.checked_folder(cache, "--cache")
     if not (np.isfinite(ransac_px) and ransac_px > 0):
         raise InputError(f"--ransac-px must be a positive number of pixels, got {ransac_px}")
     if estimate_focal and camera is None:
@@ -331,7 +349,12 @@ def pick(
                  for a, b, lab in zip(picks.img.tolist(), picks.obj.tolist(), picks.labels)]
     with _progress() as bar:
         bar.add_task("preparing the scan image", total=None)
-        the_scan = load_scan(scan, require_points=True)
+        if cache is None:
+            the_scan = load_scan(scan, require_points=True)
+        else:
+            from rgbd_gt.prepared import prepare_scan
+
+            the_scan = prepare_scan(scan, cache).whole()
         clicks = click_view(the_scan, view, cam, T_init)
         for pair in pairs:  # draw loaded pairs where their scan points are in the scan image
             px = clicks.pixel_of([pair["x"], pair["y"], pair["z"]])
@@ -505,10 +528,11 @@ def export_depth(
     normals: Optional[Path] = typer.Option(None, "--normals", help="Also the camera-frame normals as an EXR (N.X, N.Y, N.Z)."),
     mask: Optional[Path] = typer.Option(None, "--mask", help="Also a validity mask PNG (255 where there is depth)."),
     max_depth: Optional[float] = typer.Option(None, "--max-depth", help="Depths beyond this (metres) are left out (0)."),
+    cache: Optional[Path] = typer.Option(None, "--cache", help=CACHE_HELP),
 ) -> None:
     """Depth of the scan as the photo's camera sees it, pixel for pixel with the original photo:
     z-depth in metres, occlusion-correct (a grid mesh ray-cast, or splats for unstructured scans)."""
-    from rgbd_gt.io import load_scan, read_camera, read_pose
+    from rgbd_gt.io import read_camera, read_pose
     from rgbd_gt.io.depth_file import write_depth_exr, write_depth_png16
     from rgbd_gt.io.image import write_image
     from rgbd_gt.io.outputs import Outputs
@@ -518,14 +542,16 @@ def export_depth(
     staged = {name: outs.file(p, option, suffixes) for name, p, option, suffixes in [
         ("depth", output, "-o", (".exr",)), ("png16", png16, "--png16", (".png",)),
         ("normals", normals, "--normals", (".exr",)), ("mask", mask, "--mask", (".png",))] if p is not None}
+    if cache is not None:
+        outs.checked_folder(cache, "--cache")
     if max_depth is not None and max_depth < 0:
         raise InputError(f"--max-depth must be positive (0: no limit), got {max_depth}")
     start = time.perf_counter()
     cam = read_camera(camera)
     T, _ = read_pose(pose)
-    from rgbd_gt.render.blocks import view_of
+    from rgbd_gt.prepared import scan_in_view
 
-    the_scan = view_of(load_scan(scan, require_points=True), cam, [T])
+    the_scan = scan_in_view(scan, cam, [T], cache)
     with _progress() as bar:
         bar.add_task("rendering depth", total=None)
         depth = render_depth(the_scan, cam, T, max_depth, normals=normals is not None)
@@ -567,6 +593,7 @@ def qa_edges(
     output: Path = typer.Option(..., "-o", "--output", help="Overlay PNG (longer side at most 1280 px): red = the photo's strongest gradients, blue = the scan's structural edges, white = both."),
     before: Optional[Path] = typer.Option(None, "--before", help="Another pose (e.g. the initial one): a before/after panel."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the scores as JSON."),
+    cache: Optional[Path] = typer.Option(None, "--cache", help=CACHE_HELP),
 ) -> None:
     """How well the scan rendered at the pose lines up with the photo. The structural score: the
     photo's gradient strength at the scan's structural edges (depth discontinuities, strong color
@@ -576,7 +603,7 @@ def qa_edges(
     import json
 
     from rgbd_gt.io.scan import scan_colors
-    from rgbd_gt.io import load_scan, read_camera, read_pose
+    from rgbd_gt.io import read_camera, read_pose
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import IMAGE_SUFFIXES, read_image, write_image
     from rgbd_gt.io.outputs import Outputs
@@ -585,14 +612,20 @@ def qa_edges(
     outs = Outputs([scan, image, camera, pose, before])
     staged = outs.file(output, "-o", IMAGE_SUFFIXES)
     staged_json = outs.file(json_out, "--json", (".json",)) if json_out else None
+    if cache is not None:
+        outs.checked_folder(cache, "--cache")
     photo = read_image(image)
     cam = read_camera(camera, (photo.shape[1], photo.shape[0]))
     check_image_matches(cam, photo.shape, image, camera)
     T, _ = read_pose(pose)
     T_before = read_pose(before)[0] if before else None
-    from rgbd_gt.render.blocks import view_of
+    from rgbd_gt.prepared import scan_in_view
 
-    the_scan = view_of(load_scan(scan, require_points=True), cam, [T] if T_before is None else [T, T_before])
+    the_scan = scan_in_view(scan, cam, [T] if T_before is None else [T, T_before], cache)
+    if T_before is not None:
+        from rgbd_gt.render.depth import expect_poses
+
+        expect_poses(the_scan, [T_before])  # one ray-casting scene for both renders
     colors = scan_colors(the_scan, scan)
     with _progress() as bar:
         bar.add_task("edges", total=None)
@@ -631,11 +664,12 @@ def overlay(
     pose: Path = typer.Option(..., "--pose", help="The pose to show (T_cam_from_scan), e.g. from refine."),
     output: Path = typer.Option(..., "-o", "--output", help="Checkerboard PNG at the photo's resolution: squares alternate between the photo and the scan rendered at the pose (edges must run on across square borders). The 50% blend goes beside it as OVERLAY_blend.png."),
     max_depth: Optional[float] = typer.Option(None, "--max-depth", help="Leave out scan surfaces farther than this (metres)."),
+    cache: Optional[Path] = typer.Option(None, "--cache", help=CACHE_HELP),
 ) -> None:
     """The scan rendered at the pose over the photo, as a checkerboard and as a 50% blend, full
     resolution (crop to inspect): the most direct check of a pose. Surfaces the camera would
     see from behind are not drawn."""
-    from rgbd_gt.io import load_scan, read_camera, read_pose
+    from rgbd_gt.io import read_camera, read_pose
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import read_image, write_image
     from rgbd_gt.io.outputs import Outputs
@@ -645,15 +679,17 @@ def overlay(
     blend = blend_path(output)
     outs = Outputs([scan, image, camera, pose])
     staged = [outs.file(output, "-o", (".png",)), outs.file(blend, "-o (its blend)", (".png",))]
+    if cache is not None:
+        outs.checked_folder(cache, "--cache")
     if max_depth is not None and max_depth < 0:
         raise InputError(f"--max-depth must be positive, got {max_depth}")
     photo = read_image(image)
     cam = read_camera(camera, (photo.shape[1], photo.shape[0]))
     check_image_matches(cam, photo.shape, image, camera)
     T, _ = read_pose(pose)
-    from rgbd_gt.render.blocks import view_of
+    from rgbd_gt.prepared import scan_in_view
 
-    the_scan = view_of(load_scan(scan, require_points=True), cam, [T])
+    the_scan = scan_in_view(scan, cam, [T], cache)
     with _progress() as bar:
         bar.add_task("rendering the scan", total=None)
         checker, mixed, covered = make_overlay(the_scan, photo, cam, T, max_depth)

@@ -1,12 +1,13 @@
 """A scan prepared once and shared by every photo and step, cached on disk.
 
 Preparing reads the scan file, computes what depends on the scan alone (normals facing the
-scanner, the voxel-block index, the board) and writes it as plain .npy files in a folder keyed
-by the file's size, time and content hash. Reopening maps those files (seconds for 40 million
-points), and each photo then gathers only the blocks its view can reach (`PreparedScan.view`),
-so that its steps scale with what it sees. The grid mesh is not stored: the view's part of it
-is rebuilt from the view's grid (its cost grows with the view, and storing 2 triangles a point
-would double the cache).
+scanner, the grid mesh, the voxel-block index, the board) and writes it as plain .npy files in
+a folder keyed by the file's size, time and content hash. Reopening maps those files (seconds
+for 40 million points), and each photo then gathers only the blocks its view can reach
+(`PreparedScan.view`), so that its steps scale with what it sees. The grid mesh is stored as a
+byte a point (`render.mesh.grid_cell_bits`: which of the grid's triangles are kept), from which
+a view makes its triangles without measuring an edge; its ray-casting scene depends on the
+camera and pose (`render.depth.grid_mesh`), so it is made per photo from the view's triangles.
 """
 
 from __future__ import annotations
@@ -26,8 +27,9 @@ from rgbd_gt.camera import Camera
 from rgbd_gt.io.scan import Scan
 from rgbd_gt.render.blocks import VIEW_MARGIN, Blocks, block_order, block_points, blocks_in_view, points_in_view
 
-CACHE_VERSION = 1
-ARRAYS = ("xyz", "rgb", "intensity", "row", "col", "scan_id", "normals")  # per point, block-ordered
+CACHE_VERSION = 2
+ARRAYS = ("xyz", "rgb", "intensity", "row", "col", "scan_id", "normals", "cells")  # per point, block-ordered
+# "cells": `render.mesh.grid_cell_bits` (grid scans), kept in a subset's Scan.derived as "cell_bits"
 
 
 def file_key(path: Path) -> dict:
@@ -57,19 +59,32 @@ class PreparedScan:
 
     def subset(self, index: np.ndarray) -> Scan:
         """The points `index` (into the block order) as a `Scan` in the scan's frame (float64)."""
-        fields = {k: np.asarray(a[index]) for k, a in self.arrays.items() if k != "xyz"}
+        fields = {k: np.asarray(a[index]) for k, a in self.arrays.items() if k not in ("xyz", "cells")}
         xyz = self.arrays["xyz"][index].astype(np.float64) + self.centre
-        return Scan(xyz=xyz, origins=self.origins, **fields)
+        scan = Scan(xyz=xyz, origins=self.origins, **fields)
+        if "cells" in self.arrays:
+            scan.derived["cell_bits"] = np.asarray(self.arrays["cells"][index])
+        return scan
 
     def view(self, camera: Camera, T_cam_from_scan: np.ndarray, margin: float = VIEW_MARGIN,
              far: float | None = None) -> Scan:
         """The points a photo can see from about T_cam_from_scan (`render.blocks.points_in_view`),
         found through the blocks: every step of that photo works on this subset."""
+        return self.subset(self._in_view(camera, T_cam_from_scan, margin, far))
+
+    def views(self, camera: Camera, poses: list[np.ndarray], margin: float = VIEW_MARGIN) -> Scan:
+        """The points in view of any of the poses (`view`)."""
+        return self.subset(np.unique(np.concatenate([self._in_view(camera, T, margin) for T in poses])))
+
+    def _in_view(self, camera: Camera, T_cam_from_scan: np.ndarray, margin: float, far: float | None = None) -> np.ndarray:
         idx = block_points(self.blocks, blocks_in_view(self.blocks, camera, T_cam_from_scan, margin, far))
         T_local = T_cam_from_scan.copy()
         T_local[:3, 3] += T_local[:3, :3] @ self.centre  # the pose of the local (float32) frame
-        keep = points_in_view(np.asarray(self.arrays["xyz"][idx]), camera, T_local, margin, far)
-        return self.subset(idx[keep])
+        return idx[points_in_view(np.asarray(self.arrays["xyz"][idx]), camera, T_local, margin, far)]
+
+    def whole(self) -> Scan:
+        """Every point, as a `Scan` (block-ordered)."""
+        return self.subset(slice(None))
 
     def near(self, lo: np.ndarray, hi: np.ndarray) -> Scan:
         """The points of the blocks that meet the box [lo, hi] (metres, scan frame)."""
@@ -90,7 +105,7 @@ class PreparedScan:
                 return BoardInScan(z["corners"], z["ids"], z["near_xyz"], z["near_gray"], str(z["method"]),
                                    float(z["plane_rms_m"]))
         if len(self.origins) == 0:  # no scanner position to render views from: the error it gives
-            board = board_in_scan(self.subset(slice(None)), spec, None, scan_path)
+            board = board_in_scan(self.whole(), spec, None, scan_path)
         else:
             xyz = np.asarray(self.arrays["xyz"])  # local float32: the search needs no float64 copy
             colors = scan_colors(Scan(xyz=xyz, rgb=self.arrays.get("rgb"), intensity=self.arrays.get("intensity")), scan_path)
@@ -139,6 +154,18 @@ def prepare_scan(scan_path: Path, root: Path, progress: Callable[[str], None] = 
     return _open(folder, scan_path, json.loads(meta_path.read_text()))
 
 
+def scan_in_view(scan_path: Path, camera: Camera, poses: list[np.ndarray], cache: Path | None = None) -> Scan:
+    """The scan's points in view of the camera at any of the poses: from the prepared scan under
+    `cache` (prepared there first when it is not yet: seconds on later calls, whatever the
+    file's size), else read from the file and culled (`render.blocks.view_of`)."""
+    if cache is None:
+        from rgbd_gt.io.scan import load_scan
+        from rgbd_gt.render.blocks import view_of
+
+        return view_of(load_scan(scan_path, require_points=True), camera, poses)
+    return prepare_scan(scan_path, cache).views(camera, poses)
+
+
 def open_prepared(folder: Path, scan_path: Path) -> PreparedScan:
     """A prepared scan's cache folder, opened without checking it against the scan file (the
     caller prepared it: `prepare_scan`)."""
@@ -160,6 +187,7 @@ def _build(scan_path: Path, folder: Path, key: dict, progress: Callable[[str], N
 
     from rgbd_gt.init.scan_board import scan_step
     from rgbd_gt.io.scan import load_scan
+    from rgbd_gt.render.mesh import grid_cell_bits
     from rgbd_gt.render.normals import with_normals
 
     seconds: dict[str, float] = {}
@@ -171,11 +199,14 @@ def _build(scan_path: Path, folder: Path, key: dict, progress: Callable[[str], N
         clock[0] = now
 
     progress("reading the scan")
-    scan = load_scan(scan_path, require_points=True)
+    read = load_scan(scan_path, require_points=True)
     phase("read")
     progress("normals")
-    scan = with_normals(scan)
+    scan = with_normals(read)
     step = scan_step(scan) if len(scan.origins) else None
+    # the grid mesh: a by-product of the normals' pass when they came from the grid (on `read`)
+    cells = grid_cell_bits(read) if scan.has_grid else None
+    del read
     phase("normals")
     centre = scan.origins[0].copy() if len(scan.origins) else (scan.xyz.min(0) + scan.xyz.max(0)) / 2
     progress("spatial index")
@@ -189,13 +220,15 @@ def _build(scan_path: Path, folder: Path, key: dict, progress: Callable[[str], N
         progress("writing the cache")
         names = []
         for name in ARRAYS:
-            values = local if name == "xyz" else getattr(scan, name)
+            values = local if name == "xyz" else cells if name == "cells" else getattr(scan, name)
             if values is None:
                 continue
             np.save(stage / f"{name}.npy", values[order])
             names.append(name)
             if name == "xyz":
                 del local, values
+            elif name == "cells":
+                cells = None
             else:
                 setattr(scan, name, None)
         np.savez(stage / "blocks.npz", start=blocks.start, lo=blocks.lo + centre, hi=blocks.hi + centre)

@@ -181,7 +181,7 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
     from rgbd_gt.io.scan import scan_colors
     from rgbd_gt.qa.edges import qa, side_by_side
     from rgbd_gt.qa.overlay import overlay
-    from rgbd_gt.render.depth import back_facing_fraction, render_depth
+    from rgbd_gt.render.depth import back_facing_fraction, expect_poses, render_depth
 
     start = time.perf_counter()
     res = PhotoResult(photo.name)
@@ -209,6 +209,7 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
     res.view_points = len(scan)
     if len(scan) == 0:
         raise InputError("no scan points in view of the initial pose", files["init"])
+    expect_poses(scan, [T_init])  # qa renders it beside the refined pose: one ray-casting scene for both
     colors = scan_colors(scan, prepared.source)
     lap("view")
 
@@ -264,6 +265,7 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
     score = json.loads(files["qa"].read_text())
     res.edge_before_px, res.edge_after_px = score["before_mean_distance_px"], score["mean_distance_px"]
     res.within_1px_before, res.within_1px_after = score["before_within_1px"], score["within_1px"]
+    res.steps["mesh"] = round(scan.derived.get("mesh_seconds", 0.0), 3)  # within the steps that rendered first
     res.seconds = time.perf_counter() - start
     return res
 

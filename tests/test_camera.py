@@ -93,3 +93,19 @@ def test_rescale_keeps_pixel_centres():
     uv_full = project(without_distortion(CAM), pt)[0]
     uv_half = project(without_distortion(half), pt)[0]
     np.testing.assert_allclose((uv_full + 0.5) / 2 - 0.5, uv_half)
+
+
+@pytest.mark.parametrize("coefficients", [(-0.12, 0.16, 7e-4, 1.4e-3), (-0.10, -0.04, 6e-4, -4e-3, 0.43),
+                                          (-0.1, 0.05, 1e-3, -2e-3, 0.02, 0.01, 3e-3, 1e-3),
+                                          (-0.1, 0.05, 1e-3, -2e-3, 0.02, 0.01, 3e-3, 1e-3, 1e-3, -2e-3, 3e-3, 5e-4),
+                                          (-0.1, 0.05, 1e-3, -2e-3, 0.02, 0.01, 3e-3, 1e-3, 1e-3, -2e-3, 3e-3, 5e-4, 0.01, -0.02)])
+def test_distort_is_opencvs_model(coefficients):
+    import cv2
+
+    from rgbd_gt.camera import distort
+
+    camera = Camera(1920, 1200, 2150.0, 2155.0, 971.3, 605.9, coefficients)
+    xn = np.random.default_rng(1).uniform(-0.6, 0.6, (5000, 2))
+    expected = cv2.projectPoints(np.c_[xn, np.ones(len(xn))], np.zeros(3), np.zeros(3), camera.K,
+                                 np.array(coefficients))[0].reshape(-1, 2)
+    np.testing.assert_allclose(distort(camera, xn), expected, atol=1e-6)

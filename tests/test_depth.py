@@ -8,10 +8,13 @@ import pytest
 from conftest import assert_one_line_error, run_cli
 from rgbd_gt.bench.depth import depth_errors, frame_grid_scan, seen_by_both
 from rgbd_gt.bench.icl import ICL_CAMERA, read_depth, read_trajectory
+from rgbd_gt.camera import Camera
 from rgbd_gt.io import read_pose, save_scan, write_camera, write_pose
 from rgbd_gt.io.depth_file import read_depth_exr
+from rgbd_gt.io.scan import Scan
 from rgbd_gt.pose import invert
 from rgbd_gt.render.depth import render_depth
+from rgbd_gt.render.mesh import grid_triangles
 
 
 def test_icl_grid_depth_meets_the_figures(icl_dir):
@@ -85,3 +88,70 @@ def test_export_depth_errors(icl_files):
     assert_one_line_error(run_cli("export-depth", "--scan", d / "scan.ply", "--camera", d / "camera.yaml",
                                   "--pose", d / "pose.yaml", "-o", d / "o.png"), ".exr")
     assert not (d / "o.exr").exists()
+
+
+def _dense_grid_scan() -> Scan:
+    """A grid scan (0.1 deg steps: several points to a pixel of the camera below) from the origin
+    of a floor, a box on it and a wall behind, z up, looking along +x."""
+    import open3d as o3d
+
+    rc = o3d.t.geometry.RaycastingScene()
+    for lo, hi in (((0.5, -6, -1.6), (12, 6, -1.5)), ((3, -0.5, -1.5), (3.6, 0.3, -0.4)), ((8, -6, -1.5), (8.2, 6, 3))):
+        box = o3d.geometry.TriangleMesh.create_box(*np.subtract(hi, lo)).translate(lo)
+        rc.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(box))
+    el, az = np.meshgrid(np.radians(np.arange(-40, 15, 0.1)), np.radians(np.arange(-35, 35, 0.1)), indexing="ij")
+    d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1).reshape(-1, 3)
+    t = rc.cast_rays(o3d.core.Tensor(np.concatenate([np.zeros_like(d), d], 1).astype(np.float32)))["t_hit"].numpy()
+    ok = np.isfinite(t)
+    row, col = np.nonzero(ok.reshape(el.shape))
+    return Scan(xyz=d[ok] * t[ok, None], row=row.astype(np.int32), col=col.astype(np.int32),
+                scan_id=np.zeros(ok.sum(), np.int32), origins=np.zeros((1, 3)))
+
+
+def _only_mesh(scan: Scan):
+    ((_, mesh),) = scan.derived["grid_meshes"]
+    return mesh
+
+
+@pytest.mark.parametrize("target", [(6.0, 0.0, -1.0), (4.0, 5.0, 0.0)])  # the box ahead; looking out of the scan
+def test_grid_mesh_keeps_every_triangle_a_pixel_ray_can_hit(monkeypatch, target):
+    """The ray-casting scene holds only triangles whose projection holds a pixel centre; rendering
+    with it gives the depth of the whole mesh (a ray on an edge shared by two triangles may take
+    either: Embree's choice, which a different scene can change)."""
+    import rgbd_gt.render.depth as depth_module
+    from rgbd_gt.synth.scene import look_at
+
+    scan = _dense_grid_scan()
+    camera = Camera(320, 240, 240.0, 241.0, 161.3, 118.7, (-0.25, 0.08, 0.001, -0.002, 0.01))
+    T = np.linalg.inv(look_at(np.array([0.3, -0.2, 0.1]), np.array(target)))
+    pruned = render_depth(scan, camera, T)
+    kept, whole = len(_only_mesh(scan).tris), len(grid_triangles(scan))
+    monkeypatch.setattr(depth_module, "hittable_cells",
+                        lambda grid, *a, **k: (np.ones((grid.shape[0] - 1, grid.shape[1] - 1), bool),) * 2)
+    scan.derived.clear()
+    full = render_depth(scan, camera, T)
+    assert len(_only_mesh(scan).tris) == whole
+    assert kept < 0.5 * whole  # several points to a pixel: most triangles hold no pixel centre
+    assert (full.z > 0).mean() > 0.15  # (the second view sees the scan at one side)
+    same = pruned.z == full.z
+    assert same.mean() > 0.999
+    np.testing.assert_allclose(pruned.normals[same & (full.z > 0)], full.normals[same & (full.z > 0)], atol=1e-6)
+
+
+def test_a_subset_makes_its_triangles_from_the_whole_scans_cell_bits():
+    """A prepared scan's view keeps a byte a point (`grid_cell_bits`) and makes from it exactly
+    the whole mesh's triangles that lie within the view."""
+    from rgbd_gt.render.mesh import grid_cell_bits
+
+    scan = _dense_grid_scan()
+    whole = grid_triangles(scan)
+    index = np.flatnonzero((scan.xyz[:, 0] < 6) & (scan.xyz[:, 1] > -1))
+    sub = Scan(xyz=scan.xyz[index], row=scan.row[index], col=scan.col[index], scan_id=scan.scan_id[index],
+               origins=scan.origins)
+    sub.derived["cell_bits"] = grid_cell_bits(scan)[index]
+    local = np.full(len(scan), -1)
+    local[index] = np.arange(len(index))
+    inside = whole[(local[whole] >= 0).all(axis=1)]
+    expected = {tuple(t) for t in local[inside]}
+    got = {tuple(t) for t in grid_triangles(sub)}
+    assert len(expected) > 10000 and got == expected

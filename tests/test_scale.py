@@ -74,6 +74,34 @@ def test_prepared_scan_gives_what_the_whole_scan_gives(scenes, tmp_path):
     np.testing.assert_allclose(p.board(spec).corners, board.corners)
 
 
+def test_single_commands_read_the_prepared_scan(scenes, tmp_path):
+    """init-pose and export-depth with --cache: the same pose and depth as from the scan file; the
+    board is searched once and read from the cache by the next init-pose; a cache path that is a
+    file is a one-line error."""
+    from rgbd_gt.io.depth_file import read_depth_exr
+
+    d, cache = scenes / "s2", tmp_path / "cache"
+    common = ["--scan", d / "scan.e57", "--camera", d / "camera.yaml"]
+    for name, extra in (("plain", []), ("cached", ["--cache", cache]), ("again", ["--cache", cache])):
+        proc = run_cli("init-pose", *common, "--image", d / "photo.png", "-o", tmp_path / f"init_{name}.yaml", *extra)
+        assert proc.returncode == 0, proc.stderr
+        if name != "again":
+            proc = run_cli("export-depth", *common, "--pose", d / "gt_pose.yaml", "-o", tmp_path / f"depth_{name}.exr", *extra)
+            assert proc.returncode == 0, proc.stderr
+    (folder,) = cache.iterdir()
+    assert list(folder.glob("board-*.npz")) and (folder / "cells.npy").exists()
+    T = read_pose(tmp_path / "init_plain.yaml")[0]
+    for name in ("cached", "again"):
+        np.testing.assert_allclose(read_pose(tmp_path / f"init_{name}.yaml")[0], T, atol=1e-6)
+    z = read_depth_exr(tmp_path / "depth_plain.exr")[0]
+    zc = read_depth_exr(tmp_path / "depth_cached.exr")[0]
+    assert (z > 0).mean() > 0.5 and np.mean(np.abs(zc - z) < 1e-4) > 0.9995
+    (tmp_path / "afile").write_text("x")
+    proc = run_cli("export-depth", *common, "--pose", d / "gt_pose.yaml", "-o", tmp_path / "d.exr", "--cache", tmp_path / "afile")
+    assert proc.returncode == 2 and proc.stderr.startswith("error: ") and "--cache" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+
+
 def test_a_changed_scan_file_is_prepared_again(scenes, tmp_path):
     path = tmp_path / "scan.ply"
     shutil.copy(scenes / "s5" / "scan.ply", path)

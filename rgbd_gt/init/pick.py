@@ -83,20 +83,28 @@ def grid_panorama(scan: Scan, longest: int = VIEW_SIDE) -> ClickView:
     return ClickView(image, xyz, f"the scan's grid ({rows} x {cols} shots" + (f", every {step}th" if step > 1 else "") + ")")
 
 
-def _grid_directions(xyz: np.ndarray, row: np.ndarray, col: np.ndarray, origin: np.ndarray) -> tuple[bool, bool]:
+def _grid_directions(xyz: np.ndarray, row: np.ndarray, col: np.ndarray, origin: np.ndarray,
+                     pairs: int = 1 << 20) -> tuple[bool, bool]:
     """(rows go up, columns go left) as seen from the origin with z up, from grid neighbours:
-    the elevation change along rows and the turn (about z) along columns, by majority."""
+    the elevation change along rows and the turn (about z) along columns, by majority (over
+    about `pairs` neighbour pairs of evenly spaced rows and columns)."""
+    index = np.full((int(row.max()) + 1, int(col.max()) + 1), -1, np.int64)
+    index[row, col] = np.arange(len(row))
     d = xyz - origin
-    order = np.lexsort((col, row))
-    r, c, dd = row[order], col[order], d[order]
-    along = (np.diff(r) == 0) & (np.diff(c) == 1)
-    a, b = dd[:-1][along], dd[1:][along]
+    step = max(1, index.size // pairs)
+    rows = index[::step]  # neighbours along a row: the turn about z
+    a, b = rows[:, :-1].ravel(), rows[:, 1:].ravel()
+    ok = (a >= 0) & (b >= 0)
+    a, b = d[a[ok]], d[b[ok]]
     turn = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]  # > 0: turning counter-clockwise, to the left
-    order = np.lexsort((row, col))
-    r, c, dd = row[order], col[order], d[order]
-    down = (np.diff(c) == 0) & (np.diff(r) == 1)
-    el = dd[:, 2] / np.maximum(np.linalg.norm(dd, axis=1), 1e-12)
-    rise = np.diff(el)[down]
+    cols = index[:, ::step]  # neighbours along a column: the change of elevation
+    a, b = cols[:-1].ravel(), cols[1:].ravel()
+    ok = (a >= 0) & (b >= 0)
+
+    def elevation(p):
+        return p[:, 2] / np.maximum(np.linalg.norm(p, axis=1), 1e-12)
+
+    rise = elevation(d[b[ok]]) - elevation(d[a[ok]])
     return bool(np.median(rise) > 0) if rise.size else False, bool(np.median(turn) > 0) if turn.size else False
 
 

@@ -89,6 +89,12 @@ class Outputs:
         self.staged.append((stage, path, True))
         return stage
 
+    def checked_folder(self, path: str | os.PathLike, option: str) -> Path:
+        """Check a folder the command writes into itself (a cache, atomically by its own means):
+        nothing is staged."""
+        self._check(Path(path), option, folder=True)
+        return Path(path)
+
     def commit(self) -> None:
         """Move every staged output to its target."""
         try:

@@ -56,9 +56,13 @@ class Scan:
         return self.row is not None and self.col is not None
 
     def subset(self, index: np.ndarray) -> "Scan":
-        """A new Scan with the points selected by a boolean mask or an index array."""
+        """A new Scan with the points selected by a boolean mask or an index array. Derived data
+        that holds per point for any subset goes along (the grid mesh's "cell_bits")."""
         picked = {name: getattr(self, name)[index] for name in self.fields}
-        return dataclasses.replace(self, **picked)
+        out = dataclasses.replace(self, **picked)
+        if "cell_bits" in self.derived:
+            out.derived["cell_bits"] = self.derived["cell_bits"][index]
+        return out
 
 
 def scan_colors(scan: Scan, path: object = None) -> np.ndarray:

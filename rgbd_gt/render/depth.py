@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
 
-from rgbd_gt.camera import Camera, project, undistort_points
+from rgbd_gt.camera import Camera, distort, project, undistort_points
 from rgbd_gt.io.scan import Scan
 from rgbd_gt.pose import invert, transform_points
 
@@ -110,8 +111,8 @@ def render_depth(scan: Scan, camera: Camera, T_cam_from_scan: np.ndarray, max_de
 class GridMesh:
     """A structured scan's grid mesh, ready to ray-cast: tris (T, 3) int32 into the scan's
     points, the Open3D scene of them in a local frame around `centre` (float32 stays exact for
-    georeferenced coordinates), and the scanner position of each triangle's first vertex (None
-    when the scan records none)."""
+    georeferenced coordinates), and the scanner of each triangle's first vertex (None when the
+    scan records none)."""
 
     tris: np.ndarray
     scene: object
@@ -119,28 +120,155 @@ class GridMesh:
     origin: np.ndarray | None
 
 
-def grid_mesh(scan: Scan) -> GridMesh:
-    """The scan's `GridMesh`, built on first use and kept in scan.derived: every render of a
-    photo's view (depth, the edge checks, the overlay) casts against the same one."""
-    if "grid_mesh" not in scan.derived:
-        import open3d as o3d
+HIT_MARGIN_PX = 0.01  # 5 x the pixel rays' own error (normalised_map: <= 0.002 px; float32 pixels: 1e-4 px)
+MESHES_KEPT = 2  # a result's renders ask for one or two cameras (the working one of the checks, the photo's)
 
-        from rgbd_gt.render.mesh import grid_triangles
 
-        tris = grid_triangles(scan).astype(np.int32)
+def expect_poses(scan: Scan, poses: list[np.ndarray]) -> None:
+    """Say that renders of this scan will be asked at these poses too (a photo's initial pose,
+    which qa renders beside the refined one): the first ray-casting scene `grid_mesh` builds for
+    a camera then serves them all, one build instead of one per pose."""
+    scan.derived["expected_poses"] = [np.asarray(T, np.float64) for T in poses]
+
+
+def grid_mesh(scan: Scan, camera: Camera, T_cam_from_scan: np.ndarray) -> GridMesh:
+    """The scan's grid mesh as the rays through `camera`'s pixel centres at this pose can hit it.
+
+    The grid's cells (`render.mesh.grid_cells`) are made once per scan and kept in scan.derived;
+    the ray-casting scene holds only the triangles whose projection holds a pixel centre
+    (`hittable_cells`) at this pose or one of the `expect_poses`, which leaves every ray's hit as
+    it is. The last MESHES_KEPT scenes are kept: the renders of one result (the verdict, depth,
+    qa, the overlay) share them; the seconds spent building them add up in
+    scan.derived["mesh_seconds"]. A dense scan has several points per pixel, so most of its
+    triangles hold no pixel centre, and the scene's build (which grows with its triangles) costs
+    a fraction of the whole mesh's."""
+    import open3d as o3d
+
+    from rgbd_gt.render.mesh import cell_triangles, grid_cells
+
+    def key(T):
+        return camera, np.asarray(T, np.float64).tobytes()
+
+    kept = scan.derived.setdefault("grid_meshes", [])  # (the keys it serves, GridMesh), most recently used last
+    for i, (serves, mesh) in enumerate(kept):
+        if key(T_cam_from_scan) in serves:
+            kept.append(kept.pop(i))
+            return mesh
+    start = time.perf_counter()
+    if "grid_cells" not in scan.derived:
+        scan.derived["grid_cells"] = grid_cells(scan)
+    poses = {key(T): T for T in [T_cam_from_scan, *scan.derived.get("expected_poses", [])]}
+    corners = [_corner_pixels(scan.xyz, camera, T) for T in poses.values()]
+    bands = []
+    for cells in scan.derived["grid_cells"]:
+        for grid, keep1, keep2 in _row_bands(*cells):
+            hit1, hit2 = False, False
+            for uv, out in corners:
+                h1, h2 = hittable_cells(grid, uv, out, camera)
+                hit1, hit2 = hit1 | h1, hit2 | h2
+            bands.append(cell_triangles(grid, keep1 & hit1, keep2 & hit2))
+    tris = np.concatenate(bands) if bands else np.zeros((0, 3), np.int32)
+    origin = None
+    if len(scan.origins):
+        sid = scan.scan_id[tris[:, 0]] if scan.scan_id is not None else np.zeros(len(tris), np.int64)
+        origin = np.minimum(sid, len(scan.origins) - 1)
+    if "local_xyz" not in scan.derived:  # float32 about the centre: exact for georeferenced coordinates
         centre = scan.xyz.mean(axis=0) if len(scan) else np.zeros(3)
-        scene = o3d.t.geometry.RaycastingScene()
-        if len(tris):
-            mesh = o3d.t.geometry.TriangleMesh()
-            mesh.vertex.positions = o3d.core.Tensor((scan.xyz - centre).astype(np.float32))
-            mesh.triangle.indices = o3d.core.Tensor(tris)
-            scene.add_triangles(mesh)
-        origin = None
-        if len(scan.origins):
-            sid = scan.scan_id[tris[:, 0]] if scan.scan_id is not None else np.zeros(len(tris), np.int64)
-            origin = np.minimum(sid, len(scan.origins) - 1)
-        scan.derived["grid_mesh"] = GridMesh(tris, scene, centre, origin)
-    return scan.derived["grid_mesh"]
+        scan.derived["local_xyz"] = centre, (scan.xyz - centre).astype(np.float32)
+    centre, local = scan.derived["local_xyz"]
+    scene = o3d.t.geometry.RaycastingScene()
+    if len(tris):
+        mesh = o3d.t.geometry.TriangleMesh()
+        mesh.vertex.positions = o3d.core.Tensor(local)
+        mesh.triangle.indices = o3d.core.Tensor(tris)
+        scene.add_triangles(mesh)
+        scene.cast_rays(o3d.core.Tensor(np.array([[0, 0, 0, 0, 0, 1]], np.float32)))  # builds the hierarchy now: timed here
+    del kept[:len(kept) + 1 - MESHES_KEPT]
+    kept.append((set(poses), GridMesh(tris, scene, centre, origin)))
+    scan.derived["mesh_seconds"] = scan.derived.get("mesh_seconds", 0.0) + time.perf_counter() - start
+    return kept[-1][1]
+
+
+def _row_bands(grid: np.ndarray, keep1: np.ndarray, keep2: np.ndarray, cells: int = 1 << 19):
+    """(grid, keep1, keep2) of `render.mesh.grid_cells` in bands of about `cells` cells (sharing
+    their boundary row): the tests' temporaries then stay small (and in the processor's cache)."""
+    step = max(1, cells // max(grid.shape[1], 1))
+    for r0 in range(0, grid.shape[0] - 1, step):
+        yield grid[r0:r0 + step + 1], keep1[r0:r0 + step], keep2[r0:r0 + step]
+
+
+def _corner_pixels(xyz: np.ndarray, camera: Camera, T_cam_from_scan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(uv (N, 2) float32 distorted pixels, out (N,) uint8) of the points xyz (N, 3). out is 0
+    where the point is in front of the camera and within the lens model's reliable reach
+    (`view_bounds` with a 10% margin: beyond it distortion may fold back), else a bit per side
+    it lies beyond (1, 2: x/z below, above; 4, 8: y/z; 16: behind the camera); uv 0 there."""
+    from rgbd_gt.render.blocks import view_bounds
+
+    x0, x1, y0, y1 = view_bounds(camera, 0.1)
+    uv = np.zeros((len(xyz), 2), np.float32)
+    out = np.empty(len(xyz), np.uint8)
+    for a in range(0, len(xyz), 1 << 18):  # in slices that stay in the allocator's reuse (and cache)
+        p = transform_points(T_cam_from_scan, xyz[a:a + (1 << 18)])
+        z = p[:, 2]
+        front = z > 1e-6
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xn = p[:, :2] / z[:, None]
+        o = np.where(front, (xn[:, 0] < x0) * 1 + (xn[:, 0] > x1) * 2 + (xn[:, 1] < y0) * 4 + (xn[:, 1] > y1) * 8, 16)
+        sure = o == 0
+        out[a:a + len(p)] = o
+        uv[a:a + len(p)][sure] = distort(camera, xn[sure]) if camera.has_distortion else \
+            xn[sure] * [camera.fx, camera.fy] + [camera.cx, camera.cy]
+    return uv, out
+
+
+def hittable_cells(grid: np.ndarray, uv: np.ndarray, out: np.ndarray, camera: Camera,
+                   margin: float = HIT_MARGIN_PX) -> tuple[np.ndarray, np.ndarray]:
+    """(hit1, hit2) (r-1, c-1) bool: the cells of the grid band (r, c) (`render.mesh.grid_cells`)
+    whose triangle (a, b, c), resp. (c, b, d), a ray through a pixel centre (integer u, v of the
+    distorted photo) may hit, given the corners' `_corner_pixels` uv, out (N, ...).
+
+    A triangle projects to the triangle of its projected corners, bent slightly by the lens
+    (allowed for by a margin of 2% of its extent plus `margin` pixels). Left out: those whose
+    bounding box holds no pixel centre, and those whose box holds at most 2 x 2 that all lie
+    outside them (most triangles of a dense scan, several to a pixel, are either); of those with a
+    corner beyond the lens model's reach, those with every corner behind the camera or, in
+    front of it, beyond one side of the view; the rest of those are kept."""
+    idx = np.maximum(grid, 0)
+    u, v, o = uv[idx, 0], uv[idx, 1], out[idx]
+
+    def corners(a):
+        return a[:-1, :-1], a[:-1, 1:], a[1:, :-1], a[1:, 1:]
+
+    (ua, ub, uc, ud), (va, vb, vc, vd), (oa, ob, oc, od) = corners(u), corners(v), corners(o)
+    return (_hit((ua, va), (ub, vb), (uc, vc), camera, margin, (oa, ob, oc)),
+            _hit((uc, vc), (ub, vb), (ud, vd), camera, margin, (oc, ob, od)))
+
+
+def _hit(p0, p1, p2, camera: Camera, margin: float, out) -> np.ndarray:
+    """Whether a pixel centre may lie in the triangles (p0, p1, p2), each corner a (u, v) pair of
+    arrays of one shape, out their `_corner_pixels` codes (`hittable_cells`)."""
+    (u0, v0), (u1, v1), (u2, v2) = p0, p1, p2
+    ulo, uhi = np.minimum(np.minimum(u0, u1), u2), np.maximum(np.maximum(u0, u1), u2)
+    vlo, vhi = np.minimum(np.minimum(v0, v1), v2), np.maximum(np.maximum(v0, v1), v2)
+    m = margin + 0.02 * np.maximum(uhi - ulo, vhi - vlo)
+    uf, ul, vf, vl = np.ceil(ulo - m), np.floor(uhi + m), np.ceil(vlo - m), np.floor(vhi + m)  # the centres boxed
+    boxed = (uf <= ul) & (vf <= vl) & (ul >= 0) & (vl >= 0) & (uf <= camera.width - 1) & (vf <= camera.height - 1)
+    # a box around at most 2 x 2 centres (most triangles of a dense scan): is one of them inside,
+    # within the margin of each edge? (a triangle of no area, or a larger one, is kept)
+    sign = np.sign((u1 - u0) * (v2 - v0) - (v1 - v0) * (u2 - u0))
+    edges = [(a, b, c - a, d - b) for (a, b), (c, d) in ((p0, p1), (p1, p2), (p2, p0))]
+    tolerance = [m * np.hypot(eu, ev) for _, _, eu, ev in edges]
+    inside = np.zeros(sign.shape, bool)
+    for cu in (uf, uf + 1):
+        for cv in (vf, vf + 1):
+            ok = (cu <= ul) & (cv <= vl) & (cu >= 0) & (cv >= 0) & (cu <= camera.width - 1) & (cv <= camera.height - 1)
+            for (a, b, eu, ev), tol in zip(edges, tolerance):
+                ok &= sign * (eu * (cv - b) - ev * (cu - a)) >= -tol
+            inside |= ok
+    hit = boxed & ((sign == 0) | inside | (ul - uf > 1) | (vl - vf > 1))
+    both, either = out[0] & out[1] & out[2], out[0] | out[1] | out[2]
+    beyond = ((both & 16) > 0) | (((both & 15) > 0) & ((either & 16) == 0))  # culled as a whole
+    return np.where(either == 0, hit, ~beyond)
 
 
 def _raycast_mesh(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None, want_normals: bool,
@@ -150,7 +278,7 @@ def _raycast_mesh(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray 
     camera is seen from behind."""
     import open3d as o3d
 
-    mesh = grid_mesh(scan)
+    mesh = grid_mesh(scan, camera, T)
     tris = mesh.tris
     knows_sides = mesh.origin is not None
     h, w = camera.height, camera.width

@@ -8,34 +8,72 @@ from rgbd_gt.io.scan import Scan
 
 
 def grid_triangles(scan: Scan, max_stretch: float = 8.0) -> np.ndarray:
-    """(T, 3) int64 vertex indices of triangles between grid neighbours, per scan.
+    """(T, 3) int32 vertex indices of triangles between grid neighbours, per scan.
 
     Each 2x2 grid cell gives two triangles when its vertices exist. A triangle is left out when
     an edge is longer than `max_stretch` x the spacing expected at its range (range x angular
     step): it then spans a depth discontinuity (or a surface seen at over ~83 degrees), and
     keeping it would paint a false surface between foreground and background.
     """
-    bands = list(grid_triangle_bands(scan, max_stretch))
-    return np.concatenate(bands).astype(np.int64) if bands else np.zeros((0, 3), np.int64)
+    bands = [cell_triangles(*cells) for cells in grid_cells(scan, max_stretch)]
+    return np.concatenate(bands) if bands else np.zeros((0, 3), np.int32)
 
 
-def grid_triangle_bands(scan: Scan, max_stretch: float = 8.0):
-    """`grid_triangles` band by band of grid rows, as (t, 3) int32 arrays: a 40-million-point
-    grid is triangulated in bounded memory."""
-    for grid, _, keep1, keep2 in _bands(scan, max_stretch):
-        a, b = grid[:-1, :-1].ravel(), grid[:-1, 1:].ravel()
-        c, d = grid[1:, :-1].ravel(), grid[1:, 1:].ravel()
-        tris = np.concatenate([np.stack([a, b, c], 1)[keep1.ravel()], np.stack([c, b, d], 1)[keep2.ravel()]])
-        if len(tris):
-            yield tris
+def grid_cells(scan: Scan, max_stretch: float = 8.0) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The grid's triangles, band by band of grid rows (a 40-million-point grid is triangulated
+    in bounded memory), as cells: (grid band (r, c) int32 of point indices (-1: none), keep1,
+    keep2 (r-1, c-1) bool: the cells' triangles (a, b, c) and (c, b, d) that `grid_triangles`
+    keeps). Six bytes a cell, without coordinates. A scan whose scan.derived holds "cell_bits"
+    (`grid_cell_bits` of the whole scan it is part of: a prepared scan's view) takes its
+    triangles from them, without measuring an edge."""
+    bits = scan.derived.get("cell_bits")
+    if bits is None:
+        return [(grid, keep1, keep2) for grid, _, keep1, keep2 in _bands(scan, max_stretch)]
+    out = []
+    for grid, _ in _scan_grids(scan):
+        have = grid >= 0
+        b = bits[np.maximum(grid, 0)]
+        sides = have[:-1, 1:] & have[1:, :-1]  # b and c, in both triangles
+        out.append((grid, sides & have[:-1, :-1] & ((b[:-1, :-1] & 1) > 0), sides & have[1:, 1:] & ((b[1:, 1:] & 2) > 0)))
+    return out
+
+
+def grid_cell_bits(scan: Scan, max_stretch: float = 8.0) -> np.ndarray:
+    """(N,) uint8, the grid's triangles in a byte a point: bit 1 where the point is the corner a
+    of a kept triangle (a, b, c), bit 2 where it is the corner d of a kept (c, b, d) (`_bands`).
+    Any subset of the points that keeps its grid indices makes its triangles from them
+    (`grid_cells`): what a prepared scan stores for its views. Made by `grid_normals` when it
+    ran on this scan."""
+    if "cell_bits" not in scan.derived:
+        bits = np.zeros(len(scan), np.uint8)
+        for grid, _, keep1, keep2 in _bands(scan, max_stretch):
+            _set_bits(bits, grid, keep1, keep2)
+        scan.derived["cell_bits"] = bits
+    return scan.derived["cell_bits"]
+
+
+def _set_bits(bits: np.ndarray, grid: np.ndarray, keep1: np.ndarray, keep2: np.ndarray) -> None:
+    bits[grid[:-1, :-1][keep1]] |= 1
+    bits[grid[1:, 1:][keep2]] |= 2
+
+
+def cell_triangles(grid: np.ndarray, keep1: np.ndarray, keep2: np.ndarray) -> np.ndarray:
+    """(t, 3) int32: the triangles (a, b, c) of the cells keep1 and (c, b, d) of the cells keep2
+    (r-1, c-1) bool of the grid band (r, c) (a b above c d)."""
+    tri1 = np.stack([grid[:-1, :-1][keep1], grid[:-1, 1:][keep1], grid[1:, :-1][keep1]], 1)
+    tri2 = np.stack([grid[1:, :-1][keep2], grid[:-1, 1:][keep2], grid[1:, 1:][keep2]], 1)
+    return np.concatenate([tri1, tri2]).astype(np.int32, copy=False)
 
 
 def grid_normals(scan: Scan, max_stretch: float = 8.0) -> np.ndarray:
     """(N, 3) float32 unit normals of a structured scan: per point the area-weighted sum of its
     `grid_triangles`, each turned toward its scanner (0 for a point in no triangle). Summed on
-    the grid itself, band by band: no triangle list is made."""
+    the grid itself, band by band: no triangle list is made. The same pass leaves the grid's
+    `grid_cell_bits` in scan.derived["cell_bits"]."""
     out = np.zeros((len(scan), 3), np.float32)
+    bits = np.zeros(len(scan), np.uint8)
     for grid, xyz, keep1, keep2 in _bands(scan, max_stretch):
+        _set_bits(bits, grid, keep1, keep2)
         a, b, c, d = xyz[:-1, :-1], xyz[:-1, 1:], xyz[1:, :-1], xyz[1:, 1:]
         acc = np.zeros_like(xyz)
         # triangles (a, b, c) and (c, b, d) of each cell; xyz is relative to the scanner, so a
@@ -49,6 +87,7 @@ def grid_normals(scan: Scan, max_stretch: float = 8.0) -> np.ndarray:
                 acc[i:i + h, j:j + w] += n
         have = grid >= 0
         out[grid[have]] += acc[have]
+    scan.derived["cell_bits"] = bits
     length = np.linalg.norm(out, axis=1, keepdims=True)
     return np.where(length > 0, out / np.maximum(length, 1e-30), 0).astype(np.float32)
 
@@ -58,6 +97,18 @@ def _bands(scan: Scan, max_stretch: float, cells: int = 1 << 22):
     (-1: none), its points (r, c, 3) float32 relative to the scanner, keep1 and keep2 (r-1, c-1):
     the cells' triangles (a, b, c) and (c, b, d) that `grid_triangles` keeps). Bands share their
     boundary row."""
+    for grid, origin in _scan_grids(scan):
+        limit = max_stretch * row_step(scan.xyz, grid, origin)
+        rows, cols = grid.shape
+        step = max(1, cells // cols)
+        for b0 in range(0, rows - 1, step):
+            band = grid[b0:min(b0 + step + 1, rows)]
+            yield (band, *_band(scan.xyz, band, origin, limit))
+
+
+def _scan_grids(scan: Scan):
+    """Per scan of `scan`: (its grid (rows, cols) of point indices, `grid_image`; its scanner
+    position (3,))."""
     if len(scan) == 0:
         return
     sid = scan.scan_id if scan.scan_id is not None else np.zeros(len(scan), np.int32)
@@ -65,14 +116,7 @@ def _bands(scan: Scan, max_stretch: float, cells: int = 1 << 22):
     one = sid.min() == sid.max()
     for s in [sid.min()] if one else np.unique(sid):
         idx = None if one else np.flatnonzero(sid == s)
-        grid = grid_image(scan.row, scan.col, idx)
-        origin = origins[min(int(s), len(origins) - 1)]
-        limit = max_stretch * row_step(scan.xyz, grid, origin)
-        rows, cols = grid.shape
-        step = max(1, cells // cols)
-        for b0 in range(0, rows - 1, step):
-            band = grid[b0:min(b0 + step + 1, rows)]
-            yield (band, *_band(scan.xyz, band, origin, limit))
+        yield grid_image(scan.row, scan.col, idx), origins[min(int(s), len(origins) - 1)]
 
 
 def grid_image(row: np.ndarray, col: np.ndarray, index: np.ndarray | None = None) -> np.ndarray:
