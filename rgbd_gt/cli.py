@@ -29,7 +29,7 @@ app = typer.Typer(
 )
 out = Console()
 err = Console(stderr=True)
-CACHE_HELP = ("Prepare the scan once into this folder (or reuse it: `run` keeps its in OUTPUT/.scan-cache) and read "
+CACHE_HELP = ("Prepare the scan once into this folder (or reuse it: `run` keeps its own in OUTPUT/.scan-cache) and read "
               "only what this view needs: seconds instead of reading a large scan file again.")
 
 
@@ -223,7 +223,7 @@ def init_pose(
     from rgbd_gt.init.detect import MAX_SQUARE_M, BoardSpec
     from rgbd_gt.init.run import (board_in_scan, check_picks, detect_photo_board, init_from_board,
                                   init_from_correspondences, read_correspondences, read_csv_rows, write_report)
-    from rgbd_gt.io import load_scan, read_camera, write_pose
+    from rgbd_gt.io import read_camera, write_pose
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import read_image
     from rgbd_gt.io.outputs import Outputs
@@ -254,12 +254,10 @@ def init_pose(
     check_image_matches(cam, photo.shape, image, camera)
     with _progress() as bar:
         bar.add_task("init-pose", total=None)
-        if cache is not None:
-            from rgbd_gt.prepared import prepare_scan
+        from rgbd_gt.prepared import prepare_scan, whole_scan
 
-            prepared = prepare_scan(scan, cache)
         if correspondences is not None:
-            the_scan = load_scan(scan, require_points=True) if cache is None else prepared.whole()
+            the_scan = whole_scan(scan, cache)
             picks = read_correspondences(correspondences)
             check_picks(picks, cam, the_scan.xyz, correspondences, the_scan.origins)
             result = init_from_correspondences(picks, cam, estimate_focal, ransac_px)
@@ -268,10 +266,9 @@ def init_pose(
             corners = read_csv_rows(board_points, "x,y,z") if board_points else None
             found = detect_photo_board(photo, spec, image)
             if cache is not None and corners is None:
-                in_scan = prepared.board(spec, scan)
+                in_scan = prepare_scan(scan, cache).board(spec, scan)
             else:
-                in_scan = board_in_scan(load_scan(scan, require_points=True) if cache is None else prepared.whole(),
-                                        spec, corners, scan)
+                in_scan = board_in_scan(whole_scan(scan, cache), spec, corners, scan)
             result = init_from_board(in_scan, photo, cam, spec, found)
     meta = result.pose_meta()
     with outs:
@@ -320,7 +317,7 @@ def pick(
     from rgbd_gt.init.pick import click_view
     from rgbd_gt.init.pick_server import PickSession, serve
     from rgbd_gt.init.run import read_correspondences
-    from rgbd_gt.io import load_scan, read_camera, read_pose
+    from rgbd_gt.io import read_camera, read_pose
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import read_image
     from rgbd_gt.io.outputs import Outputs
@@ -349,12 +346,9 @@ def pick(
                  for a, b, lab in zip(picks.img.tolist(), picks.obj.tolist(), picks.labels)]
     with _progress() as bar:
         bar.add_task("preparing the scan image", total=None)
-        if cache is None:
-            the_scan = load_scan(scan, require_points=True)
-        else:
-            from rgbd_gt.prepared import prepare_scan
+        from rgbd_gt.prepared import whole_scan
 
-            the_scan = prepare_scan(scan, cache).whole()
+        the_scan = whole_scan(scan, cache)
         clicks = click_view(the_scan, view, cam, T_init)
         for pair in pairs:  # draw loaded pairs where their scan points are in the scan image
             px = clicks.pixel_of([pair["x"], pair["y"], pair["z"]])

@@ -166,6 +166,16 @@ def scan_in_view(scan_path: Path, camera: Camera, poses: list[np.ndarray], cache
     return prepare_scan(scan_path, cache).views(camera, poses)
 
 
+def whole_scan(scan_path: Path, cache: Path | None = None) -> Scan:
+    """Every point of the scan: from the prepared scan under `cache` (prepared there first when it
+    is not yet), else read from the file."""
+    if cache is None:
+        from rgbd_gt.io.scan import load_scan
+
+        return load_scan(scan_path, require_points=True)
+    return prepare_scan(scan_path, cache).whole()
+
+
 def open_prepared(folder: Path, scan_path: Path) -> PreparedScan:
     """A prepared scan's cache folder, opened without checking it against the scan file (the
     caller prepared it: `prepare_scan`)."""
