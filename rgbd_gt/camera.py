@@ -60,17 +60,13 @@ def project(camera: Camera, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     z = pts[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         xn = np.where(z[:, None] > 0, pts[:, :2] / z[:, None], np.nan)
-    if camera.has_distortion:
-        uv = distort(camera, xn)
-    else:
-        uv = np.stack([camera.fx * xn[:, 0] + camera.cx, camera.fy * xn[:, 1] + camera.cy], axis=1)
-    return uv, z
+    return distort(camera, xn), z
 
 
 def distort(camera: Camera, xn: np.ndarray) -> np.ndarray:
     """Normalised image coordinates (N, 2) (x/z, y/z) -> distorted pixels (N, 2) float64, OpenCV's
-    model: radial (k1, k2, k3 over k4, k5, k6), tangential (p1, p2) and thin prism (s1..s4); nan
-    stays nan. In numpy (cv2.projectPoints takes about 1.6 s per million points); the tilted
+    model: radial (k1, k2, k3 over k4, k5, k6), tangential (p1, p2) and thin prism (s1..s4), the
+    pinhole alone without coefficients; nan stays nan. In numpy (cv2.projectPoints takes about 1.6 s per million points); the tilted
     models (14 coefficients) go to OpenCV."""
     xn = np.asarray(xn, np.float64).reshape(-1, 2)
     d = list(camera.distortion)

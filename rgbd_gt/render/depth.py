@@ -216,8 +216,7 @@ def _corner_pixels(xyz: np.ndarray, camera: Camera, T_cam_from_scan: np.ndarray)
         o = np.where(front, (xn[:, 0] < x0) * 1 + (xn[:, 0] > x1) * 2 + (xn[:, 1] < y0) * 4 + (xn[:, 1] > y1) * 8, 16)
         sure = o == 0
         out[a:a + len(p)] = o
-        uv[a:a + len(p)][sure] = distort(camera, xn[sure]) if camera.has_distortion else \
-            xn[sure] * [camera.fx, camera.fy] + [camera.cx, camera.cy]
+        uv[a:a + len(p)][sure] = distort(camera, xn[sure])
     return uv, out
 
 
