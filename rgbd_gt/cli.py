@@ -645,9 +645,10 @@ def qa_edges(
     _summary("qa-edges", rows, output, None)
 
 
-def blend_path(output: Path) -> Path:
-    """Where overlay writes its 50% blend, beside the checkerboard: OVERLAY_blend.png."""
-    return output.with_name(f"{output.stem}_blend{output.suffix}")
+def beside(output: Path, kind: str) -> Path:
+    """Where overlay writes its other pictures, beside the checkerboard: OVERLAY_blend.png,
+    OVERLAY_points.png."""
+    return output.with_name(f"{output.stem}_{kind}{output.suffix}")
 
 
 @app.command()
@@ -656,23 +657,25 @@ def overlay(
     image: Path = typer.Option(..., "--image", help="The photo."),
     camera: Path = typer.Option(..., "--camera", help="Camera file of the photo."),
     pose: Path = typer.Option(..., "--pose", help="The pose to show (T_cam_from_scan), e.g. from refine."),
-    output: Path = typer.Option(..., "-o", "--output", help="Checkerboard PNG at the photo's resolution: squares alternate between the photo and the scan rendered at the pose (edges must run on across square borders). The 50% blend goes beside it as OVERLAY_blend.png."),
+    output: Path = typer.Option(..., "-o", "--output", help="Checkerboard PNG at the photo's resolution: squares alternate between the photo and the scan rendered at the pose (edges must run on across square borders). The 50% blend goes beside it as OVERLAY_blend.png, and the visible scan points as dots of their color or intensity (the clearest picture of a sparse LiDAR sweep) as OVERLAY_points.png."),
     max_depth: Optional[float] = typer.Option(None, "--max-depth", help="Leave out scan surfaces farther than this (metres)."),
     cache: Optional[Path] = typer.Option(None, "--cache", help=CACHE_HELP),
 ) -> None:
-    """The scan rendered at the pose over the photo, as a checkerboard and as a 50% blend, full
-    resolution (crop to inspect): the most direct check of a pose. Surfaces the camera would
-    see from behind are not drawn."""
+    """The scan rendered at the pose over the photo, as a checkerboard, as a 50% blend and as
+    dots of the visible points, full resolution (crop to inspect): the most direct check of a
+    pose. Surfaces the camera would see from behind are not drawn."""
     from rgbd_gt.io import read_camera, read_pose
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import read_image, write_image
     from rgbd_gt.io.outputs import Outputs
     from rgbd_gt.qa.overlay import overlay as make_overlay
+    from rgbd_gt.qa.overlay import points_image
 
     start = time.perf_counter()
-    blend = blend_path(output)
+    blend, points = beside(output, "blend"), beside(output, "points")
     outs = Outputs([scan, image, camera, pose])
-    staged = [outs.file(output, "-o", (".png",)), outs.file(blend, "-o (its blend)", (".png",))]
+    staged = [outs.file(output, "-o", (".png",)), outs.file(blend, "-o (its blend)", (".png",)),
+              outs.file(points, "-o (its points)", (".png",))]
     if cache is not None:
         outs.checked_folder(cache, "--cache")
     if max_depth is not None and max_depth < 0:
@@ -682,20 +685,23 @@ def overlay(
     check_image_matches(cam, photo.shape, image, camera)
     T, _ = read_pose(pose)
     from rgbd_gt.prepared import scan_in_view
+    from rgbd_gt.render.normals import with_normals
 
-    the_scan = scan_in_view(scan, cam, [T], cache)
+    the_scan = with_normals(scan_in_view(scan, cam, [T], cache))  # once, for both pictures
     with _progress() as bar:
         bar.add_task("rendering the scan", total=None)
         checker, mixed, covered = make_overlay(the_scan, photo, cam, T, max_depth)
-    if covered == 0:
-        raise InputError("no scan surface in view of this pose (or only surfaces seen from behind)", pose)
+        if covered == 0:
+            raise InputError("no scan surface in view of this pose (or only surfaces seen from behind)", pose)
+        dots, drawn = points_image(the_scan, photo, cam, T, max_depth)
     from concurrent.futures import ThreadPoolExecutor
 
-    with outs, ThreadPoolExecutor(2) as pool:  # PNG encoding releases the GIL: two 24 MP images at once
-        list(pool.map(lambda job: write_image(*job), zip(staged, (checker, mixed))))
+    with outs, ThreadPoolExecutor(3) as pool:  # PNG encoding releases the GIL: the images at once
+        list(pool.map(lambda job: write_image(*job), zip(staged, (checker, mixed, dots))))
     _summary("overlay", [("size", f"{cam.width} x {cam.height}"), ("scan covers", f"{covered:.1%} of the photo"),
-                         ("time", f"{time.perf_counter() - start:.1f} s")], output, None)
+                         ("points drawn", f"{drawn:,}"), ("time", f"{time.perf_counter() - start:.1f} s")], output, None)
     out.print(f"wrote {blend}")
+    out.print(f"wrote {points}")
 
 
 @app.command("run")

@@ -1,8 +1,10 @@
 """The scan rendered at a pose, shown over the photo: the check a person trusts most.
 
-Two pictures at the photo's full resolution (crop them to inspect an edge): a checkerboard whose
+Three pictures at the photo's full resolution (crop them to inspect an edge): a checkerboard whose
 squares alternate between the photo and the rendered scan (edges must continue across square
-borders), and a 50% blend (doubled edges mean a wrong pose).
+borders), a 50% blend (doubled edges mean a wrong pose), and the visible scan points as dots of
+their own value over the photo: for a sparse LiDAR sweep, whose rings leave gaps that surfaces
+rendered from it can only fill with blobs, the clearest of the three.
 """
 
 from __future__ import annotations
@@ -89,3 +91,45 @@ def overlay(scan: Scan, photo: np.ndarray, camera: Camera, T: np.ndarray,
     """(checkerboard, blend, fraction of the photo the scan covers) at the photo's resolution."""
     rendered, have = render_colors(scan, camera, T, max_depth)
     return checkerboard(photo, rendered, have), blend(photo, rendered, have), float(have.mean())
+
+
+def points_image(scan: Scan, photo: np.ndarray, camera: Camera, T: np.ndarray, max_depth: float | None = None,
+                 dot_px: int = 1) -> tuple[np.ndarray, int]:
+    """(H, W, 3) uint8: the photo, dimmed, with the scan points the camera sees at T drawn as
+    squares of side 2 dot_px + 1 (the nearest wins where they overlap) in their colors, or their
+    intensity in the turbo colormap (blue low, red high); and the number of points drawn.
+
+    Visibility is the aligner's (`visible_points` with cells sized where the points land, and
+    surfaces seen from behind left out), so the dots are the points refine compared."""
+    import cv2
+    import torch
+
+    from rgbd_gt.camera import project
+    from rgbd_gt.render.normals import facing_camera
+    from rgbd_gt.render.splat import splat
+    from rgbd_gt.render.zbuffer import cell_for_density, visible_points
+
+    p = scan.xyz @ T[:3, :3].T + T[:3, 3]
+    uv, z = project(camera, p)
+    w, h = camera.size
+    near = (z > 1e-3) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)
+    if max_depth:
+        near &= z <= max_depth
+    idx = np.flatnonzero(near)
+    uv_t, z_t = torch.as_tensor(uv[idx]), torch.as_tensor(z[idx])
+    facing = None
+    if scan.normals is not None:
+        facing = facing_camera(torch.as_tensor(p[idx]), torch.as_tensor(scan.normals[idx] @ T[:3, :3].T))
+    seen = visible_points(uv_t, z_t, camera.size, cell_for_density(uv_t, camera.size), facing=facing).numpy()
+    idx = idx[seen]
+    colors = scan_colors(scan)[idx]
+    if colors.shape[1] == 1:  # intensity, spread over the colormap by its own 1st-99th percentiles
+        lo, hi = np.percentile(colors, [1, 99]) if len(colors) else (0.0, 1.0)
+        level = np.clip((colors[:, 0] - lo) / max(hi - lo, 1e-9) * 255, 0, 255).astype(np.uint8)
+        colors = cv2.applyColorMap(level[:, None], cv2.COLORMAP_TURBO)[:, 0, ::-1]  # BGR -> RGB
+    img, _, index = splat(torch.as_tensor(uv[idx]), torch.as_tensor(z[idx]), torch.as_tensor(colors.astype(np.float32)),
+                          camera.size, dot_px)
+    out = cv2.convertScaleAbs(photo, alpha=0.6)
+    drawn = (index >= 0).numpy()
+    out[drawn] = np.clip(np.rint(img.numpy()[drawn]), 0, 255).astype(np.uint8)
+    return out, len(idx)
