@@ -207,3 +207,52 @@ def test_sweep_density_cell_and_depth_edges():
     e = depth_edges(uv, z, (640, 480), 8)
     pole_edge = (z == 4) & ((uv[:, 0] < 304) | (uv[:, 0] >= 336))  # in the cells (8 px) that border the wall's
     assert bool((e[pole_edge] == 1).all()) and float(e[z == 20].max()) == 0 and float(e[(z == 4) & ~pole_edge].max()) == 0
+
+
+def _sky_photo() -> np.ndarray:
+    """(120, 160, 3) float32: a smooth bright bluish sky over the top 40%, a dark textured ground
+    below, and a bright bluish smooth patch in the ground that does not reach the top."""
+    rng = np.random.default_rng(3)
+    img = np.repeat(rng.uniform(0.05, 0.35, (120, 160, 1)), 3, axis=2).astype(np.float32)
+    img[:48] = np.linspace(0.8, 0.85, 48, dtype=np.float32)[:, None, None] * np.array([0.85, 0.95, 1.0], np.float32)
+    img[80:110, 20:70] = (0.8, 0.85, 0.9)
+    return img
+
+
+def test_sky_is_the_empty_smooth_bright_top_of_the_photo():
+    from rgbd_gt.align.sky import sky_mask
+
+    img = _sky_photo()
+    ground = np.stack(np.meshgrid(np.arange(0, 160, 2.0), np.arange(50, 120, 2.0)), -1).reshape(-1, 2)
+    mask = sky_mask(img, ground)
+    assert mask.shape == (120, 160) and mask.dtype == np.float32
+    # sky to within two 8-pixel cells of the horizon (row 48); the bright patch below is not sky
+    assert mask[:32].min() > 0.99 and mask[56:].max() == 0
+    # where the scan has points, a region that looks like sky is not: a white ceiling
+    ceiling = np.stack(np.meshgrid(np.arange(0, 160, 4.0), np.arange(0, 48, 4.0)), -1).reshape(-1, 2)
+    assert sky_mask(img, np.concatenate([ground, ceiling])).max() == 0
+
+
+def test_real_sweeps_land_off_the_sky_at_the_reference():
+    """The sky found in each PJLab photo covers its top, and the reference pose puts almost no
+    sweep point there (the laser has no returns from the sky)."""
+    from rgbd_gt.align.pyramid import photo_pyramid
+    from rgbd_gt.align.sky import sky_mask
+    from rgbd_gt.render.project import project_pinhole
+
+    for k in (1, 2, 3):
+        d = _pjlab(k)
+        photo = read_image(next(p for p in sorted(d.glob("calib.*")) if p.suffix in (".jpg", ".png")))
+        camera = read_camera(d / "calib.txt", (photo.shape[1], photo.shape[0]))
+        level = photo_pyramid(photo, camera, 1, torch.device("cpu"))[0]
+        T = read_pose(d / "calib.txt")[0]
+        p = load_scan(d / "calib.pcd").xyz @ T[:3, :3].T + T[:3, 3]
+        uv, z = project_pinhole(torch.as_tensor(p), level.K.double())
+        w, h = camera.size
+        inside = ((z > 0) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] < w) & (uv[:, 1] < h)).numpy()
+        uv = uv.numpy()[inside]
+        mask = sky_mask(level.image.numpy(), uv)
+        on_sky = mask[uv[:, 1].astype(int), uv[:, 0].astype(int)] > 0.5
+        assert 0.15 < (mask > 0.5).mean() < 0.5, (k, (mask > 0.5).mean())  # measured 0.23, 0.25, 0.36
+        assert mask[: h // 4].mean() > 0.5, k  # measured 0.61, 0.63, 0.80
+        assert on_sky.mean() < 0.005, (k, on_sky.mean())  # measured 0, 7 of 11k, 0

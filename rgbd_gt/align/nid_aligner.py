@@ -9,6 +9,8 @@ the image, and L-BFGS (strong Wolfe line search) minimises NID over the 6 pose p
 units of one level pixel of image motion; the gradient is exact (autograd through the bilinear
 interpolant and the B-spline histogram). Before the coarsest level, an optional search runs that
 level from random starts around the init and keeps the lowest NID: a wider basin for poor inits.
+Points that land on the photo's sky add cfg.sky_weight times their fraction to NID (align/sky.py):
+a sweep has no returns from the sky, and NID alone drifts to poses that put points there.
 """
 
 from __future__ import annotations
@@ -60,11 +62,12 @@ class _Part:
     values: torch.Tensor  # (n, C)
     image: torch.Tensor  # (H, W, C)
     photo: PhotoLevel
+    sky: torch.Tensor | None  # (H, W, 1) in [0, 1]: where the photo shows sky (align/sky.py), or None
 
 
 @dataclass
 class _Evaluation:
-    nid: torch.Tensor  # (F x C,) NID per frame and channel pair, float64
+    nid: torch.Tensor  # (F x C,) NID per frame and channel pair (the first plus the sky charge), float64
     counts: list[int]  # per frame and channel pair, the points that entered its histogram
     entropies: list[float]  # ... and its joint entropy H(A, B) (nats)
 
@@ -123,17 +126,19 @@ class NidAligner:
                          for f in frames]
         self._images = [[_channels(lv.image, cfg.nid_edges) for lv in f.pyramid] for f in frames]
         self._prepared: list[list[torch.Tensor]] | None = None  # per level, per frame: point indices
+        self._sky: list[list[torch.Tensor] | None] = []  # per frame, per level: `_Part.sky`
 
     # -- the points of each level (chosen once, at the init) ---------------------------------------
     def prepared_levels(self, T_init: np.ndarray) -> list[list[torch.Tensor]]:
         """Per level, per frame: indices of a random subset of the points in view of T_init
         (within a 15% margin and cfg.max_depth), `max_points` at full resolution and a quarter per
-        coarser level (nested), never fewer than `min_points`."""
+        coarser level (nested), never fewer than `min_points`. Also finds each photo's sky, with the
+        points seen at T_init (`_find_sky`)."""
         if self._prepared is not None:
             return self._prepared
         cfg = self.cfg
         R, t = self._pose(translated(T_init, self.centre))
-        per_frame = []
+        per_frame, skies = [], []
         for k, (f, pts) in enumerate(zip(self.frames, self._points)):
             finest = f.pyramid[0]
             uv, z = project_pinhole(pts @ R.T + t, finest.K)
@@ -148,11 +153,28 @@ class NidAligner:
                 raise InputError(f"fewer than {cfg.min_visible} scan points in view of the initial pose: "
                                  "check the pose, the camera file and the scan")
             check_spread_in_view(uv[idx], seen, cfg.min_visible)
+            skies.append(self._find_sky(f, uv[idx][seen]))
             gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
             per_frame.append(idx[torch.randperm(idx.numel(), generator=gen).to(self.device)])
+        self._sky = skies
         self._prepared = [[idx[: max(cfg.min_points, cfg.max_points // 4**level)] for idx in per_frame]
                           for level in range(len(self.frames[0].pyramid))]
         return self._prepared
+
+    def _find_sky(self, frame: Frame, uv: torch.Tensor) -> list[torch.Tensor] | None:
+        """Per level (H, W, 1): the sky of the frame's photo (`sky_mask`), given the finest-level
+        pixels uv (n, 2) of its points seen at the init; None when off or no sky is found."""
+        import cv2
+
+        from rgbd_gt.align.sky import sky_mask
+
+        if self.cfg.sky_weight <= 0:
+            return None
+        mask = sky_mask(frame.pyramid[0].image.cpu().numpy(), uv.cpu().numpy())
+        if not mask.any():
+            return None
+        return [torch.as_tensor(cv2.resize(mask, lv.camera.size, interpolation=cv2.INTER_AREA)[:, :, None],
+                                device=self.device) for lv in frame.pyramid]
 
     def _pose(self, T_local: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         return (torch.as_tensor(T_local[:3, :3], dtype=torch.float32, device=self.device),
@@ -179,7 +201,8 @@ class NidAligner:
             values = self._values[k][idx][:, None]
             if self.cfg.nid_edges:
                 values = torch.cat([values, depth_edges(uv, z, photo.camera.size, cell)[:, None]], 1)
-            parts.append(_Part(pts[vis], values[vis], self._images[k][level], photo))
+            sky = self._sky[k][level] if self._sky[k] is not None else None
+            parts.append(_Part(pts[vis], values[vis], self._images[k][level], photo, sky))
         return parts
 
     # -- the objective -----------------------------------------------------------------------------
@@ -203,6 +226,8 @@ class NidAligner:
             sampled = bilinear(part.image, uv[ok]).double()
             for c in range(sampled.shape[1]):
                 value, h_ab = nid_and_entropy(part.values[ok, c].double(), sampled[:, c], self.cfg.nid_bins)
+                if c == 0 and part.sky is not None:
+                    value = value + self.cfg.sky_weight * bilinear(part.sky, uv[ok]).double().mean()
                 nids.append(value)
                 counts.append(int(ok.sum()))
                 entropies.append(float(h_ab.detach()))

@@ -27,6 +27,7 @@ SIZES = ((1.0, 0.10), (3.0, 0.20))  # init error: degrees about a random axis, m
 SUCCESS = (0.2, 0.05)  # within 0.2 deg and 5 cm of the reference
 # the objectives compared: name -> settings (RefineConfig fields)
 OBJECTIVES = {"photometric": {"objective": "photometric"}, "nid": {"objective": "nid"},
+              "nid, no sky": {"objective": "nid", "sky_weight": 0.0},
               "nid + edges": {"objective": "nid", "nid_edges": True}}
 JOINT = ("pjlab_1", "pjlab_2")  # one rig calibration
 
@@ -151,9 +152,10 @@ def write_markdown(path: Path, records: list[dict]) -> None:
         "(random direction) from the reference; each refined with the verdict (docs/trust.md). "
         f"Success: within {SUCCESS[0]} deg and {SUCCESS[1] * 100:g} cm of the reference.",
         "`photometric` is the colored-scan aligner (the paper's, here predicting intensity from the photo's",
-        "colors); `nid` minimises the normalised information distance between intensity and gray",
-        "(docs/lidar-method.md); `nid + edges` adds the NID of the points' depth discontinuities against the",
-        "photo's gradient magnitude. The last rows solve scenes 1 and 2 jointly (nid): one pose, two frames.",
+        "colors); `nid` minimises the normalised information distance between intensity and gray plus",
+        "the charge for points on the photo's sky (docs/lidar-method.md); `nid, no sky` is the same without",
+        "that charge; `nid + edges` adds the NID of the points' depth discontinuities against the photo's",
+        "gradient magnitude. The last rows solve scenes 1 and 2 jointly (nid): one pose, two frames.",
         "",
         "| objective | scene | init | success | median error | worst error | spread (precision) | aligner s (median / max) | worse than init | verdicts ok / suspect / failed | worse but ok |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
