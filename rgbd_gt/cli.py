@@ -235,8 +235,7 @@ def init_pose(
             raise InputError("--camera-out writes the camera of --estimate-focal: give both")
         staged_camera = outs.file(camera_out, "--camera-out", POSE_SUFFIXES)
     report_dir = outs.folder(report, "--report") if report is not None else None
-    if cache is not None:
-        outs.checked_folder(cache, "--cache")
+    outs.checked_folder(cache, "--cache")
     if not (np.isfinite(ransac_px) and ransac_px > 0):
         raise InputError(f"--ransac-px must be a positive number of pixels, got {ransac_px}")
     cols, rows = _board_shape(board)
@@ -325,8 +324,7 @@ def pick(
     # checked only: the page saves the file itself (atomically) each time it is asked to
     outs = Outputs([scan, image, camera, init])
     outs.file(output, "-o", (".csv",))
-    if cache is not None:
-        outs.checked_folder(cache, "--cache")
+    outs.checked_folder(cache, "--cache")
     if not (np.isfinite(ransac_px) and ransac_px > 0):
         raise InputError(f"--ransac-px must be a positive number of pixels, got {ransac_px}")
     if estimate_focal and camera is None:
@@ -536,8 +534,7 @@ def export_depth(
     staged = {name: outs.file(p, option, suffixes) for name, p, option, suffixes in [
         ("depth", output, "-o", (".exr",)), ("png16", png16, "--png16", (".png",)),
         ("normals", normals, "--normals", (".exr",)), ("mask", mask, "--mask", (".png",))] if p is not None}
-    if cache is not None:
-        outs.checked_folder(cache, "--cache")
+    outs.checked_folder(cache, "--cache")
     if max_depth is not None and max_depth < 0:
         raise InputError(f"--max-depth must be positive (0: no limit), got {max_depth}")
     start = time.perf_counter()
@@ -606,8 +603,7 @@ def qa_edges(
     outs = Outputs([scan, image, camera, pose, before])
     staged = outs.file(output, "-o", IMAGE_SUFFIXES)
     staged_json = outs.file(json_out, "--json", (".json",)) if json_out else None
-    if cache is not None:
-        outs.checked_folder(cache, "--cache")
+    outs.checked_folder(cache, "--cache")
     photo = read_image(image)
     cam = read_camera(camera, (photo.shape[1], photo.shape[0]))
     check_image_matches(cam, photo.shape, image, camera)
@@ -668,16 +664,14 @@ def overlay(
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import read_image, write_image
     from rgbd_gt.io.outputs import Outputs
-    from rgbd_gt.qa.overlay import overlay as make_overlay
-    from rgbd_gt.qa.overlay import points_image
+    from rgbd_gt.qa.overlay import overlay as make_overlay, points_image
 
     start = time.perf_counter()
     blend, points = beside(output, "blend"), beside(output, "points")
     outs = Outputs([scan, image, camera, pose])
     staged = [outs.file(output, "-o", (".png",)), outs.file(blend, "-o (its blend)", (".png",)),
               outs.file(points, "-o (its points)", (".png",))]
-    if cache is not None:
-        outs.checked_folder(cache, "--cache")
+    outs.checked_folder(cache, "--cache")
     if max_depth is not None and max_depth < 0:
         raise InputError(f"--max-depth must be positive, got {max_depth}")
     photo = read_image(image)

@@ -89,9 +89,11 @@ class Outputs:
         self.staged.append((stage, path, True))
         return stage
 
-    def checked_folder(self, path: str | os.PathLike, option: str) -> Path:
+    def checked_folder(self, path: str | os.PathLike | None, option: str) -> Path | None:
         """Check a folder the command writes into itself (a cache, atomically by its own means):
-        nothing is staged."""
+        nothing is staged. None (the option not given) passes."""
+        if path is None:
+            return None
         self._check(Path(path), option, folder=True)
         return Path(path)
 
