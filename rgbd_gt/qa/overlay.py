@@ -17,24 +17,20 @@ from rgbd_gt.io.scan import Scan, scan_colors
 
 def render_scale(scan: Scan, camera: Camera, T: np.ndarray, per_step: float = 2.0) -> float:
     """The scale (at most 1) at which `per_step` pixels span one step between neighbouring scan
-    points in view: finer rendering only interpolates. Measured in the image: the side of the
-    square cells whose occupied ones hold 3 points at the median, over sqrt(3)."""
+    points in view: finer rendering only interpolates. The step is measured in the image
+    (`cell_for_density`: occupied cells hold 3 points at the median), over sqrt(3)."""
+    import torch
+
+    from rgbd_gt.render.zbuffer import cell_for_density
+
     p = scan.xyz @ T[:3, :3].T + T[:3, 3]
-    z = np.maximum(p[:, 2], 1e-9)
+    front = p[:, 2] > 0
     # pinhole: the lens distortion hardly changes how densely points land
-    u, v = camera.fx * p[:, 0] / z + camera.cx, camera.fy * p[:, 1] / z + camera.cy
+    uv = p[front, :2] / p[front, 2:] * [camera.fx, camera.fy] + [camera.cx, camera.cy]
     w, h = camera.size
-    inside = (p[:, 2] > 0) & (u >= 0) & (v >= 0) & (u < w) & (v < h)
-    u, v = u[inside], v[inside]
-    if len(u) < 100:
+    if np.count_nonzero((uv >= 0).all(1) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)) < 100:
         return 1.0
-    cell = 1
-    while cell < 256:
-        cw = w // cell + 1
-        counts = np.bincount((v // cell).astype(np.int64) * cw + (u // cell).astype(np.int64), minlength=(h // cell + 1) * cw)
-        if np.median(counts[counts > 0]) >= 3:
-            break
-        cell *= 2
+    cell = cell_for_density(torch.as_tensor(uv), camera.size, largest=256)
     return float(min(1.0, per_step * np.sqrt(3) / cell))
 
 

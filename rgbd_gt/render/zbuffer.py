@@ -95,7 +95,8 @@ def cell_for_density(uv: torch.Tensor, size: tuple[int, int], per_cell: int = 3,
     while cell < largest and uv.shape[0]:
         cw = (w + cell - 1) // cell
         key = (uv[:, 1] / cell).long() * cw + (uv[:, 0] / cell).long()
-        if float(torch.unique(key, return_counts=True)[1].float().median()) >= per_cell:
+        counts = torch.bincount(key)
+        if float(counts[counts > 0].float().median()) >= per_cell:
             break
         cell *= 2
     return cell
