@@ -801,7 +801,7 @@ def run_workflow(
             out.print(f"{r.photo}: {r.verdict}: {r.reasons}", markup=False, highlight=False)
     out.print(f"verdicts: {verdict_counts(results)}")
     where = "<scan>/<photo>" if site else "<photo>"
-    out.print(f"outputs in {out_dir}/{where}/ (init.yaml, pose.yaml, depth.exr, depth.png, qa.png, qa.json, overlay.png); "
+    out.print(f"outputs in {out_dir}/{where}/ (init.yaml, pose.yaml, depth.exr, depth.png, qa.png, qa.json, overlay*.png); "
               f"summary in {out_dir / 'summary.csv'}")
     if all(r.status == "failed" for r in results):
         raise typer.Exit(1)

@@ -180,7 +180,7 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
     from rgbd_gt.io.image import read_image, write_image
     from rgbd_gt.io.scan import scan_colors
     from rgbd_gt.qa.edges import qa, side_by_side
-    from rgbd_gt.qa.overlay import overlay
+    from rgbd_gt.qa.overlay import overlay, points_image
     from rgbd_gt.render.depth import back_facing_fraction, expect_poses, render_depth
 
     start = time.perf_counter()
@@ -257,9 +257,10 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
     progress("overlay")
     if files["overlay"].exists():
         res.skipped.append("overlay")
-    else:  # the blend first: overlay.png's presence says both are there
+    else:  # the others first: overlay.png's presence says all three are there
         checker, mixed, _ = overlay(scan, image, camera, T, cfg.max_depth)
         write_image(d / "overlay_blend.png", mixed)
+        write_image(d / "overlay_points.png", points_image(scan, image, camera, T, cfg.max_depth)[0])
         write_image(files["overlay"], checker)
         lap("overlay")
     score = json.loads(files["qa"].read_text())
