@@ -653,13 +653,14 @@ def overlay(
     image: Path = typer.Option(..., "--image", help="The photo."),
     camera: Path = typer.Option(..., "--camera", help="Camera file of the photo."),
     pose: Path = typer.Option(..., "--pose", help="The pose to show (T_cam_from_scan), e.g. from refine."),
-    output: Path = typer.Option(..., "-o", "--output", help="Checkerboard PNG at the photo's resolution: squares alternate between the photo and the scan rendered at the pose (edges must run on across square borders). The 50% blend goes beside it as OVERLAY_blend.png, and the visible scan points as dots of their color or intensity (the clearest picture of a sparse LiDAR sweep) as OVERLAY_points.png."),
+    output: Path = typer.Option(..., "-o", "--output", help="Checkerboard PNG at the photo's resolution: squares alternate between the photo and the scan rendered at the pose (edges must run on across square borders). The 50% blend goes beside it as OVERLAY_blend.png, and (see --points) the visible scan points as dots as OVERLAY_points.png."),
+    points: Optional[bool] = typer.Option(None, "--points/--no-points", help="Also draw the visible scan points as dots of their color or intensity over the dimmed photo (OVERLAY_points.png): the picture to read for a sparse LiDAR sweep, whose rendered surfaces are blobs between its rings. Default: for scans with intensity only."),
     max_depth: Optional[float] = typer.Option(None, "--max-depth", help="Leave out scan surfaces farther than this (metres)."),
     cache: Optional[Path] = typer.Option(None, "--cache", help=CACHE_HELP),
 ) -> None:
-    """The scan rendered at the pose over the photo, as a checkerboard, as a 50% blend and as
-    dots of the visible points, full resolution (crop to inspect): the most direct check of a
-    pose. Surfaces the camera would see from behind are not drawn."""
+    """The scan rendered at the pose over the photo, as a checkerboard, as a 50% blend and (for
+    sweeps, or with --points) as dots of the visible points, full resolution (crop to inspect):
+    the most direct check of a pose. Surfaces the camera would see from behind are not drawn."""
     from rgbd_gt.io import read_camera, read_pose
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import read_image, write_image
@@ -667,10 +668,10 @@ def overlay(
     from rgbd_gt.qa.overlay import overlay as make_overlay, points_image
 
     start = time.perf_counter()
-    blend, points = beside(output, "blend"), beside(output, "points")
+    blend, points_png = beside(output, "blend"), beside(output, "points")
     outs = Outputs([scan, image, camera, pose])
     staged = [outs.file(output, "-o", (".png",)), outs.file(blend, "-o (its blend)", (".png",)),
-              outs.file(points, "-o (its points)", (".png",))]
+              outs.file(points_png, "-o (its points)", (".png",))]
     outs.checked_folder(cache, "--cache")
     if max_depth is not None and max_depth < 0:
         raise InputError(f"--max-depth must be positive, got {max_depth}")
@@ -687,15 +688,23 @@ def overlay(
         checker, mixed, covered = make_overlay(the_scan, photo, cam, T, max_depth)
         if covered == 0:
             raise InputError("no scan surface in view of this pose (or only surfaces seen from behind)", pose)
-        dots, drawn = points_image(the_scan, photo, cam, T, max_depth)
+        # a dense scan's points picture costs a 24-megapixel overlay 2 s (torch for the visibility
+        # rule, another PNG) and shows little the blend does not: by default only for sweeps
+        draw_points = points if points is not None else the_scan.rgb is None
+        images = [checker, mixed]
+        if draw_points:
+            dots, drawn = points_image(the_scan, photo, cam, T, max_depth)
+            images.append(dots)
     from concurrent.futures import ThreadPoolExecutor
 
     with outs, ThreadPoolExecutor(3) as pool:  # PNG encoding releases the GIL: the images at once
-        list(pool.map(lambda job: write_image(*job), zip(staged, (checker, mixed, dots))))
-    _summary("overlay", [("size", f"{cam.width} x {cam.height}"), ("scan covers", f"{covered:.1%} of the photo"),
-                         ("points drawn", f"{drawn:,}"), ("time", f"{time.perf_counter() - start:.1f} s")], output, None)
-    out.print(f"wrote {blend}")
-    out.print(f"wrote {points}")
+        list(pool.map(lambda job: write_image(*job), zip(staged, images)))
+    rows = [("size", f"{cam.width} x {cam.height}"), ("scan covers", f"{covered:.1%} of the photo")]
+    if draw_points:
+        rows.append(("points drawn", f"{drawn:,}"))
+    _summary("overlay", rows + [("time", f"{time.perf_counter() - start:.1f} s")], output, None)
+    for path in (blend, points_png)[: len(images) - 1]:
+        out.print(f"wrote {path}")
 
 
 @app.command("run")

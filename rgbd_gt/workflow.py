@@ -257,10 +257,11 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
     progress("overlay")
     if files["overlay"].exists():
         res.skipped.append("overlay")
-    else:  # the others first: overlay.png's presence says all three are there
+    else:  # the others first: overlay.png's presence says they are all there
         checker, mixed, _ = overlay(scan, image, camera, T, cfg.max_depth)
         write_image(d / "overlay_blend.png", mixed)
-        write_image(d / "overlay_points.png", points_image(scan, image, camera, T, cfg.max_depth)[0])
+        if scan.rgb is None:  # a sweep: the points picture is the one to read (as `overlay` does)
+            write_image(d / "overlay_points.png", points_image(scan, image, camera, T, cfg.max_depth)[0])
         write_image(files["overlay"], checker)
         lap("overlay")
     score = json.loads(files["qa"].read_text())

@@ -37,7 +37,7 @@ def test_overlay_at_the_true_pose_agrees_with_the_photo(tmp_path):
     scores, dots = {}, {}
     for name, pose in (("true", scene / "gt_pose.yaml"), ("off", tmp_path / "off.yaml")):
         proc = run_cli("overlay", "--scan", scene / "scan.ply", "--image", scene / "photo.png", "--camera",
-                       scene / "camera.yaml", "--pose", pose, "-o", tmp_path / f"{name}.png")
+                       scene / "camera.yaml", "--pose", pose, "-o", tmp_path / f"{name}.png", "--points")
         assert proc.returncode == 0, proc.stderr
         checker, blend = cv2.imread(str(tmp_path / f"{name}.png")), cv2.imread(str(tmp_path / f"{name}_blend.png"))
         points = cv2.imread(str(tmp_path / f"{name}_points.png"))
@@ -59,6 +59,7 @@ def test_overlay_at_the_true_pose_agrees_with_the_photo(tmp_path):
                    scene / "camera.yaml", "--pose", scene / "gt_pose.yaml", "-o", tmp_path / "loose_overlay.png")
     assert proc.returncode == 0, proc.stderr
     assert _agreement(photo, cv2.imread(str(tmp_path / "loose_overlay_blend.png"))) > 0.7
+    assert not (tmp_path / "loose_overlay_points.png").exists()  # by default for sweeps only
 
 
 def test_overlay_errors(tmp_path):

@@ -17,20 +17,26 @@ from rgbd_gt.io.scan import Scan, scan_colors
 
 def render_scale(scan: Scan, camera: Camera, T: np.ndarray, per_step: float = 2.0) -> float:
     """The scale (at most 1) at which `per_step` pixels span one step between neighbouring scan
-    points in view: finer rendering only interpolates. The step is measured in the image
-    (`cell_for_density`: occupied cells hold 3 points at the median), over sqrt(3)."""
-    import torch
-
-    from rgbd_gt.render.zbuffer import cell_for_density
-
+    points in view: finer rendering only interpolates. Measured in the image: the side of the
+    square cells whose occupied ones hold 3 points at the median, over sqrt(3). (The rule of
+    `render.zbuffer.cell_for_density`, in numpy: the overlay of a colored scan does not need torch,
+    whose import alone would cost it 1.5 s.)"""
     p = scan.xyz @ T[:3, :3].T + T[:3, 3]
-    front = p[:, 2] > 0
+    z = np.maximum(p[:, 2], 1e-9)
     # pinhole: the lens distortion hardly changes how densely points land
-    uv = p[front, :2] / p[front, 2:] * [camera.fx, camera.fy] + [camera.cx, camera.cy]
+    u, v = camera.fx * p[:, 0] / z + camera.cx, camera.fy * p[:, 1] / z + camera.cy
     w, h = camera.size
-    if np.count_nonzero((uv >= 0).all(1) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)) < 100:
+    inside = (p[:, 2] > 0) & (u >= 0) & (v >= 0) & (u < w) & (v < h)
+    u, v = u[inside], v[inside]
+    if len(u) < 100:
         return 1.0
-    cell = cell_for_density(torch.as_tensor(uv), camera.size, largest=256)
+    cell = 1
+    while cell < 256:
+        cw = w // cell + 1
+        counts = np.bincount((v // cell).astype(np.int64) * cw + (u // cell).astype(np.int64), minlength=(h // cell + 1) * cw)
+        if np.median(counts[counts > 0]) >= 3:
+            break
+        cell *= 2
     return float(min(1.0, per_step * np.sqrt(3) / cell))
 
 
@@ -92,7 +98,7 @@ def overlay(scan: Scan, photo: np.ndarray, camera: Camera, T: np.ndarray,
 def points_image(scan: Scan, photo: np.ndarray, camera: Camera, T: np.ndarray, max_depth: float | None = None,
                  dot_px: int = 1) -> tuple[np.ndarray, int]:
     """(H, W, 3) uint8: the photo, dimmed, with the scan points the camera sees at T drawn as
-    squares of side 2 dot_px + 1 (the nearest wins where they overlap) in their colors, or their
+    squares of side 2 dot_px + 1 (`dot_pixels`: the nearest wins where they overlap) in their colors, or their
     intensity in the turbo colormap (blue low, red high); and the number of points drawn.
 
     Visibility is the aligner's (`visible_points` with cells sized where the points land, and
@@ -102,7 +108,6 @@ def points_image(scan: Scan, photo: np.ndarray, camera: Camera, T: np.ndarray, m
 
     from rgbd_gt.camera import project
     from rgbd_gt.render.normals import facing_camera
-    from rgbd_gt.render.splat import splat
     from rgbd_gt.render.zbuffer import cell_for_density, visible_points
 
     p = scan.xyz @ T[:3, :3].T + T[:3, 3]
@@ -123,9 +128,26 @@ def points_image(scan: Scan, photo: np.ndarray, camera: Camera, T: np.ndarray, m
         lo, hi = np.percentile(colors, [1, 99]) if len(colors) else (0.0, 1.0)
         level = np.clip((colors[:, 0] - lo) / max(hi - lo, 1e-9) * 255, 0, 255).astype(np.uint8)
         colors = cv2.applyColorMap(level[:, None], cv2.COLORMAP_TURBO)[:, 0, ::-1]  # BGR -> RGB
-    img, _, index = splat(torch.as_tensor(uv[idx]), torch.as_tensor(z[idx]), torch.as_tensor(colors.astype(np.float32)),
-                          camera.size, dot_px)
     out = cv2.convertScaleAbs(photo, alpha=0.6)
-    drawn = (index >= 0).numpy()
-    out[drawn] = np.clip(np.rint(img.numpy()[drawn]), 0, 255).astype(np.uint8)
+    key, owner = dot_pixels(uv[idx], z[idx], camera.size, dot_px)
+    out.reshape(-1, 3)[key] = colors[owner]
     return out, len(idx)
+
+
+def dot_pixels(uv: np.ndarray, z: np.ndarray, size: tuple[int, int], dot_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """The pixels of squares of side 2 dot_px + 1 around the points uv (n, 2) with depth z (n,):
+    flat pixel indices (m,) into an image of size (width, height), each with the index (m,) of the
+    nearest point whose square covers it. Memory and time follow the points, not the image (a
+    24-megapixel photo would need 1 GB of per-pixel buffers)."""
+    w, h = size
+    r = np.arange(-dot_px, dot_px + 1)
+    dx, dy = (a.ravel()[:, None] for a in np.meshgrid(r, r))
+    x, y = np.rint(uv[:, 0]).astype(np.int64) + dx, np.rint(uv[:, 1]).astype(np.int64) + dy  # (k, n)
+    inside = (x >= 0) & (y >= 0) & (x < w) & (y < h)
+    key, depth = (y * w + x)[inside], np.broadcast_to(z, x.shape)[inside]
+    owner = np.broadcast_to(np.arange(len(z)), x.shape)[inside]
+    order = np.lexsort((depth, key))  # by pixel, nearest first
+    key, owner = key[order], owner[order]
+    first = np.ones(len(key), bool)
+    first[1:] = key[1:] != key[:-1]
+    return key[first], owner[first]
