@@ -101,3 +101,17 @@ def test_overlay_of_a_real_lidar_sweep_draws_its_visible_points(tmp_path):
     assert ((dots[:, 2] > dots[:, 0] + 60).mean() > 0.01) and ((dots[:, 0] > dots[:, 2] + 60).mean() > 0.01)
     # beyond --max-depth nothing is drawn
     assert points_image(scan, photo, camera, T, max_depth=10.0)[1] < drawn / 2
+
+
+def test_dots_cover_their_squares_and_the_nearest_point_wins():
+    from rgbd_gt.qa.overlay import dot_pixels
+
+    # a far point at (5, 5) and a near one at (6, 5): their 3x3 squares share 6 pixels; one at the
+    # corner (0, 0) keeps only the 4 pixels of its square inside the 10 x 8 image
+    uv = np.array([[5.2, 4.9], [6.0, 5.0], [0.0, 0.0]])
+    key, owner = dot_pixels(uv, np.array([20.0, 5.0, 1.0]), (10, 8), 1)
+    assert len(key) == len(np.unique(key)) == 9 + 3 + 4
+    got = dict(zip(key.tolist(), owner.tolist()))
+    assert all(got[y * 10 + x] == 1 for y in (4, 5, 6) for x in (5, 6, 7))  # the shared ones are the near point's
+    assert all(got[y * 10 + 4] == 0 for y in (4, 5, 6))
+    assert sorted(k for k, o in got.items() if o == 2) == [0, 1, 10, 11]
