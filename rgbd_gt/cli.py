@@ -705,6 +705,8 @@ def overlay(
     _summary("overlay", rows + [("time", f"{time.perf_counter() - start:.1f} s")], output, None)
     for path in (blend, points_png)[: len(images) - 1]:
         out.print(f"wrote {path}")
+    if not draw_points and points_png.exists():
+        _warn(f"{points_png} is left from an earlier run and does not show this pose (--points redraws it)")
 
 
 @app.command("run")
