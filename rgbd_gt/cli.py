@@ -665,7 +665,7 @@ def overlay(
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import read_image, write_image
     from rgbd_gt.io.outputs import Outputs
-    from rgbd_gt.qa.overlay import overlay as make_overlay, points_image
+    from rgbd_gt.qa.overlay import overlay as make_overlay, points_by_default, points_image
 
     start = time.perf_counter()
     blend, points_png = beside(output, "blend"), beside(output, "points")
@@ -688,9 +688,7 @@ def overlay(
         checker, mixed, covered = make_overlay(the_scan, photo, cam, T, max_depth)
         if covered == 0:
             raise InputError("no scan surface in view of this pose (or only surfaces seen from behind)", pose)
-        # a dense scan's points picture costs a 24-megapixel overlay 2 s (torch for the visibility
-        # rule, another PNG) and shows little the blend does not: by default only for sweeps
-        draw_points = points if points is not None else the_scan.rgb is None
+        draw_points = points if points is not None else points_by_default(the_scan)
         images = [checker, mixed]
         if draw_points:
             dots, drawn = points_image(the_scan, photo, cam, T, max_depth)
@@ -703,7 +701,7 @@ def overlay(
     if draw_points:
         rows.append(("points drawn", f"{drawn:,}"))
     _summary("overlay", rows + [("time", f"{time.perf_counter() - start:.1f} s")], output, None)
-    for path in (blend, points_png)[: len(images) - 1]:
+    for path in [blend, points_png] if draw_points else [blend]:
         out.print(f"wrote {path}")
     if not draw_points and points_png.exists():
         _warn(f"{points_png} is left from an earlier run and does not show this pose (--points redraws it)")

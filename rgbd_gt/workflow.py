@@ -180,7 +180,7 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
     from rgbd_gt.io.image import read_image, write_image
     from rgbd_gt.io.scan import scan_colors
     from rgbd_gt.qa.edges import qa, side_by_side
-    from rgbd_gt.qa.overlay import overlay, points_image
+    from rgbd_gt.qa.overlay import overlay, points_by_default, points_image
     from rgbd_gt.render.depth import back_facing_fraction, expect_poses, render_depth
 
     start = time.perf_counter()
@@ -260,7 +260,7 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
     else:  # the others first: overlay.png's presence says they are all there
         checker, mixed, _ = overlay(scan, image, camera, T, cfg.max_depth)
         write_image(d / "overlay_blend.png", mixed)
-        if scan.rgb is None:  # a sweep: the points picture is the one to read (as `overlay` does)
+        if points_by_default(scan):
             write_image(d / "overlay_points.png", points_image(scan, image, camera, T, cfg.max_depth)[0])
         write_image(files["overlay"], checker)
         lap("overlay")

@@ -95,11 +95,20 @@ def overlay(scan: Scan, photo: np.ndarray, camera: Camera, T: np.ndarray,
     return checkerboard(photo, rendered, have), blend(photo, rendered, have), float(have.mean())
 
 
+def points_by_default(scan: Scan) -> bool:
+    """Whether `overlay` and `run` draw the points picture unasked: for scans with intensity only
+    (sweeps, whose rendered surfaces are blobs between rings). A dense colored scan's points show
+    little the blend does not, and on a 24-megapixel photo they would cost 2 s (torch for the
+    visibility rule, another PNG)."""
+    return scan.rgb is None
+
+
 def points_image(scan: Scan, photo: np.ndarray, camera: Camera, T: np.ndarray, max_depth: float | None = None,
                  dot_px: int = 1) -> tuple[np.ndarray, int]:
     """(H, W, 3) uint8: the photo, dimmed, with the scan points the camera sees at T drawn as
-    squares of side 2 dot_px + 1 (`dot_pixels`: the nearest wins where they overlap) in their colors, or their
-    intensity in the turbo colormap (blue low, red high); and the number of points drawn.
+    squares of side 2 dot_px + 1 (`dot_pixels`: the nearest wins where they overlap) in their
+    colors, or their intensity in the turbo colormap (blue low, red high); and the number of
+    points drawn.
 
     Visibility is the aligner's (`visible_points` with cells sized where the points land, and
     surfaces seen from behind left out), so the dots are the points refine compared."""
