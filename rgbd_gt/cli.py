@@ -704,7 +704,7 @@ def overlay(
     for path in [blend, points_png] if draw_points else [blend]:
         out.print(f"wrote {path}")
     if not draw_points and points_png.exists():
-        _warn(f"{points_png} is left from an earlier run and does not show this pose (--points redraws it)")
+        _warn(f"{points_png} is left from an earlier run and may show another pose (--points redraws it)")
 
 
 @app.command("run")
