@@ -303,7 +303,7 @@ def pick(
     output: Path = typer.Option(..., "-o", "--output", help="PAIRS.csv to write (u,v,x,y,z,label; init-pose --correspondences and refine --check read it). When it exists, its pairs are loaded to go on with."),
     camera: Optional[Path] = typer.Option(None, "--camera", help="Camera file of the photo: with 6 or more pairs the page then solves the pose live (RANSAC PnP, as init-pose) and shows the scan over the photo."),
     init: Optional[Path] = typer.Option(None, "--init", help="A pose to render the scan from with the photo's camera (the view closest to the photo)."),
-    view: str = typer.Option("auto", "--view", help="The scan image to click on: grid (the structured scan's own grid), panorama (rendered from the scan origin), pose (rendered at --init) or auto (pose with --init, else grid, else panorama)."),
+    view: str = typer.Option("auto", "--view", help="The scan image to click on: grid (the structured scan's own grid), panorama (rendered from the scan origin), pose (rendered at --init; for scans with intensity only, such as LiDAR sweeps, the points seen from it as dots) or auto (pose with --init, else grid, else panorama)."),
     estimate_focal: bool = typer.Option(False, "--estimate-focal", help="Estimate the focal length in the live solve (photos without calibration; --camera then gives the image size and principal point)."),
     ransac_px: float = typer.Option(4.0, "--ransac-px", help="Outlier threshold of the live solve (pixels)."),
     port: int = typer.Option(0, "--port", help="Port on 127.0.0.1 (0: any free one)."),

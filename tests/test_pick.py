@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import assert_one_line_error, run_cli
+from conftest import _need, assert_one_line_error, run_cli
 from rgbd_gt.camera import project
 from rgbd_gt.init.pick import grid_panorama
 from rgbd_gt.io import load_scan, read_camera, read_pose
@@ -55,13 +55,11 @@ def _chosen_pairs(scene: Path, n: int = 9):
     return out[:n]
 
 
-def test_pick_pairs_in_a_browser(tmp_path):
-    scene = tmp_path / "scene"
-    assert run_cli("synth", scene, "--size", "small", "--seed", 6).returncode == 0
-    pairs = _chosen_pairs(scene)
-    out = tmp_path / "pairs.csv"
-    proc, url = _start_pick("--scan", scene / "scan.ply", "--image", scene / "photo.png", "--camera", scene / "camera.yaml",
-                            "-o", out)
+def _pick_in_browser(args: list, clicks: list, shot: Path, label: str | None = None) -> tuple[dict, subprocess.CompletedProcess]:
+    """Start `rgbd-gt pick` with args, click each pair (photo pixel uv, scan image pixel) in a
+    headless chromium, optionally label the first pair, show the overlay, take a screenshot and
+    'Save and close'. Returns the page's live solution and the finished command."""
+    proc, url = _start_pick(*args)
     try:
         with playwright.sync_playwright() as pw:
             browser = pw.chromium.launch(executable_path=CHROMIUM, args=[
@@ -70,26 +68,39 @@ def test_pick_pairs_in_a_browser(tmp_path):
             page = browser.new_page(viewport={"width": 1600, "height": 1000})
             page.goto(url)
             page.wait_for_function("window.picker && window.picker.ready")
-            for k, (uv, grid_px, _) in enumerate(pairs):
+            for k, (uv, scan_px) in enumerate(clicks):
                 x, y = page.evaluate(f"window.picker.photo.toScreen({uv[0] + 0.5}, {uv[1] + 0.5})")
                 page.mouse.click(x, y)
-                x, y = page.evaluate(f"window.picker.scan.toScreen({grid_px[0]}, {grid_px[1]})")
+                x, y = page.evaluate(f"window.picker.scan.toScreen({scan_px[0]}, {scan_px[1]})")
                 page.mouse.click(x, y)
                 page.wait_for_function(f"window.picker.pairs.length === {k + 1}")
             page.wait_for_function("window.picker.solution !== null")
             solution = page.evaluate("window.picker.solution")
-            assert page.locator("#pairs tbody tr").count() == len(pairs)
-            page.locator("#pairs tbody tr input").first.fill("corner A")
-            page.locator("#pairs tbody tr input").first.dispatch_event("change")
+            solution["rows"] = page.locator("#pairs tbody tr").count()
+            if label is not None:
+                page.locator("#pairs tbody tr input").first.fill(label)
+                page.locator("#pairs tbody tr input").first.dispatch_event("change")
             page.click("#show-overlay")
-            page.screenshot(path=str(tmp_path / "page.png"))
+            page.screenshot(path=str(shot))
             page.click("#done")
             proc.wait(timeout=30)
             browser.close()
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert proc.returncode == 0, proc.stderr.read()
+    return solution, subprocess.CompletedProcess(proc.args, proc.returncode, proc.stdout.read(), proc.stderr.read())
+
+
+def test_pick_pairs_in_a_browser(tmp_path):
+    scene = tmp_path / "scene"
+    assert run_cli("synth", scene, "--size", "small", "--seed", 6).returncode == 0
+    pairs = _chosen_pairs(scene)
+    out = tmp_path / "pairs.csv"
+    solution, proc = _pick_in_browser(["--scan", scene / "scan.ply", "--image", scene / "photo.png", "--camera",
+                                       scene / "camera.yaml", "-o", out], [(uv, px) for uv, px, _ in pairs],
+                                      tmp_path / "page.png", label="corner A")
+    assert proc.returncode == 0, proc.stderr
+    assert solution["rows"] == len(pairs)
     # the live pose is the truth's, to what clicks on whole screen pixels allow
     T_true = read_pose(scene / "gt_pose.yaml")[0]
     T = np.array(solution["T_cam_from_scan"])
@@ -104,6 +115,54 @@ def test_pick_pairs_in_a_browser(tmp_path):
     # and init-pose takes it as it is
     assert run_cli("init-pose", "--scan", scene / "scan.ply", "--image", scene / "photo.png", "--camera",
                    scene / "camera.yaml", "--correspondences", out, "-o", tmp_path / "init.yaml").returncode == 0
+
+
+def test_pick_on_a_real_sweep(tmp_path):
+    """A real LiDAR sweep (PJLab scene 3) from a rough extrinsic (the reference 1 deg and 10 cm
+    off): the scan image shows the points seen from it as dots, a click lands on a laser return,
+    and pairs whose photo pixels are the reference's projections of those returns give the
+    reference back."""
+    import yaml
+
+    from rgbd_gt.bench.lidar import init_poses
+    from rgbd_gt.init.pick import click_view
+    from rgbd_gt.prepared import whole_scan
+
+    folder = _need("lidar_camera") / "pjlab_3"
+    cam = read_camera(folder / "calib.txt", (1920, 1200))
+    T_ref = read_pose(folder / "calib.txt")[0]
+    init = tmp_path / "rough.yaml"
+    init.write_text(yaml.safe_dump({"T_cam_from_scan": init_poses(T_ref, 1.0, 0.10, 1, seed=3)[0].tolist()}))
+    view = click_view(whole_scan(folder / "calib.pcd", None), "auto", cam, read_pose(init)[0])
+    assert view.kind == "the scan's points seen from the initial pose"
+    # 12 returns spread over the photo (a 4 x 3 grid), each at the centre of its dot
+    ys, xs = np.nonzero(np.isfinite(view.xyz[..., 0]))
+    xyz = view.xyz[ys, xs].astype(float)
+    uv, z = project(cam, transform_points(T_ref, xyz))
+    inside = (z > 0) & np.all(uv > 30, 1) & (uv[:, 0] < cam.width - 30) & (uv[:, 1] < cam.height - 30)
+    rng = np.random.default_rng(0)
+    clicks, points = [], []
+    for gy in range(3):
+        for gx in range(4):
+            cell = np.nonzero(inside & (uv[:, 0] * 4 // cam.width == gx) & (uv[:, 1] * 3 // cam.height == gy))[0]
+            if len(cell) == 0:
+                continue
+            k = rng.choice(cell)
+            dot = np.all(view.xyz == view.xyz[ys[k], xs[k]], axis=2)  # the return's whole square
+            dy, dx = np.argwhere(dot).mean(0)
+            clicks.append((uv[k], (dx + 0.5, dy + 0.5)))
+            points.append(xyz[k])
+    assert len(clicks) >= 9
+    out = tmp_path / "pairs.csv"
+    solution, proc = _pick_in_browser(["--scan", folder / "calib.pcd", "--image", folder / "calib.png", "--camera",
+                                       folder / "calib.txt", "--init", init, "-o", out], clicks, tmp_path / "page.png")
+    assert proc.returncode == 0, proc.stderr
+    rows = list(csv.DictReader(open(out)))
+    np.testing.assert_allclose([[float(r[c]) for c in "xyz"] for r in rows], points, atol=1e-5)  # the returns clicked
+    T = np.array(solution["T_cam_from_scan"])
+    # clicks land on whole screen pixels (about 2.4 photo pixels here) and the points lie 5-60 m away
+    assert rotation_error_deg(T, T_ref) < 0.1 and translation_error_m(T, T_ref) < 0.05, (rotation_error_deg(T, T_ref), translation_error_m(T, T_ref))
+    assert solution["inliers"] == len(clicks)
 
 
 def test_pick_errors(tmp_path):

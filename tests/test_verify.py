@@ -125,3 +125,18 @@ def test_pnp_uncertainty_matches_the_spread_of_noisy_solutions():
     assert pose_uncertainty(T, obj[:3], img[:3], cam) is None  # too few points fix nothing
     moved = apply_update(T, np.r_[0, 0, 0, 0.01, 0, 0])
     assert pose_uncertainty(moved, obj, img, cam)["translation_mm"] > stated["translation_mm"]  # bad fit, larger sigma
+
+
+def test_check_points_worse_than_at_the_init_say_keep_the_init():
+    """decide(): held-out pairs far off after refine fail the result; when the init fits them
+    within check_failed_px the reason tells the user to keep the init, otherwise not."""
+    from rgbd_gt.align.config import VerifyConfig
+    from rgbd_gt.align.verify import decide
+
+    cfg = VerifyConfig()
+    ev = {"uncertainty": {"image_px": 0.1, "translation_mm": 1.0}, "convergence": {"levels": [{"stop": "converged"}]}}
+    verdict, reasons = decide({**ev, "check": {"rms_px": 40.0, "rms_init_px": 2.3}}, cfg)
+    assert verdict == "failed" and reasons == ["the check points are 40.0 px off (2.3 px at the init; keep the init)"]
+    verdict, reasons = decide({**ev, "check": {"rms_px": 40.0, "rms_init_px": cfg.check_failed_px + 1}}, cfg)
+    assert verdict == "failed" and "keep the init" not in reasons[0]
+    assert decide({**ev, "check": {"rms_px": 0.5, "rms_init_px": 9.0}}, cfg) == ("ok", [])

@@ -176,7 +176,8 @@ def decide(ev: dict, cfg: VerifyConfig) -> tuple[str, list[str]]:
     chk = ev.get("check")
     if chk is not None:
         if chk["rms_px"] > cfg.check_failed_px:
-            failed.append(f"the check points are {chk['rms_px']:.1f} px off")
+            keep = "; keep the init" if chk["rms_init_px"] <= cfg.check_failed_px else ""
+            failed.append(f"the check points are {chk['rms_px']:.1f} px off ({chk['rms_init_px']:.1f} px at the init{keep})")
         elif chk["rms_px"] > max(cfg.check_ok_px, chk["rms_init_px"]):
             suspect.append(f"the check points are {chk['rms_px']:.1f} px off ({chk['rms_init_px']:.1f} px at the init)")
     ch = ev.get("change_in_init_sigmas")

@@ -17,6 +17,8 @@ from rgbd_gt.errors import InputError
 from rgbd_gt.io.scan import Scan, scan_colors
 
 VIEW_SIDE = 4096  # the scan image's longer side at most (pixels): what a browser shows smoothly
+DOT_PX = 2  # a sweep's points in the pose view: squares of 5 x 5 pixels, easy to hit, rarely overlapping
+NOTHING_IN_VIEW = "no scan surface in view of the initial pose: pick on a panorama instead (--view panorama)"
 
 
 @dataclass
@@ -133,22 +135,46 @@ def origin_panorama(scan: Scan, width: int = VIEW_SIDE) -> ClickView:
 
 
 def pose_view(scan: Scan, camera: Camera, T: np.ndarray, longest: int = VIEW_SIDE) -> ClickView:
-    """The scan rendered with the photo's camera at pose T (scaled to at most `longest`)."""
+    """The scan seen with the photo's camera at pose T (scaled to at most `longest`): rendered
+    surfaces for a colored scan, and for one with intensity only (a sweep, whose rings leave
+    gaps that rendered surfaces fill with blobs) the visible points themselves as dots
+    (`points_view`), so that a click lands on a laser return."""
+    from rgbd_gt.qa.overlay import points_by_default
     from rgbd_gt.render.blocks import view_of
     from rgbd_gt.render.depth import render_depth
 
     s = min(1.0, longest / max(camera.size))
     cam = rescale(camera, max(1, round(camera.width * s)), max(1, round(camera.height * s)))
     scan = view_of(scan, cam, [T])  # a render costs what the photo sees
+    if points_by_default(scan):
+        return points_view(scan, cam, T)
     values = np.concatenate([_gray_to_rgb(scan_colors(scan)), scan.xyz], 1)
     depth = render_depth(scan, cam, T, values=values, normals=False)
     have = depth.z > 0
     if not have.any():
-        raise InputError("no scan surface in view of the initial pose: pick on a panorama instead (--view panorama)")
+        raise InputError(NOTHING_IN_VIEW)
     image = np.zeros(depth.z.shape + (3,), np.uint8)
     image[have] = _stretch(depth.colors[..., :3][have])
     xyz = np.where(have[..., None], depth.colors[..., 3:], np.nan).astype(np.float32)
     return ClickView(image, xyz, "the scan rendered at the initial pose")
+
+
+def points_view(scan: Scan, camera: Camera, T: np.ndarray, dot_px: int = DOT_PX) -> ClickView:
+    """The points the camera sees at T (the aligner's visibility), each a square of side
+    2 dot_px + 1 in its intensity's (or color's) `point_colors`, on black; the nearest point wins
+    where squares overlap."""
+    from rgbd_gt.qa.overlay import dot_pixels, point_colors, seen_points
+
+    idx, uv, z = seen_points(scan, camera, T)
+    if len(idx) == 0:
+        raise InputError(NOTHING_IN_VIEW)
+    key, owner = dot_pixels(uv, z, camera.size, dot_px)
+    w, h = camera.size
+    image = np.zeros((h * w, 3), np.uint8)
+    xyz = np.full((h * w, 3), np.nan, np.float32)
+    image[key] = point_colors(scan, idx)[owner]
+    xyz[key] = scan.xyz[idx[owner]]
+    return ClickView(image.reshape(h, w, 3), xyz.reshape(h, w, 3), "the scan's points seen from the initial pose")
 
 
 def _stretch(rgb: np.ndarray) -> np.ndarray:

@@ -50,9 +50,10 @@ class PickSession:
                 "estimate_focal": self.estimate_focal, "output": str(self.output), "pairs": self.pairs}
 
     def solve(self, pairs: list[dict]) -> dict:
-        """The live pose and its overlay (the blend, at most OVERLAY_SIDE)."""
+        """The live pose and its overlay at most OVERLAY_SIDE: the blend, or for scans with
+        intensity only the visible points as dots over the photo (as `overlay` draws them)."""
         from rgbd_gt.camera import rescale
-        from rgbd_gt.qa.overlay import blend, render_colors
+        from rgbd_gt.qa.overlay import blend, points_by_default, points_image, render_colors
         from rgbd_gt.render.blocks import view_of
 
         if self.camera is None:
@@ -63,8 +64,12 @@ class PickSession:
         small = rescale(cam, max(1, round(cam.width * s)), max(1, round(cam.height * s)))
         photo = cv2.resize(self.photo, small.size, interpolation=cv2.INTER_AREA)
         T = np.array(out["T_cam_from_scan"])
-        rendered, have = render_colors(view_of(self.scan, small, [T]), small, T)  # a render costs what the photo sees
-        ok, png = cv2.imencode(".png", cv2.cvtColor(blend(photo, rendered, have), cv2.COLOR_RGB2BGR))
+        seen = view_of(self.scan, small, [T])  # a render costs what the photo sees
+        if points_by_default(seen):
+            picture = points_image(seen, photo, small, T)[0]
+        else:
+            picture = blend(photo, *render_colors(seen, small, T))
+        ok, png = cv2.imencode(".png", cv2.cvtColor(picture, cv2.COLOR_RGB2BGR))
         with self.lock:
             self.overlay_png = png.tobytes()
         return out

@@ -107,12 +107,21 @@ def points_image(scan: Scan, photo: np.ndarray, camera: Camera, T: np.ndarray, m
                  dot_px: int = 1) -> tuple[np.ndarray, int]:
     """(H, W, 3) uint8: the photo, dimmed, with the scan points the camera sees at T drawn as
     squares of side 2 dot_px + 1 (`dot_pixels`: the nearest wins where they overlap) in their
-    colors, or their intensity in the turbo colormap (blue low, red high); and the number of
-    points drawn.
-
-    Visibility is the aligner's (`visible_points` with cells sized where the points land, and
-    surfaces seen from behind left out), so the dots are the points refine compared."""
+    colors (`point_colors`); and the number of points drawn."""
     import cv2
+
+    idx, uv, z = seen_points(scan, camera, T, max_depth)
+    out = cv2.convertScaleAbs(photo, alpha=0.6)
+    key, owner = dot_pixels(uv, z, camera.size, dot_px)
+    out.reshape(-1, 3)[key] = point_colors(scan, idx)[owner]
+    return out, len(idx)
+
+
+def seen_points(scan: Scan, camera: Camera, T: np.ndarray,
+                max_depth: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The scan points the camera sees at T: their indices (n,), pixels uv (n, 2) and depths z
+    (n,) in metres. Visibility is the aligner's (`visible_points` with cells sized where the
+    points land, and surfaces seen from behind left out), so these are the points refine compares."""
     import torch
 
     from rgbd_gt.camera import project
@@ -132,15 +141,20 @@ def points_image(scan: Scan, photo: np.ndarray, camera: Camera, T: np.ndarray, m
         facing = facing_camera(torch.as_tensor(p[idx]), torch.as_tensor(scan.normals[idx] @ T[:3, :3].T))
     seen = visible_points(uv_t, z_t, camera.size, cell_for_density(uv_t, camera.size), facing=facing).numpy()
     idx = idx[seen]
+    return idx, uv[idx], z[idx]
+
+
+def point_colors(scan: Scan, idx: np.ndarray) -> np.ndarray:
+    """(n, 3) uint8 RGB of the points idx: their colors, or their intensity in the turbo colormap
+    (blue low, red high), spread by the 1st-99th percentiles of these points."""
+    import cv2
+
     colors = scan_colors(scan)[idx]
-    if colors.shape[1] == 1:  # intensity, spread over the colormap by its own 1st-99th percentiles
-        lo, hi = np.percentile(colors, [1, 99]) if len(colors) else (0.0, 1.0)
-        level = np.clip((colors[:, 0] - lo) / max(hi - lo, 1e-9) * 255, 0, 255).astype(np.uint8)
-        colors = cv2.applyColorMap(level[:, None], cv2.COLORMAP_TURBO)[:, 0, ::-1]  # BGR -> RGB
-    out = cv2.convertScaleAbs(photo, alpha=0.6)
-    key, owner = dot_pixels(uv[idx], z[idx], camera.size, dot_px)
-    out.reshape(-1, 3)[key] = colors[owner]
-    return out, len(idx)
+    if colors.shape[1] == 3:
+        return colors.astype(np.uint8)
+    lo, hi = np.percentile(colors, [1, 99]) if len(colors) else (0.0, 1.0)
+    level = np.clip((colors[:, 0] - lo) / max(hi - lo, 1e-9) * 255, 0, 255).astype(np.uint8)
+    return cv2.applyColorMap(level[:, None], cv2.COLORMAP_TURBO)[:, 0, ::-1].copy()  # BGR -> RGB
 
 
 def dot_pixels(uv: np.ndarray, z: np.ndarray, size: tuple[int, int], dot_px: int) -> tuple[np.ndarray, np.ndarray]:
