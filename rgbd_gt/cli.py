@@ -303,7 +303,7 @@ def pick(
     output: Path = typer.Option(..., "-o", "--output", help="PAIRS.csv to write (u,v,x,y,z,label; init-pose --correspondences and refine --check read it). When it exists, its pairs are loaded to go on with."),
     camera: Optional[Path] = typer.Option(None, "--camera", help="Camera file of the photo: with 6 or more pairs the page then solves the pose live (RANSAC PnP, as init-pose) and shows the scan over the photo."),
     init: Optional[Path] = typer.Option(None, "--init", help="A pose to render the scan from with the photo's camera (the view closest to the photo)."),
-    view: str = typer.Option("auto", "--view", help="The scan image to click on: grid (the structured scan's own grid), panorama (rendered from the scan origin), pose (rendered at --init; for scans with intensity only, such as LiDAR sweeps, the points seen from it as dots) or auto (pose with --init, else grid, else panorama)."),
+    view: str = typer.Option("auto", "--view", help="The scan image to click on: grid (the structured scan's own grid), panorama (rendered from the scan origin), pose (rendered at --init; for LiDAR sweeps, scans with intensity only and no grid, the points seen from it as dots) or auto (pose with --init, else grid, else panorama)."),
     estimate_focal: bool = typer.Option(False, "--estimate-focal", help="Estimate the focal length in the live solve (photos without calibration; --camera then gives the image size and principal point)."),
     ransac_px: float = typer.Option(4.0, "--ransac-px", help="Outlier threshold of the live solve (pixels)."),
     port: int = typer.Option(0, "--port", help="Port on 127.0.0.1 (0: any free one)."),
@@ -520,15 +520,18 @@ def export_depth(
     normals: Optional[Path] = typer.Option(None, "--normals", help="Also the camera-frame normals as an EXR (N.X, N.Y, N.Z)."),
     mask: Optional[Path] = typer.Option(None, "--mask", help="Also a validity mask PNG (255 where there is depth)."),
     max_depth: Optional[float] = typer.Option(None, "--max-depth", help="Depths beyond this (metres) are left out (0)."),
+    points: Optional[bool] = typer.Option(None, "--points/--surfaces", help="Depth of the scan's points alone, each at its own pixel (sparse: nothing between them), or of the surfaces rendered from them. Default: points for LiDAR sweeps (intensity only, no grid), whose rings are too far apart for surfaces; surfaces otherwise."),
     cache: Optional[Path] = typer.Option(None, "--cache", help=CACHE_HELP),
 ) -> None:
     """Depth of the scan as the photo's camera sees it, pixel for pixel with the original photo:
-    z-depth in metres, occlusion-correct (a grid mesh ray-cast, or splats for unstructured scans)."""
+    z-depth in metres, occlusion-correct (a grid mesh ray-cast, or surfels for unstructured scans;
+    a LiDAR sweep's own points, sparse)."""
     from rgbd_gt.io import read_camera, read_pose
     from rgbd_gt.io.depth_file import write_depth_exr, write_depth_png16
     from rgbd_gt.io.image import write_image
     from rgbd_gt.io.outputs import Outputs
-    from rgbd_gt.render.depth import back_facing_fraction, back_facing_warning, render_depth
+    from rgbd_gt.render.depth import back_facing_fraction, back_facing_warning, point_depth, render_depth
+    from rgbd_gt.render.points import is_sweep
 
     outs = Outputs([scan, camera, pose])
     staged = {name: outs.file(p, option, suffixes) for name, p, option, suffixes in [
@@ -545,7 +548,8 @@ def export_depth(
     the_scan = scan_in_view(scan, cam, [T], cache)
     with _progress() as bar:
         bar.add_task("rendering depth", total=None)
-        depth = render_depth(the_scan, cam, T, max_depth, normals=normals is not None)
+        sparse = points if points is not None else is_sweep(the_scan)
+        depth = (point_depth if sparse else render_depth)(the_scan, cam, T, max_depth, normals=normals is not None)
     valid = depth.z > 0
     if not valid.any():
         if depth.back_facing:
@@ -654,7 +658,7 @@ def overlay(
     camera: Path = typer.Option(..., "--camera", help="Camera file of the photo."),
     pose: Path = typer.Option(..., "--pose", help="The pose to show (T_cam_from_scan), e.g. from refine."),
     output: Path = typer.Option(..., "-o", "--output", help="Checkerboard PNG at the photo's resolution: squares alternate between the photo and the scan rendered at the pose (edges must run on across square borders). The 50% blend goes beside it as OVERLAY_blend.png, and (see --points) the visible scan points as dots as OVERLAY_points.png."),
-    points: Optional[bool] = typer.Option(None, "--points/--no-points", help="Also draw the visible scan points as dots of their color or intensity over the dimmed photo (OVERLAY_points.png): the picture to read for a sparse LiDAR sweep, whose rendered surfaces are blobs between its rings. Default: for scans with intensity only."),
+    points: Optional[bool] = typer.Option(None, "--points/--no-points", help="Also draw the visible scan points as dots of their color or intensity over the dimmed photo (OVERLAY_points.png): the picture to read for a sparse LiDAR sweep, whose rendered surfaces are blobs between its rings. Default: for LiDAR sweeps (intensity only, no grid)."),
     max_depth: Optional[float] = typer.Option(None, "--max-depth", help="Leave out scan surfaces farther than this (metres)."),
     cache: Optional[Path] = typer.Option(None, "--cache", help=CACHE_HELP),
 ) -> None:
@@ -665,7 +669,8 @@ def overlay(
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import read_image, write_image
     from rgbd_gt.io.outputs import Outputs
-    from rgbd_gt.qa.overlay import overlay as make_overlay, points_by_default, points_image
+    from rgbd_gt.qa.overlay import overlay as make_overlay, points_image
+    from rgbd_gt.render.points import is_sweep
 
     start = time.perf_counter()
     blend, points_png = beside(output, "blend"), beside(output, "points")
@@ -688,7 +693,7 @@ def overlay(
         checker, mixed, covered = make_overlay(the_scan, photo, cam, T, max_depth)
         if covered == 0:
             raise InputError("no scan surface in view of this pose (or only surfaces seen from behind)", pose)
-        draw_points = points if points is not None else points_by_default(the_scan)
+        draw_points = points if points is not None else is_sweep(the_scan)
         images = [checker, mixed]
         if draw_points:
             dots, drawn = points_image(the_scan, photo, cam, T, max_depth)
@@ -715,7 +720,8 @@ def run_workflow(
     ray_address: Optional[str] = typer.Option(None, "--ray", help="Run one task per photo on a Ray cluster: 'auto' (the cluster running on this machine) or its ADDRESS (host:port). Every node must see the config's files and the output folder at the same paths (docs/scale.md)."),
 ) -> None:
     """The whole workflow for one scan or a site of scans, many photos each: init-pose -> refine ->
-    export-depth -> qa-edges -> overlay per photo. Each scan is prepared once (normals, spatial
+    export-depth -> qa-edges -> overlay per photo (the initial pose from the board, or from the
+    config's `init`: a rig's extrinsic). Each scan is prepared once (normals, spatial
     index, board; cached in OUTPUT/.scan-cache and reused while the scan file is unchanged) and
     every photo works on the part of it its view reaches. Every refined pose gets a verdict
     (ok | suspect | failed); depth maps are written for ok and suspect poses only (unless
@@ -726,9 +732,8 @@ def run_workflow(
 
     from rgbd_gt.config import load_config
     from rgbd_gt.engine import CACHE_FOLDER, PhotoTask, failed, prepare_job, run_local, run_ray
-    from rgbd_gt.io import read_camera
     from rgbd_gt.io.outputs import Outputs
-    from rgbd_gt.workflow import RunConfig, resolve, shared_camera, verdict_counts, write_run_record, write_summary
+    from rgbd_gt.workflow import RunConfig, job_camera, resolve, shared_camera, verdict_counts, write_run_record, write_summary
 
     if ray_address is not None and workers != 1:
         raise InputError("--workers is for local runs; on Ray every photo is a task (give one or the other)")
@@ -737,7 +742,7 @@ def run_workflow(
     inputs = [config] + [p for j in jobs for p in (j.scan, j.camera, *j.photos)]
     # checked only: each step commits its own files, so that a rerun resumes where one stopped
     Outputs(inputs).folder(out_dir, "output")
-    cameras = {j.name: read_camera(j.camera) for j in jobs}
+    cameras = {j.name: job_camera(j) for j in jobs}
     cache_root = out_dir / CACHE_FOLDER
     results: list = []
     prepared: list = []
@@ -768,7 +773,7 @@ def run_workflow(
 
                 p.job.out.mkdir(parents=True, exist_ok=True)
                 camera = shared_camera(p.job.photos, open_prepared(p.folder, p.job.scan), camera, p.job.board, cfg,
-                                       p.job.out, step)
+                                       p.job.out, step, p.job.init)
                 out.print(f"camera refined over the photos ({cfg.refine.refine_intrinsics}): fx {camera.fx:.2f} px, "
                           f"cx {camera.cx:.1f}, cy {camera.cy:.1f}; wrote {p.job.out / 'camera.yaml'}")
                 run_cfg = dataclasses.replace(cfg, refine=dataclasses.replace(cfg.refine, refine_intrinsics="none"))

@@ -58,7 +58,7 @@ def prepare_job(job: ScanJob, cache_root: Path, progress: Callable[[str], None] 
         out.cached = prepared.folder.name in before
         out.folder, out.points = prepared.folder, len(prepared)
         out.steps["scan"] = round(time.perf_counter() - start, 3)
-        if any(not (job.out / p.stem / "init.yaml").exists() for p in job.photos):
+        if job.init is None and any(not (job.out / p.stem / "init.yaml").exists() for p in job.photos):
             progress("finding the board")
             t = time.perf_counter()
             scan_board(prepared, job.board)
@@ -81,7 +81,7 @@ def photo_task(task: PhotoTask, progress: Callable[[str], None] = lambda step: N
     try:
         prepared = open_prepared(task.prepared, task.job.scan)
         result = run_photo(task.photo, prepared, task.camera, task.job.board, task.cfg, task.job.out, progress,
-                           task.export_failed)
+                           task.export_failed, task.job.init)
     except InputError as exc:
         result = PhotoResult(task.photo.name, status="failed", error=str(exc))
     result.scan = task.job.name

@@ -48,6 +48,7 @@ class SiteScan:
     camera: str | None = None
     name: str | None = None  # its outputs go to OUTPUT/<name>/ (default: the scan file's stem)
     board: BoardConfig | None = None
+    init: str | None = None  # its photos' initial pose (default: the config's `init`, else the board)
 
 
 @dataclass
@@ -60,9 +61,15 @@ class RunConfig:
     photos: list[str] = field(default_factory=list)  # files or glob patterns
     output: str = "rgbd_gt_out"
     board: BoardConfig = field(default_factory=BoardConfig)
+    # a pose file (T_cam_from_scan; a calibration text file too) that is every photo's initial
+    # pose instead of the board's: a LiDAR-camera rig's extrinsic, or photos with no board
+    init: str | None = None
     refine: RefineConfig = field(default_factory=RefineConfig)
     device: str = "auto"
     max_depth: float | None = None
+    # depth maps of the points alone (sparse, true: `render.depth.point_depth`) or of the surfaces
+    # rendered from them (false); null: points for sweeps (`render.points.is_sweep`)
+    depth_points: bool | None = None
     scans: list[SiteScan] = field(default_factory=list)
 
     def check(self) -> "RunConfig":
@@ -97,6 +104,7 @@ class ScanJob:
     photos: list[Path]
     out: Path
     board: BoardConfig
+    init: Path | None = None  # the initial pose of every photo that has no init.yaml yet (else the board's)
 
 
 @dataclass
@@ -140,12 +148,21 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[list[ScanJob], Path]:
             found += [norm(Path(h)) for h in hits]
         return found
 
+    def init_of(path: str | None) -> Path | None:
+        if path is None:
+            return None
+        found = norm(base / path)
+        if not found.is_file():
+            raise InputError(f"init: no pose file {found}", config_path)
+        return found
+
     output = norm(base / cfg.output)
     if not cfg.scans:
         if not cfg.scan or not cfg.camera or not cfg.photos:
             raise InputError("the config needs scan, camera and photos (or scans: a list of them)", config_path)
         scan = norm(base / cfg.scan)
-        return [ScanJob(scan.stem, scan, norm(base / cfg.camera), photos_of(cfg.photos), output, cfg.board)], output
+        return [ScanJob(scan.stem, scan, norm(base / cfg.camera), photos_of(cfg.photos), output, cfg.board,
+                        init_of(cfg.init))], output
     jobs = []
     for k, s in enumerate(cfg.scans):
         camera = s.camera or cfg.camera
@@ -153,12 +170,26 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[list[ScanJob], Path]:
             raise InputError(f"scans[{k}] needs scan, photos and a camera (its own or the config's)", config_path)
         scan = norm(base / s.scan)
         name = s.name or scan.stem
-        jobs.append(ScanJob(name, scan, norm(base / camera), photos_of(s.photos), output / name, s.board or cfg.board))
+        jobs.append(ScanJob(name, scan, norm(base / camera), photos_of(s.photos), output / name, s.board or cfg.board,
+                            init_of(s.init or cfg.init)))
     names = [j.name for j in jobs]
     if len(set(names)) < len(names):
         raise InputError(f"two scans would write to the same folder ({', '.join(sorted({n for n in names if names.count(n) > 1}))}): "
                          "give them names", config_path)
     return jobs, output
+
+
+def job_camera(job: ScanJob):
+    """The camera of a scan's photos; a calibration text file (no image size) takes its size
+    from the first photo (every photo is checked against the camera when it runs)."""
+    from rgbd_gt.io import read_camera
+    from rgbd_gt.io.calib_txt import is_calib_txt
+    from rgbd_gt.io.image import read_image
+
+    if is_calib_txt(job.camera):
+        h, w = read_image(job.photos[0]).shape[:2]
+        return read_camera(job.camera, (w, h))
+    return read_camera(job.camera)
 
 
 def board_spec(b: BoardConfig):
@@ -168,10 +199,12 @@ def board_spec(b: BoardConfig):
 
 
 def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig, out: Path,
-              progress: Callable[[str], None] = lambda step: None, export_failed: bool = False) -> PhotoResult:
+              progress: Callable[[str], None] = lambda step: None, export_failed: bool = False,
+              init: Path | None = None) -> PhotoResult:
     """The steps for one photo into out/<photo stem>/, on the points of the prepared scan
-    (`prepared.PreparedScan`) its view can reach. The depth map is written only for a pose whose
-    verdict is ok or suspect, unless export_failed."""
+    (`prepared.PreparedScan`) its view can reach; the initial pose from `init` (a pose file) when
+    given, else from the board. The depth map is written only for a pose whose verdict is ok or
+    suspect, unless export_failed."""
     from rgbd_gt.align.refine import RefineInputs, refine_meta, refine_verified
     from rgbd_gt.io import read_pose, write_pose
     from rgbd_gt.io.atomic import atomic_output
@@ -180,8 +213,9 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
     from rgbd_gt.io.image import read_image, write_image
     from rgbd_gt.io.scan import scan_colors
     from rgbd_gt.qa.edges import qa, side_by_side
-    from rgbd_gt.qa.overlay import overlay, points_by_default, points_image
-    from rgbd_gt.render.depth import back_facing_fraction, expect_poses, render_depth
+    from rgbd_gt.qa.overlay import overlay, points_image
+    from rgbd_gt.render.depth import back_facing_fraction, expect_poses, point_depth, render_depth
+    from rgbd_gt.render.points import is_sweep
 
     start = time.perf_counter()
     res = PhotoResult(photo.name)
@@ -202,7 +236,7 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
     progress("init-pose")
     if files["init"].exists():
         res.skipped.append("init")
-    T_init, init_meta = initial_pose(photo, image, prepared, camera, board, files["init"])
+    T_init, init_meta = initial_pose(photo, image, prepared, camera, board, files["init"], init)
     res.init_rms_px = init_meta.get("reprojection_rms_px")
     lap("init")
     scan = prepared.view(camera, T_init)
@@ -238,7 +272,8 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
     elif res.verdict == "failed" and not export_failed:
         res.skipped.append("depth (failed)")
     else:
-        depth = render_depth(scan, camera, T, cfg.max_depth, normals=False)
+        points = cfg.depth_points if cfg.depth_points is not None else is_sweep(scan)
+        depth = (point_depth if points else render_depth)(scan, camera, T, cfg.max_depth, normals=False)
         res.seen_from_behind = back_facing_fraction(depth)
         write_depth_png16(d / "depth.png", depth.z)
         write_depth_exr(files["depth"], depth.z, camera, T, prepared.source.name, seen_from_behind=res.seen_from_behind)
@@ -260,7 +295,7 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
     else:  # the others first: overlay.png's presence says they are all there
         checker, mixed, _ = overlay(scan, image, camera, T, cfg.max_depth)
         write_image(d / "overlay_blend.png", mixed)
-        if points_by_default(scan):
+        if is_sweep(scan):
             write_image(d / "overlay_points.png", points_image(scan, image, camera, T, cfg.max_depth)[0])
         write_image(files["overlay"], checker)
         lap("overlay")
@@ -272,13 +307,17 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
     return res
 
 
-def initial_pose(photo: Path, image: np.ndarray, prepared, camera, board: BoardConfig, path: Path) -> tuple[np.ndarray, dict]:
-    """The photo's initial pose file `path`: read when it exists, else made from the board (found
-    once per scan, `scan_board`) and written."""
+def initial_pose(photo: Path, image: np.ndarray, prepared, camera, board: BoardConfig, path: Path,
+                 init: Path | None = None) -> tuple[np.ndarray, dict]:
+    """The photo's initial pose file `path`: read when it exists, else written from `init` (a
+    pose file shared by the photos) or made from the board (found once per scan, `scan_board`)."""
     from rgbd_gt.init.run import detect_photo_board, init_from_board
     from rgbd_gt.io import read_pose, write_pose
 
-    if not path.exists():
+    if not path.exists() and init is not None:
+        T, meta = read_pose(init)
+        write_pose(path, T, **{**meta, "method": f"the config's init ({init})"})
+    elif not path.exists():
         spec = board_spec(board)
         found = detect_photo_board(image, spec, photo)
         r = init_from_board(scan_board(prepared, board), image, camera, spec, found)
@@ -300,7 +339,7 @@ def scan_board(prepared, board: BoardConfig):
 
 
 def shared_camera(photos: list[Path], prepared, camera, board: BoardConfig, cfg: RunConfig, out: Path,
-                  progress: Callable[[str], None] = lambda step: None):
+                  progress: Callable[[str], None] = lambda step: None, init: Path | None = None):
     """With cfg.refine.refine_intrinsics, the one camera of all the photos: per photo its initial
     pose (kept for the run) and the camera corrections refined with its pose, then their
     inverse-variance weighted mean. Each photo's variance already includes what its pose leaves
@@ -324,7 +363,7 @@ def shared_camera(photos: list[Path], prepared, camera, board: BoardConfig, cfg:
             image = read_image(photo)
             check_image_matches(camera, image.shape, photo, "the camera file")
             (out / photo.stem).mkdir(parents=True, exist_ok=True)
-            T_init, init_meta = initial_pose(photo, image, prepared, camera, board, out / photo.stem / "init.yaml")
+            T_init, init_meta = initial_pose(photo, image, prepared, camera, board, out / photo.stem / "init.yaml", init)
             scan = prepared.view(camera, T_init)
             inputs = RefineInputs(scan.xyz, scan_colors(scan, prepared.source), image, camera, T_init, None, scan, init_meta)
             r = make_aligner(inputs, cfg.refine, cfg.device).refine(T_init)

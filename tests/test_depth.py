@@ -155,3 +155,22 @@ def test_a_subset_makes_its_triangles_from_the_whole_scans_cell_bits():
     expected = {tuple(t) for t in local[inside]}
     got = {tuple(t) for t in grid_triangles(sub)}
     assert len(expected) > 10000 and got == expected
+
+
+def test_export_depth_of_a_real_sweep_is_its_points(tmp_path):
+    """A LiDAR sweep (PJLab scene 3) exports sparse depth by default: about one pixel per visible
+    return, every one at a return's depth, no pixel between the rings."""
+    from conftest import _need
+    from rgbd_gt.io import read_camera
+
+    folder = _need("lidar_camera") / "pjlab_3"
+    write_camera(tmp_path / "camera.yaml", read_camera(folder / "calib.txt", (1920, 1200)))
+    proc = run_cli("export-depth", "--scan", folder / "calib.pcd", "--camera", tmp_path / "camera.yaml", "--pose",
+                   folder / "calib.txt", "-o", tmp_path / "d.exr", "--normals", tmp_path / "n.exr")
+    assert proc.returncode == 0, proc.stderr
+    assert "sparse" in proc.stdout
+    z, _ = read_depth_exr(tmp_path / "d.exr")
+    have = z > 0
+    assert 4000 < have.sum() < 12000  # of about 10k returns in view, those the Z-buffer keeps
+    rows = have.any(1)  # points, not bands: under 10% of the pixels of the rows that hold depth
+    assert have[rows].mean() < 0.1

@@ -106,7 +106,7 @@ def test_overlay_of_a_real_lidar_sweep_draws_its_visible_points(tmp_path):
 
 
 def test_dots_cover_their_squares_and_the_nearest_point_wins():
-    from rgbd_gt.qa.overlay import dot_pixels
+    from rgbd_gt.render.points import dot_pixels
 
     # a far point at (5, 5) and a near one at (6, 5): their 3x3 squares share 6 pixels; one at the
     # corner (0, 0) keeps only the 4 pixels of its square inside the 10 x 8 image

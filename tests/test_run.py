@@ -55,6 +55,9 @@ def test_run_bad_config(tmp_path):
     assert_one_line_error(run_cli("run", tmp_path / "bad.yaml"), "bad.yaml", "whatever")
     (tmp_path / "nophotos.yaml").write_text("scan: x.ply\ncamera: c.yaml\nphotos: [none*.png]\n")
     assert_one_line_error(run_cli("run", tmp_path / "nophotos.yaml"), "no photo matches")
+    (tmp_path / "a.png").write_bytes(b"")
+    (tmp_path / "noinit.yaml").write_text("scan: x.ply\ncamera: c.yaml\nphotos: [a.png]\ninit: rig.yaml\n")
+    assert_one_line_error(run_cli("run", tmp_path / "noinit.yaml"), "noinit.yaml", "init: no pose file", "rig.yaml")
 
 
 def test_run_refines_one_camera_for_all_photos(tmp_path):
@@ -79,3 +82,41 @@ def test_run_refines_one_camera_for_all_photos(tmp_path):
         gt = read_pose(scene / truth)[0]
         assert translation_error_m(T, gt) < 0.005 and rotation_error_deg(T, gt) < 0.05
         assert (tmp_path / "out" / photo / "depth.exr").exists()
+
+
+def test_run_on_a_real_lidar_frame_with_the_rigs_extrinsic(tmp_path):
+    """A real sweep and photo (PJLab scene 3) with no board: the config's `init` (the calibration
+    text file's extrinsic) is the photo's initial pose and the calibration file its camera (its
+    size from the photo); the depth map holds the sweep's own points, each pixel the nearest
+    point that falls in it, nothing between them."""
+    from conftest import _need
+    from rgbd_gt.camera import project
+    from rgbd_gt.io import load_scan, read_camera
+    from rgbd_gt.pose import transform_points
+
+    folder = _need("lidar_camera") / "pjlab_3"
+    config = {"scan": str(folder / "calib.pcd"), "camera": str(folder / "calib.txt"), "init": str(folder / "calib.txt"),
+              "photos": [str(folder / "calib.png")], "output": "out"}
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump(config))
+    proc = run_cli("run", tmp_path / "run.yaml", "--export-failed")
+    assert proc.returncode == 0, proc.stderr
+    out = tmp_path / "out" / "calib"
+    T_ref = read_pose(folder / "calib.txt")[0]
+    T_init, meta = read_pose(out / "init.yaml")
+    np.testing.assert_allclose(T_init, T_ref, atol=1e-12)
+    assert meta["method"].startswith("the config's init")
+    row = next(csv.DictReader(open(tmp_path / "out" / "summary.csv")))
+    assert row["status"] == "ok" and row["verdict"] in ("ok", "suspect", "failed")
+    assert (out / "overlay_points.png").exists()
+    z, header = read_depth_exr(out / "depth.exr")
+    T = np.array(header["rgbd_gt_T_cam_from_scan"])
+    assert 0.001 < (z > 0).mean() < 0.02  # about 1 pixel per visible return of a 1920 x 1200 photo
+    cam = read_camera(folder / "calib.txt", (1920, 1200))
+    uv, zp = project(cam, transform_points(T, load_scan(folder / "calib.pcd").xyz))
+    front = (zp > 0.1) & (np.abs(uv) < 1e6).all(1)
+    px, zp = np.rint(uv[front]).astype(np.int64), zp[front]
+    inside = np.all(px >= 0, 1) & (px[:, 0] < 1920) & (px[:, 1] < 1200)
+    nearest = np.full(1920 * 1200, np.inf)
+    np.minimum.at(nearest, px[inside, 1] * 1920 + px[inside, 0], zp[inside])
+    have = np.flatnonzero(z.ravel() > 0)
+    assert np.mean(np.abs(nearest[have] - z.ravel()[have]) < 1e-3) > 0.99

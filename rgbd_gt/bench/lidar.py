@@ -115,7 +115,7 @@ def simulated_picks(scene: Scene, noise_px: float, rng: np.random.Generator) -> 
     """Pairs as a person picks them: one laser return the camera sees at the reference per cell
     of a PICK_GRID over the photo, at its reference projection plus Gaussian noise_px. Returns
     img (n, 2) photo pixels and obj (n, 3) scan points, in random order."""
-    from rgbd_gt.qa.overlay import seen_points
+    from rgbd_gt.render.points import seen_points
 
     idx, uv, _ = seen_points(scene.scan, scene.camera, scene.T_ref)
     (gx, gy), (w, h) = PICK_GRID, scene.camera.size

@@ -139,14 +139,14 @@ def pose_view(scan: Scan, camera: Camera, T: np.ndarray, longest: int = VIEW_SID
     surfaces for a colored scan, and for one with intensity only (a sweep, whose rings leave
     gaps that rendered surfaces fill with blobs) the visible points themselves as dots
     (`points_view`), so that a click lands on a laser return."""
-    from rgbd_gt.qa.overlay import points_by_default
+    from rgbd_gt.render.points import is_sweep
     from rgbd_gt.render.blocks import view_of
     from rgbd_gt.render.depth import render_depth
 
     s = min(1.0, longest / max(camera.size))
     cam = rescale(camera, max(1, round(camera.width * s)), max(1, round(camera.height * s)))
     scan = view_of(scan, cam, [T])  # a render costs what the photo sees
-    if points_by_default(scan):
+    if is_sweep(scan):
         return points_view(scan, cam, T)
     values = np.concatenate([_gray_to_rgb(scan_colors(scan)), scan.xyz], 1)
     depth = render_depth(scan, cam, T, values=values, normals=False)
@@ -163,7 +163,8 @@ def points_view(scan: Scan, camera: Camera, T: np.ndarray, dot_px: int = DOT_PX)
     """The points the camera sees at T (the aligner's visibility), each a square of side
     2 dot_px + 1 in its intensity's (or color's) `point_colors`, on black; the nearest point wins
     where squares overlap."""
-    from rgbd_gt.qa.overlay import dot_pixels, point_colors, seen_points
+    from rgbd_gt.qa.overlay import point_colors
+    from rgbd_gt.render.points import dot_pixels, seen_points
 
     idx, uv, z = seen_points(scan, camera, T)
     if len(idx) == 0:

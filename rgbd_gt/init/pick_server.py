@@ -53,7 +53,8 @@ class PickSession:
         """The live pose and its overlay at most OVERLAY_SIDE: the blend, or for scans with
         intensity only the visible points as dots over the photo (as `overlay` draws them)."""
         from rgbd_gt.camera import rescale
-        from rgbd_gt.qa.overlay import blend, points_by_default, points_image, render_colors
+        from rgbd_gt.qa.overlay import blend, points_image, render_colors
+        from rgbd_gt.render.points import is_sweep
         from rgbd_gt.render.blocks import view_of
 
         if self.camera is None:
@@ -65,7 +66,7 @@ class PickSession:
         photo = cv2.resize(self.photo, small.size, interpolation=cv2.INTER_AREA)
         T = np.array(out["T_cam_from_scan"])
         seen = view_of(self.scan, small, [T])  # a render costs what the photo sees
-        if points_by_default(seen):
+        if is_sweep(seen):
             picture = points_image(seen, photo, small, T)[0]
         else:
             picture = blend(photo, *render_colors(seen, small, T))

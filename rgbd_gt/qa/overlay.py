@@ -95,14 +95,6 @@ def overlay(scan: Scan, photo: np.ndarray, camera: Camera, T: np.ndarray,
     return checkerboard(photo, rendered, have), blend(photo, rendered, have), float(have.mean())
 
 
-def points_by_default(scan: Scan) -> bool:
-    """Whether `overlay` and `run` draw the points picture unasked: for scans with intensity only
-    (sweeps, whose rendered surfaces are blobs between rings). A dense colored scan's points show
-    little the blend does not, and on a 24-megapixel photo they would cost 2 s (torch for the
-    visibility rule, another PNG)."""
-    return scan.rgb is None
-
-
 def points_image(scan: Scan, photo: np.ndarray, camera: Camera, T: np.ndarray, max_depth: float | None = None,
                  dot_px: int = 1) -> tuple[np.ndarray, int]:
     """(H, W, 3) uint8: the photo, dimmed, with the scan points the camera sees at T drawn as
@@ -110,38 +102,13 @@ def points_image(scan: Scan, photo: np.ndarray, camera: Camera, T: np.ndarray, m
     colors (`point_colors`); and the number of points drawn."""
     import cv2
 
+    from rgbd_gt.render.points import dot_pixels, seen_points
+
     idx, uv, z = seen_points(scan, camera, T, max_depth)
     out = cv2.convertScaleAbs(photo, alpha=0.6)
     key, owner = dot_pixels(uv, z, camera.size, dot_px)
     out.reshape(-1, 3)[key] = point_colors(scan, idx)[owner]
     return out, len(idx)
-
-
-def seen_points(scan: Scan, camera: Camera, T: np.ndarray,
-                max_depth: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The scan points the camera sees at T: their indices (n,), pixels uv (n, 2) and depths z
-    (n,) in metres. Visibility is the aligner's (`visible_points` with cells sized where the
-    points land, and surfaces seen from behind left out), so these are the points refine compares."""
-    import torch
-
-    from rgbd_gt.camera import project
-    from rgbd_gt.render.normals import facing_camera
-    from rgbd_gt.render.zbuffer import cell_for_density, visible_points
-
-    p = scan.xyz @ T[:3, :3].T + T[:3, 3]
-    uv, z = project(camera, p)
-    w, h = camera.size
-    near = (z > 1e-3) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)
-    if max_depth:
-        near &= z <= max_depth
-    idx = np.flatnonzero(near)
-    uv_t, z_t = torch.as_tensor(uv[idx]), torch.as_tensor(z[idx])
-    facing = None
-    if scan.normals is not None:
-        facing = facing_camera(torch.as_tensor(p[idx]), torch.as_tensor(scan.normals[idx] @ T[:3, :3].T))
-    seen = visible_points(uv_t, z_t, camera.size, cell_for_density(uv_t, camera.size), facing=facing).numpy()
-    idx = idx[seen]
-    return idx, uv[idx], z[idx]
 
 
 def point_colors(scan: Scan, idx: np.ndarray) -> np.ndarray:
@@ -155,22 +122,3 @@ def point_colors(scan: Scan, idx: np.ndarray) -> np.ndarray:
     lo, hi = np.percentile(colors, [1, 99]) if len(colors) else (0.0, 1.0)
     level = np.clip((colors[:, 0] - lo) / max(hi - lo, 1e-9) * 255, 0, 255).astype(np.uint8)
     return cv2.applyColorMap(level[:, None], cv2.COLORMAP_TURBO)[:, 0, ::-1].copy()  # BGR -> RGB
-
-
-def dot_pixels(uv: np.ndarray, z: np.ndarray, size: tuple[int, int], dot_px: int) -> tuple[np.ndarray, np.ndarray]:
-    """The pixels of squares of side 2 dot_px + 1 around the points uv (n, 2) with depth z (n,):
-    flat pixel indices (m,) into an image of size (width, height), each with the index (m,) of the
-    nearest point whose square covers it. Memory and time follow the points, not the image (a
-    24-megapixel photo would need 1 GB of per-pixel buffers)."""
-    w, h = size
-    r = np.arange(-dot_px, dot_px + 1)
-    dx, dy = (a.ravel()[:, None] for a in np.meshgrid(r, r))
-    x, y = np.rint(uv[:, 0]).astype(np.int64) + dx, np.rint(uv[:, 1]).astype(np.int64) + dy  # (k, n)
-    inside = (x >= 0) & (y >= 0) & (x < w) & (y < h)
-    key, depth = (y * w + x)[inside], np.broadcast_to(z, x.shape)[inside]
-    owner = np.broadcast_to(np.arange(len(z)), x.shape)[inside]
-    order = np.lexsort((depth, key))  # by pixel, nearest first
-    key, owner = key[order], owner[order]
-    first = np.ones(len(key), bool)
-    first[1:] = key[1:] != key[:-1]
-    return key[first], owner[first]

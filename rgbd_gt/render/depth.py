@@ -107,6 +107,37 @@ def render_depth(scan: Scan, camera: Camera, T_cam_from_scan: np.ndarray, max_de
     return out
 
 
+def point_depth(scan: Scan, camera: Camera, T_cam_from_scan: np.ndarray, max_depth: float | None = None,
+                normals: bool = True) -> DepthMap:
+    """Sparse depth: the z of each point the camera sees (`render.points.seen_points`, the
+    aligner's visibility rule) at the pixel it falls in, the nearest where several do, 0 elsewhere;
+    nothing is interpolated. For a sweep (`render.points.is_sweep`) the only honest depth: its
+    rings are metres apart at range, and surfaces rendered from it fill the gaps with discs
+    sized by those gaps (on a pole, discs wider than the pole). back_facing counts the points
+    that would be seen but face away (left out)."""
+    import dataclasses
+
+    from rgbd_gt.render.normals import with_normals
+    from rgbd_gt.render.points import dot_pixels, seen_points
+
+    scan = with_normals(scan)
+    idx, uv, z = seen_points(scan, camera, T_cam_from_scan, max_depth)
+    back = None
+    if scan.normals is not None:
+        back = len(seen_points(dataclasses.replace(scan, normals=None), camera, T_cam_from_scan, max_depth)[0]) - len(idx)
+    key, owner = dot_pixels(uv, z, camera.size, 0)
+    w, h = camera.size
+    zz = np.zeros(h * w, np.float32)
+    zz[key] = z[owner]
+    nn = None
+    if normals:
+        nn = np.zeros((h * w, 3), np.float32)
+        if scan.normals is not None:
+            nn[key] = scan.normals[idx[owner]] @ T_cam_from_scan[:3, :3].T
+    return DepthMap(zz.reshape(h, w), None if nn is None else nn.reshape(h, w, 3),
+                    f"points ({len(key):,} pixels, sparse)", None, 0, max(back, 0) if back is not None else None)
+
+
 @dataclass
 class GridMesh:
     """A structured scan's grid mesh, ready to ray-cast: tris (T, 3) int32 into the scan's

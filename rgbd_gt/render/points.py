@@ -1,0 +1,65 @@
+"""The scan's points as points: which of them a camera sees (the aligner's visibility rule), and
+the pixels each covers when drawn as a small square. For LiDAR sweeps, whose rings leave gaps
+that rendered surfaces could only fill with invented blobs, pictures, pick views and depth maps
+show the points themselves.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rgbd_gt.camera import Camera
+from rgbd_gt.io.scan import Scan
+
+
+def is_sweep(scan: Scan) -> bool:
+    """A scan with intensity only and no row/column grid: in practice a LiDAR sweep (a colored or
+    structured scan renders as surfaces). The default for drawing and exporting points, not
+    surfaces: `overlay`'s points picture, pick's view, `export-depth`'s sparse depth."""
+    return scan.rgb is None and not scan.has_grid
+
+
+def seen_points(scan: Scan, camera: Camera, T: np.ndarray,
+                max_depth: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The scan points the camera sees at T: their indices (n,), pixels uv (n, 2) and depths z
+    (n,) in metres. Visibility is the aligner's (`visible_points` with cells sized where the
+    points land, and surfaces seen from behind left out), so these are the points refine compares."""
+    import torch
+
+    from rgbd_gt.camera import project
+    from rgbd_gt.render.normals import facing_camera
+    from rgbd_gt.render.zbuffer import cell_for_density, visible_points
+
+    p = scan.xyz @ T[:3, :3].T + T[:3, 3]
+    uv, z = project(camera, p)
+    w, h = camera.size
+    near = (z > 1e-3) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)
+    if max_depth:
+        near &= z <= max_depth
+    idx = np.flatnonzero(near)
+    uv_t, z_t = torch.as_tensor(uv[idx]), torch.as_tensor(z[idx])
+    facing = None
+    if scan.normals is not None:
+        facing = facing_camera(torch.as_tensor(p[idx]), torch.as_tensor(scan.normals[idx] @ T[:3, :3].T))
+    seen = visible_points(uv_t, z_t, camera.size, cell_for_density(uv_t, camera.size), facing=facing).numpy()
+    idx = idx[seen]
+    return idx, uv[idx], z[idx]
+
+
+def dot_pixels(uv: np.ndarray, z: np.ndarray, size: tuple[int, int], dot_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """The pixels of squares of side 2 dot_px + 1 around the points uv (n, 2) with depth z (n,):
+    flat pixel indices (m,) into an image of size (width, height), each with the index (m,) of the
+    nearest point whose square covers it. Memory and time follow the points, not the image (a
+    24-megapixel photo would need 1 GB of per-pixel buffers)."""
+    w, h = size
+    r = np.arange(-dot_px, dot_px + 1)
+    dx, dy = (a.ravel()[:, None] for a in np.meshgrid(r, r))
+    x, y = np.rint(uv[:, 0]).astype(np.int64) + dx, np.rint(uv[:, 1]).astype(np.int64) + dy  # (k, n)
+    inside = (x >= 0) & (y >= 0) & (x < w) & (y < h)
+    key, depth = (y * w + x)[inside], np.broadcast_to(z, x.shape)[inside]
+    owner = np.broadcast_to(np.arange(len(z)), x.shape)[inside]
+    order = np.lexsort((depth, key))  # by pixel, nearest first
+    key, owner = key[order], owner[order]
+    first = np.ones(len(key), bool)
+    first[1:] = key[1:] != key[:-1]
+    return key[first], owner[first]
