@@ -136,12 +136,12 @@ def origin_panorama(scan: Scan, width: int = VIEW_SIDE) -> ClickView:
 
 def pose_view(scan: Scan, camera: Camera, T: np.ndarray, longest: int = VIEW_SIDE) -> ClickView:
     """The scan seen with the photo's camera at pose T (scaled to at most `longest`): rendered
-    surfaces for a colored scan, and for one with intensity only (a sweep, whose rings leave
-    gaps that rendered surfaces fill with blobs) the visible points themselves as dots
-    (`points_view`), so that a click lands on a laser return."""
-    from rgbd_gt.render.points import is_sweep
+    surfaces, or for a sweep (`render.points.is_sweep`: its rings leave gaps that surfaces fill
+    with blobs) the visible points themselves as dots (`points_view`), so that a click lands on
+    a laser return."""
     from rgbd_gt.render.blocks import view_of
     from rgbd_gt.render.depth import render_depth
+    from rgbd_gt.render.points import is_sweep
 
     s = min(1.0, longest / max(camera.size))
     cam = rescale(camera, max(1, round(camera.width * s)), max(1, round(camera.height * s)))

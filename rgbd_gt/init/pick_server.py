@@ -50,12 +50,12 @@ class PickSession:
                 "estimate_focal": self.estimate_focal, "output": str(self.output), "pairs": self.pairs}
 
     def solve(self, pairs: list[dict]) -> dict:
-        """The live pose and its overlay at most OVERLAY_SIDE: the blend, or for scans with
-        intensity only the visible points as dots over the photo (as `overlay` draws them)."""
+        """The live pose and its overlay at most OVERLAY_SIDE: the blend, or for a sweep the
+        visible points as dots over the photo (as `overlay` draws them)."""
         from rgbd_gt.camera import rescale
         from rgbd_gt.qa.overlay import blend, points_image, render_colors
-        from rgbd_gt.render.points import is_sweep
         from rgbd_gt.render.blocks import view_of
+        from rgbd_gt.render.points import is_sweep
 
         if self.camera is None:
             raise InputError("the live pose needs --camera")
