@@ -21,7 +21,8 @@ from dataclasses import dataclass
 
 import torch
 
-MODELS = ("quadratic", "quadratic_rgb", "linear", "none", "gray", "gray_affine")
+from rgbd_gt.align.config import MODELS
+
 LUMA = (0.299, 0.587, 0.114)
 
 

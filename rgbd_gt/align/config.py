@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
 
-from rgbd_gt.align.color_models import MODELS
-
 OBJECTIVES = ("auto", "photometric", "nid")
+# align/color_models.py's, named here so that reading a config does not import torch
+MODELS = ("quadratic", "quadratic_rgb", "linear", "none", "gray", "gray_affine")
 
 
 @dataclass

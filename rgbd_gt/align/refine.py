@@ -4,15 +4,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from rgbd_gt.align.aligner import Aligner, RefineResult
 from rgbd_gt.align.config import RefineConfig
-from rgbd_gt.align.verify import Verification, verify
 from rgbd_gt.errors import InputError
 from rgbd_gt.io.scan import scan_colors
+
+if TYPE_CHECKING:  # the aligners import torch: loaded where they run, so that bad arguments fail fast
+    from rgbd_gt.align.aligner import RefineResult
+    from rgbd_gt.align.verify import Verification
 
 
 def resolve_device(name: str):
@@ -149,6 +151,7 @@ def refine_meta(result: RefineResult, cfg: RefineConfig, T_init: np.ndarray, ini
 def make_aligner(inputs: RefineInputs, cfg: RefineConfig, device: str, more: list[RefineInputs] = ()):
     """The aligner of cfg's objective for inputs (and the further pairs `more` that share its
     pose: nid only)."""
+    from rgbd_gt.align.aligner import Aligner
     from rgbd_gt.align.nid_aligner import Frame, NidAligner
     from rgbd_gt.align.pyramid import photo_pyramid
     from rgbd_gt.io.scan import colors_to_gray
@@ -180,6 +183,8 @@ def refine_verified(inputs: RefineInputs, cfg: RefineConfig, device: str = "auto
     """`run_refine`, then the verdict on its result (align/verify.py); the repeat runs reuse the
     photo pyramid and the prepared points. check: held-out pairs (img (n, 2), scan points (n, 3));
     more: further pairs that share the pose (solved jointly; the image check uses the first)."""
+    from rgbd_gt.align.verify import verify
+
     aligner = make_aligner(inputs, cfg, device, more)
     result = aligner.refine(inputs.T_init, progress=progress, keep_residuals=keep_residuals)
     verification = verify(aligner, result, inputs.T_init, refined_camera(inputs.camera, result), inputs.photo,

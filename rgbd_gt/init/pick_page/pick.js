@@ -22,7 +22,7 @@ class ImageView {
       if (!drag) return;
       const dx = e.offsetX - drag.x, dy = e.offsetY - drag.y;
       if (Math.abs(dx) + Math.abs(dy) > 3) drag.moved = true;
-      if (drag.moved) { this.ox = drag.ox + dx; this.oy = drag.oy + dy; this.draw(); }
+      if (drag.moved) { this.ox = drag.ox + dx; this.oy = drag.oy + dy; this.fitted = false; this.draw(); }
     });
     canvas.addEventListener("mouseup", (e) => {
       if (drag && !drag.moved) { const [x, y] = this.toImage(e.offsetX, e.offsetY); this.onPick(x, y); }
@@ -35,6 +35,7 @@ class ImageView {
       this.scale *= f;
       this.ox = e.offsetX - x * this.scale;
       this.oy = e.offsetY - y * this.scale;
+      this.fitted = false;
       this.draw();
     }, { passive: false });
     new ResizeObserver(() => this.resize()).observe(canvas);
@@ -42,7 +43,8 @@ class ImageView {
   resize() {
     this.canvas.width = this.canvas.clientWidth;
     this.canvas.height = this.canvas.clientHeight;
-    this.draw();
+    // the layout may still settle after the image arrives: keep it fitted until the user zooms or pans
+    if (this.fitted) this.fit(); else this.draw();
   }
   setImage(img) {
     this.img = img;
@@ -54,6 +56,7 @@ class ImageView {
     this.scale = s;
     this.ox = (this.canvas.width - this.img.width * s) / 2;
     this.oy = (this.canvas.height - this.img.height * s) / 2;
+    this.fitted = true;
     this.draw();
   }
   toImage(sx, sy) { return [(sx - this.ox) / this.scale, (sy - this.oy) / this.scale]; }
