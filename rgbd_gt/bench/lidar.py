@@ -287,16 +287,20 @@ def main(argv: list[str] | None = None) -> None:
     from rgbd_gt.io.atomic import atomic_output
 
     cases, picks = args.work / "cases.json", args.work / "picks.json"
-    if not args.rewrite and not (args.data / "lidar_camera").is_dir():
-        print(f"no {args.data / 'lidar_camera'}: skipped")
-        return
-    for path, run, needed in ((cases, lambda: collect(args.data, args.inits), not (args.rewrite or args.picks_only)),
-                              (picks, lambda: collect_picks(pjlab_scenes(args.data / "lidar_camera")), not args.rewrite)):
-        if needed:
+
+    def save(path: Path, records: list[dict], since: float) -> None:
+        print(f"{len(records)} cases in {time.perf_counter() - since:.0f} s")
+        with atomic_output(path) as tmp:
+            tmp.write_text(json.dumps(records, indent=1, default=float))
+
+    if not args.rewrite:
+        if not (args.data / "lidar_camera").is_dir():
+            print(f"no {args.data / 'lidar_camera'}: skipped")
+            return
+        if not args.picks_only:
             t = time.perf_counter()
-            records = run()
-            print(f"{len(records)} cases in {time.perf_counter() - t:.0f} s")
-            with atomic_output(path) as tmp:
-                tmp.write_text(json.dumps(records, indent=1, default=float))
+            save(cases, collect(args.data, args.inits), t)
+        t = time.perf_counter()
+        save(picks, collect_picks(pjlab_scenes(args.data / "lidar_camera")), t)
     write_markdown(args.out / "lidar.md", json.loads(cases.read_text()),
                    json.loads(picks.read_text()) if picks.exists() else [])

@@ -115,16 +115,11 @@ def point_depth(scan: Scan, camera: Camera, T_cam_from_scan: np.ndarray, max_dep
     rings are metres apart at range, and surfaces rendered from it fill the gaps with discs
     sized by those gaps (on a pole, discs wider than the pole). back_facing counts the points
     that would be seen but face away (left out)."""
-    import dataclasses
-
     from rgbd_gt.render.normals import with_normals
-    from rgbd_gt.render.points import dot_pixels, seen_points
+    from rgbd_gt.render.points import dot_pixels, seen_and_behind
 
     scan = with_normals(scan)
-    idx, uv, z = seen_points(scan, camera, T_cam_from_scan, max_depth)
-    back = None
-    if scan.normals is not None:
-        back = len(seen_points(dataclasses.replace(scan, normals=None), camera, T_cam_from_scan, max_depth)[0]) - len(idx)
+    idx, uv, z, back = seen_and_behind(scan, camera, T_cam_from_scan, max_depth)
     key, owner = dot_pixels(uv, z, camera.size, 0)
     w, h = camera.size
     zz = np.zeros(h * w, np.float32)
@@ -135,7 +130,7 @@ def point_depth(scan: Scan, camera: Camera, T_cam_from_scan: np.ndarray, max_dep
         if scan.normals is not None:
             nn[key] = scan.normals[idx[owner]] @ T_cam_from_scan[:3, :3].T
     return DepthMap(zz.reshape(h, w), None if nn is None else nn.reshape(h, w, 3),
-                    f"points ({len(key):,} pixels, sparse)", None, 0, max(back, 0) if back is not None else None)
+                    f"points ({len(key):,} pixels, sparse)", None, 0, back)
 
 
 @dataclass

@@ -24,6 +24,15 @@ def seen_points(scan: Scan, camera: Camera, T: np.ndarray,
     """The scan points the camera sees at T: their indices (n,), pixels uv (n, 2) and depths z
     (n,) in metres. Visibility is the aligner's (`visible_points` with cells sized where the
     points land, and surfaces seen from behind left out), so these are the points refine compares."""
+    idx, uv, z, _ = seen_and_behind(scan, camera, T, max_depth)
+    return idx, uv, z
+
+
+def seen_and_behind(scan: Scan, camera: Camera, T: np.ndarray,
+                    max_depth: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, int | None]:
+    """`seen_points`, and how many points the Z-buffer lets through that face away from the
+    camera (left out; None without normals). Those still hide what lies behind them, so the
+    visible ones are the ones that pass and face the camera."""
     import torch
 
     from rgbd_gt.camera import project
@@ -38,12 +47,14 @@ def seen_points(scan: Scan, camera: Camera, T: np.ndarray,
         near &= z <= max_depth
     idx = np.flatnonzero(near)
     uv_t, z_t = torch.as_tensor(uv[idx]), torch.as_tensor(z[idx])
-    facing = None
+    passed = visible_points(uv_t, z_t, camera.size, cell_for_density(uv_t, camera.size)).numpy()
+    behind = None
     if scan.normals is not None:
-        facing = facing_camera(torch.as_tensor(p[idx]), torch.as_tensor(scan.normals[idx] @ T[:3, :3].T))
-    seen = visible_points(uv_t, z_t, camera.size, cell_for_density(uv_t, camera.size), facing=facing).numpy()
-    idx = idx[seen]
-    return idx, uv[idx], z[idx]
+        facing = facing_camera(torch.as_tensor(p[idx]), torch.as_tensor(scan.normals[idx] @ T[:3, :3].T)).numpy()
+        behind = int((passed & ~facing).sum())
+        passed &= facing
+    idx = idx[passed]
+    return idx, uv[idx], z[idx], behind
 
 
 def dot_pixels(uv: np.ndarray, z: np.ndarray, size: tuple[int, int], dot_px: int) -> tuple[np.ndarray, np.ndarray]:
