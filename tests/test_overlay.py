@@ -70,7 +70,8 @@ def test_overlay_errors(tmp_path):
     args = ["overlay", "--scan", scene / "scan.ply", "--image", scene / "photo.png", "--camera", scene / "camera.yaml"]
     T = read_pose(scene / "gt_pose.yaml")[0]
     away = T.copy()
-    away[:3, :3] = away[:3, :3] @ np.diag([-1.0, 1.0, -1.0])  # looking the other way
+    away[:3, :3] = away[:3, :3] @ np.diag([-1.0, 1.0, -1.0])  # looking the other way,
+    away[2, 3] -= 100.0  # from 100 m beyond the scene (from where it stood, a wall's front edge was in view)
     write_pose(tmp_path / "away.yaml", away)
     assert_one_line_error(run_cli(*args, "--pose", tmp_path / "away.yaml", "-o", tmp_path / "o.png"), "away.yaml", "no scan surface")
     assert_one_line_error(run_cli(*args, "--pose", scene / "gt_pose.yaml", "-o", tmp_path / "o.jpg"), "o.jpg", ".png")
