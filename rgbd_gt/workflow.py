@@ -61,7 +61,7 @@ class RunConfig:
     photos: list[str] = field(default_factory=list)  # files or glob patterns
     output: str = "rgbd_gt_out"
     board: BoardConfig = field(default_factory=BoardConfig)
-    # a pose file (T_cam_from_scan; a calibration text file too) that is every photo's initial
+    # a pose file (T_cam_from_scan; a calibration text or JSON file too) that is every photo's initial
     # pose instead of the board's: a LiDAR-camera rig's extrinsic, or photos with no board
     init: str | None = None
     refine: RefineConfig = field(default_factory=RefineConfig)
@@ -180,13 +180,13 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[list[ScanJob], Path]:
 
 
 def job_camera(job: ScanJob):
-    """The camera of a scan's photos; a calibration text file (no image size) takes its size
-    from the first photo (every photo is checked against the camera when it runs)."""
+    """The camera of a scan's photos; a calibration text or JSON file (no image size) takes its
+    size from the first photo (every photo is checked against the camera when it runs)."""
     from rgbd_gt.io import read_camera
-    from rgbd_gt.io.calib_txt import is_calib_txt
+    from rgbd_gt.io.camera_file import needs_photo_size
     from rgbd_gt.io.image import read_image
 
-    if is_calib_txt(job.camera):
+    if needs_photo_size(job.camera):
         h, w = read_image(job.photos[0]).shape[:2]
         return read_camera(job.camera, (w, h))
     return read_camera(job.camera)

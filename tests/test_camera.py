@@ -38,6 +38,70 @@ def test_opencv_calibration_file(tmp_path):
     np.testing.assert_allclose(cam.distortion, CAM.distortion)
 
 
+def test_ros_camera_info_yaml(tmp_path):
+    d = CAM.distortion
+    (tmp_path / "ost.yaml").write_text(f"""image_width: 640
+image_height: 480
+camera_name: narrow_stereo
+camera_matrix:
+  rows: 3
+  cols: 3
+  data: [{CAM.fx}, 0.0, {CAM.cx}, 0.0, {CAM.fy}, {CAM.cy}, 0.0, 0.0, 1.0]
+distortion_model: plumb_bob
+distortion_coefficients:
+  rows: 1
+  cols: 5
+  data: {list(d)}
+rectification_matrix: {{rows: 3, cols: 3, data: [1, 0, 0, 0, 1, 0, 0, 0, 1]}}
+""")
+    assert read_camera(tmp_path / "ost.yaml") == CAM
+    text = (tmp_path / "ost.yaml").read_text()
+    for bad, needle in ((text.replace("plumb_bob", "equidistant"), "equidistant"),
+                        (text.replace("data: [520.0, 0.0", "data: [0.0"), "camera_matrix.data must be 9"),
+                        (text.replace("image_height: 480", "image_height: -1"), "height must be a whole number")):
+        (tmp_path / "bad.yaml").write_text(bad)
+        with pytest.raises(InputError, match=needle):
+            read_camera(tmp_path / "bad.yaml")
+
+
+def test_koide3_calib_json(tmp_path):
+    import json
+
+    from rgbd_gt.io import read_pose
+
+    calib = {"camera": {"camera_model": "plumb_bob", "distortion_coeffs": list(CAM.distortion),
+                        "intrinsics": [CAM.fx, CAM.fy, CAM.cx, CAM.cy]},
+             "meta": {"intensity_channel": "intensity"},
+             # the camera's pose in the LiDAR frame: a LiDAR looking along x, a camera along z, 10 cm apart
+             "results": {"init_T_lidar_camera": [0.1, -0.03, -0.09, -0.5, 0.5, -0.5, 0.5]}}
+    path = tmp_path / "calib.json"
+    path.write_text(json.dumps(calib))
+    assert read_camera(path, (640, 480)) == CAM
+    T, meta = read_pose(path)
+    assert meta == {}
+    np.testing.assert_allclose(T[:3, :3] @ [1, 0, 0], [0, 0, 1], atol=1e-12)  # LiDAR forward is the camera's z
+    np.testing.assert_allclose(T[:3, :3] @ [0.1, -0.03, -0.09] + T[:3, 3], 0, atol=1e-12)  # the camera centre
+    calib["results"]["T_lidar_camera"] = [0, 0, 0, 0, 0, 0, 1]  # the calibrated result wins over the init
+    path.write_text(json.dumps(calib))
+    np.testing.assert_allclose(read_pose(path)[0], np.eye(4))
+    pose, camera = read_pose, lambda p: read_camera(p, (640, 480))
+    for change, reader, needle in ((lambda c: c["results"].update(T_lidar_camera=[0, 0, 0, 0, 0, 0, 2]), pose, "length is 2"),
+                                   (lambda c: c["results"].update(T_lidar_camera=[0, 0, 0]), pose, "7 finite numbers"),
+                                   (lambda c: c.pop("results"), pose, "no extrinsic"),
+                                   (lambda c: c["camera"].update(camera_model="fisheye"), camera, "fisheye"),
+                                   (lambda c: c["camera"].update(intrinsics=[1, "a", 3, 4]), camera, "4 finite numbers")):
+        bad = json.loads(json.dumps(calib))
+        change(bad)
+        path.write_text(json.dumps(bad))
+        with pytest.raises(InputError, match=needle):
+            reader(path)
+    path.write_text("{not json")
+    with pytest.raises(InputError, match="invalid JSON"):
+        read_pose(path)
+    with pytest.raises(InputError, match="no image size"):
+        read_camera(path)
+
+
 @pytest.mark.parametrize(
     "text,needle",
     [

@@ -1,4 +1,6 @@
-"""Camera files: the project's YAML, and OpenCV calibration files (cv2.FileStorage)."""
+"""Camera files: the project's YAML, ROS camera_info YAML, OpenCV calibration files
+(cv2.FileStorage), and the calibration files of LiDAR-camera tools (`io.calib_txt`,
+`io.calib_json`), which hold no image size."""
 
 from __future__ import annotations
 
@@ -69,20 +71,44 @@ def _read_opencv(path: Path) -> Camera:
     return camera_from_values(path, w, h, K, dist)
 
 
+def needs_photo_size(path: str | os.PathLike) -> bool:
+    """Whether a camera file holds no image size (a calibration text or JSON file)."""
+    return Path(path).suffix.lower() in (".txt", ".json")
+
+
+def _read_ros(path: Path, data: dict) -> Camera:
+    """ROS camera_info YAML (camera_calibration's ost.yaml): matrices as {rows, cols, data}."""
+    def matrix(key: str):
+        m = data.get(key)
+        return m.get("data") if isinstance(m, dict) else m
+
+    model = data.get("distortion_model", "plumb_bob")
+    if model not in ("plumb_bob", "rational_polynomial"):
+        raise InputError(f"distortion_model {model!r} is not supported (plumb_bob or rational_polynomial: OpenCV's model)", path)
+    try:
+        K = np.array(matrix("camera_matrix"), float).reshape(3, 3)
+    except (TypeError, ValueError):
+        raise InputError("camera_matrix.data must be 9 numbers (3x3, rows)", path) from None
+    return camera_from_values(path, data.get("image_width"), data.get("image_height"), K,
+                              matrix("distortion_coefficients"))
+
+
 def read_camera(path: str | os.PathLike, size: tuple[int, int] | None = None) -> Camera:
     """Read a camera file: the project's YAML (width, height, fx, fy, cx, cy[, distortion]),
-    an OpenCV calibration file (camera_matrix, distortion_coefficients, image_width, image_height)
-    or a calibration text file (`io.calib_txt`: K and D lines), which needs `size` (width,
-    height) from the photo.
+    ROS camera_info YAML (image_width, image_height, camera_matrix.data, distortion_coefficients.data),
+    an OpenCV calibration file (camera_matrix, distortion_coefficients, image_width, image_height),
+    a calibration text file (`io.calib_txt`: K and D lines) or koide3's calib.json
+    (`io.calib_json`); the last two need `size` (width, height) from the photo.
     """
-    from rgbd_gt.io.calib_txt import is_calib_txt, read_calib_camera
+    from rgbd_gt.io.calib_json import is_calib_json, read_json_camera
+    from rgbd_gt.io.calib_txt import read_calib_camera
 
     path = require_file(path)
-    if is_calib_txt(path):
+    if needs_photo_size(path):
         if size is None:
-            raise InputError("a calibration text file has no image size: use it where the photo is given, "
+            raise InputError("a calibration text or JSON file has no image size: use it where the photo is given, "
                              "or write a camera YAML", path)
-        return read_calib_camera(path, size)
+        return (read_json_camera if is_calib_json(path) else read_calib_camera)(path, size)
     text = path.read_text(errors="replace")
     if text.lstrip().startswith("%YAML:1.0") or "opencv-matrix" in text or path.suffix.lower() == ".xml":
         return _read_opencv(path)
@@ -92,6 +118,8 @@ def read_camera(path: str | os.PathLike, size: tuple[int, int] | None = None) ->
         raise InputError(f"invalid YAML ({str(exc).splitlines()[0]})", path) from None
     if not isinstance(data, dict):
         raise InputError("camera file must be a YAML mapping", path)
+    if "camera_matrix" in data and "image_width" in data:
+        return _read_ros(path, data)
     missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy") if k not in data]
     if missing:
         raise InputError(f"camera file lacks {', '.join(missing)}", path)

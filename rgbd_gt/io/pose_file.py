@@ -40,12 +40,16 @@ def check_rigid(T: np.ndarray, path: object = None, tol: float = 1e-6) -> np.nda
 
 def read_pose(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
     """Read a pose file. Returns (T_cam_from_scan (4, 4) float64, the other keys as a dict).
-    A calibration text file (`io.calib_txt`: a T or Tr_velo_to_cam line) is read as a pose too."""
+    A calibration text file (`io.calib_txt`: a T or Tr_velo_to_cam line) or a calib.json
+    (`io.calib_json`: results.T_lidar_camera) is read as a pose too."""
+    from rgbd_gt.io.calib_json import is_calib_json, read_json_pose
     from rgbd_gt.io.calib_txt import is_calib_txt, read_calib_pose
 
     path = require_file(path)
     if is_calib_txt(path):
         return read_calib_pose(path), {}
+    if is_calib_json(path):
+        return read_json_pose(path), {}
     try:
         data = yaml.safe_load(path.read_text(errors="replace"))
     except yaml.YAMLError as exc:
