@@ -140,3 +140,18 @@ def test_check_points_worse_than_at_the_init_say_keep_the_init():
     verdict, reasons = decide({**ev, "check": {"rms_px": 40.0, "rms_init_px": cfg.check_failed_px + 1}}, cfg)
     assert verdict == "failed" and "keep the init" not in reasons[0]
     assert decide({**ev, "check": {"rms_px": 0.5, "rms_init_px": 9.0}}, cfg) == ("ok", [])
+
+
+def test_nid_repeats_are_judged_by_their_own_threshold():
+    """decide(): a spread of the repeats that fails a photometric result leaves a nid result
+    (a sweep: a precision of a few pixels) suspect; beyond spread_failed_px_nid it fails too."""
+    from rgbd_gt.align.config import VerifyConfig
+    from rgbd_gt.align.verify import decide
+
+    cfg = VerifyConfig()
+    ev = {"uncertainty": {"image_px": 0.1, "translation_mm": 1.0}, "convergence": {"levels": [{"stop": "converged"}]}}
+    rep = {"spread_px": (cfg.spread_failed_px + cfg.spread_failed_px_nid) / 2, "spread_mm": 40.0}
+    assert decide({**ev, "objective": "photometric", "repeatability": rep}, cfg)[0] == "failed"
+    assert decide({**ev, "objective": "nid", "repeatability": rep}, cfg) == ("suspect", [f"nearby starts disagree by {rep['spread_px']:.2f} px"])
+    far = {**rep, "spread_px": cfg.spread_failed_px_nid + 1}
+    assert decide({**ev, "objective": "nid", "repeatability": far}, cfg)[0] == "failed"

@@ -18,6 +18,9 @@ class VerifyConfig:
     repeat_coarsest: int = 9  # the repeat runs' pyramid levels, coarse (9: the coarsest there is) ...
     repeat_finest: int = 2  # ... to fine (compared with the result's pose after that level)
     repeat_iterations: int = 6  # per level of a repeat run
+    # nid: the repeat runs go the whole way (every level, refine's iterations): L-BFGS stopped
+    # early on a coarse level lands anywhere (measured: 4-26 px apart where finished runs agree)
+    repeat_nid_whole: bool = True
     start_floor_px: float = 2.0  # the starts move the image at least this much
     sharpness_step_px: float = 1.5  # the image motion of the sharpness probes (photo pixels) ...
     sharpness_level: int = 2  # ... on this pyramid level
@@ -29,6 +32,9 @@ class VerifyConfig:
     edge_ratio_ok: float = 1.2
     spread_failed_px: float = 3.0
     spread_ok_px: float = 1.0
+    # nid on a sweep: finished repeats of results within 0.2 deg of the reference ended up to
+    # 3.6 px apart, of wrong ones 10 px and more (docs/lidar-method.md)
+    spread_failed_px_nid: float = 6.0
     sharpness_failed: float = 0.0
     sharpness_ok: float = 0.003
     sigma_failed_px: float = 1.0
@@ -40,7 +46,7 @@ class VerifyConfig:
     def check(self) -> "VerifyConfig":
         for f in fields(self):
             v = getattr(self, f.name)
-            if not (v == v and abs(v) != float("inf")):
+            if not isinstance(v, bool) and not (v == v and abs(v) != float("inf")):
                 raise ValueError(f"verify.{f.name} must be a finite number, got {v}")
         if self.repeats < 0 or self.repeat_iterations < 1 or self.repeat_finest < 0 or self.sharpness_level < 0 or self.repeat_coarsest < self.repeat_finest:
             raise ValueError("verify: repeats >= 0, repeat_iterations >= 1 and 0 <= repeat_finest <= repeat_coarsest")

@@ -99,13 +99,17 @@ def repeatability(aligner: Aligner, result: RefineResult, T_init: np.ndarray, vi
                   init_sigma: dict | None, seed: int) -> dict:
     """Refine again from the init and from cfg.repeats starts around it, all at once
     (`Aligner.refine_many`) on the coarse levels down to cfg.repeat_finest, with at most
-    cfg.repeat_iterations a level; the largest distance (px, mm, deg) of the starts' results from
-    the init's. (The runs stop at a coarser level than the result, so they are compared among
-    themselves, on the same levels.)"""
+    cfg.repeat_iterations a level (for nid with cfg.repeat_nid_whole, all levels with refine's own
+    iterations, without the wide search); the largest distance (px, mm, deg) of the starts'
+    results from the init's. (The runs may stop at a coarser level than the result, so they are
+    compared among themselves, on the same levels.)"""
     finest = min(cfg.repeat_finest, len(result.levels) - 1)
     rot, trans = start_size(T_init, result.T_cam_from_scan, init_sigma, view, cfg.start_floor_px)
     starts = [T_init] + random_starts(T_init, cfg.repeats, rot, trans, seed)
-    ends = aligner.refine_many(starts, finest, cfg.repeat_coarsest, cfg.repeat_iterations)
+    if result.objective == "nid" and cfg.repeat_nid_whole:
+        ends = aligner.refine_many(starts)
+    else:
+        ends = aligner.refine_many(starts, finest, cfg.repeat_coarsest, cfg.repeat_iterations)
     reference, others = ends[0], ends[1:]
     lost = sum(T is None for T in ends)
     if reference is None or lost:  # a run that lost the scan certainly did not reproduce the result
@@ -155,7 +159,7 @@ def decide(ev: dict, cfg: VerifyConfig) -> tuple[str, list[str]]:
             suspect.append(f"the scan's edges fit the photo weakly (ratio {edges['edge_ratio']:.2f})")
     rep = ev.get("repeatability")
     if rep is not None:
-        if rep["spread_px"] > cfg.spread_failed_px:
+        if rep["spread_px"] > (cfg.spread_failed_px_nid if ev.get("objective") == "nid" else cfg.spread_failed_px):
             failed.append(f"nearby starts end elsewhere ({rep['spread_px']:.1f} px, {rep['spread_mm']:.0f} mm apart)")
         elif rep["spread_px"] > cfg.spread_ok_px:
             suspect.append(f"nearby starts disagree by {rep['spread_px']:.2f} px")
@@ -212,7 +216,7 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
     T = result.T_cam_from_scan
     view = _View(aligner.visible_scan_points(T), without_distortion(camera))
     M = view.motion_metric(T)
-    ev: dict = {"uncertainty": timed("uncertainty", uncertainty, result, M)}
+    ev: dict = {"objective": result.objective, "uncertainty": timed("uncertainty", uncertainty, result, M)}
     ev["convergence"] = {"levels": result.levels,
                          "damping_ran_away": any(lv["stop"] == "damping ran away" for lv in result.levels)}
     init_sigma = (init_meta or {}).get("uncertainty")

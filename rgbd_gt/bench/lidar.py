@@ -227,7 +227,10 @@ def summarise(recs: list[dict]) -> dict:
             "seconds": float(np.median([r["seconds"] for r in done])), "max_seconds": float(max(r["seconds"] for r in done)),
             "verdicts": {v: sum(r["verdict"] == v for r in done) for v in ("ok", "suspect", "failed")},
             "worse": len(worse), "worse_ok": sum(r["verdict"] == "ok" for r in worse),
-            "success_ok": int(sum(r["verdict"] == "ok" for r, good in zip(done, ok) if good))}
+            "success_ok": int(sum(r["verdict"] == "ok" for r, good in zip(done, ok) if good)),
+            # what `run` keeps (depth maps for poses not failed), among the successes and the rest
+            "kept": (int(sum(r["verdict"] != "failed" for r, good in zip(done, ok) if good)),
+                     int(sum(r["verdict"] != "failed" for r, good in zip(done, ok) if not good)))}
 
 
 def write_markdown(path: Path, records: list[dict], picks: list[dict] = ()) -> None:
@@ -250,20 +253,21 @@ def write_markdown(path: Path, records: list[dict], picks: list[dict] = ()) -> N
         "that charge; `nid + edges` adds the NID of the points' depth discontinuities against the photo's",
         "gradient magnitude. The last rows solve scenes 1 and 2 jointly (nid): one pose, two frames.",
         "",
-        "| objective | scene | init | success | median error | worst error | spread (precision) | aligner s (median / max) | worse than init | verdicts ok / suspect / failed | worse but ok |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| objective | scene | init | success | median error | worst error | spread (precision) | aligner s (median / max) | worse than init | verdicts ok / suspect / failed | worse but ok | not failed: of the successes / of the rest |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for key in keys:
         recs = [r for r in records if (r["objective"], r["scenes"], r["size"]) == key]
         s = summarise(recs)
         if "median_deg" not in s:
-            lines.append(f"| {key[0]} | {key[1]} | {key[2]} | 0/{s['cases']} | all failed to run | | | | | | |")
+            lines.append(f"| {key[0]} | {key[1]} | {key[2]} | 0/{s['cases']} | all failed to run | | | | | | | |")
             continue
         v = s["verdicts"]
         lines.append(
             f"| {key[0]} | {key[1]} | {key[2]} | {s['success']}/{s['cases']} | {s['median_deg']:.3f} deg, {s['median_cm']:.1f} cm "
             f"| {s['worst_deg']:.2f} deg, {s['worst_cm']:.1f} cm | {s['spread'][0]:.3f} deg, {s['spread'][1]:.1f} cm "
-            f"| {s['seconds']:.2f} / {s['max_seconds']:.2f} | {s['worse']} | {v['ok']} / {v['suspect']} / {v['failed']} | **{s['worse_ok']}** |")
+            f"| {s['seconds']:.2f} / {s['max_seconds']:.2f} | {s['worse']} | {v['ok']} / {v['suspect']} / {v['failed']} | **{s['worse_ok']}** "
+            f"| {s['kept'][0]} / {s['kept'][1]} |")
     if picks:
         lines += picks_markdown(list(picks))
     method = path.parent / "lidar-method.md"
