@@ -73,7 +73,10 @@ def _read_opencv(path: Path) -> Camera:
 
 def needs_photo_size(path: str | os.PathLike) -> bool:
     """Whether a camera file holds no image size (a calibration text or JSON file)."""
-    return Path(path).suffix.lower() in (".txt", ".json")
+    from rgbd_gt.io.calib_json import is_calib_json
+    from rgbd_gt.io.calib_txt import is_calib_txt
+
+    return is_calib_txt(path) or is_calib_json(path)
 
 
 def _read_ros(path: Path, data: dict) -> Camera:
