@@ -96,3 +96,30 @@ def worst_sigmas(cov: np.ndarray) -> dict:
     translation block's eigenvalues are the camera position's)."""
     return {"rotation_deg": float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3])[-1], 0.0)))),
             "translation_mm": float(np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:])[-1], 0.0)) * 1e3)}
+
+
+def quat_to_matrix(q: list[float]) -> np.ndarray:
+    """(w, x, y, z), normalised (some writers store non-unit quaternions) -> (3, 3)."""
+    w, x, y, z = np.asarray(q, float) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def matrix_to_quat(R: np.ndarray) -> list[float]:
+    """(3, 3) rotation -> (w, x, y, z), numerically stable for any rotation."""
+    m = np.asarray(R, float)
+    tr = np.trace(m)
+    cands = [
+        (tr, [1 + tr, m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]]),
+        (m[0, 0], [m[2, 1] - m[1, 2], 1 + m[0, 0] - m[1, 1] - m[2, 2], m[0, 1] + m[1, 0], m[0, 2] + m[2, 0]]),
+        (m[1, 1], [m[0, 2] - m[2, 0], m[0, 1] + m[1, 0], 1 - m[0, 0] + m[1, 1] - m[2, 2], m[1, 2] + m[2, 1]]),
+        (m[2, 2], [m[1, 0] - m[0, 1], m[0, 2] + m[2, 0], m[1, 2] + m[2, 1], 1 - m[0, 0] - m[1, 1] + m[2, 2]]),
+    ]
+    q = np.array(max(cands, key=lambda c: c[0])[1])
+    q /= np.linalg.norm(q)
+    return list(q * np.sign(q[0] if q[0] != 0 else 1))

@@ -64,7 +64,7 @@ def read_json_pose(path: str | Path) -> np.ndarray:
     """T_cam_from_scan (4, 4): the inverse of results.T_lidar_camera (else init_T_lidar_camera).
     The quaternion is normalised when within 1e-3 of unit length (printed digits), else refused."""
     from rgbd_gt.io.pose_file import check_rigid
-    from rgbd_gt.pose import invert, rigid
+    from rgbd_gt.pose import invert, quat_to_matrix, rigid
 
     path = Path(path)
     results = read_calib_json(path).get("results")
@@ -72,12 +72,8 @@ def read_json_pose(path: str | Path) -> np.ndarray:
     if key is None:
         raise InputError(f"no extrinsic (results.{' or results.'.join(POSE_KEYS)})", path)
     x, y, z, qx, qy, qz, qw = _numbers(results[key], 7, f"results.{key} ([x, y, z, qx, qy, qz, qw])", path)
-    q = np.array([qw, qx, qy, qz])
-    norm = np.linalg.norm(q)
+    norm = np.linalg.norm([qw, qx, qy, qz])
     if abs(norm - 1) > 1e-3:
         raise InputError(f"results.{key}: the quaternion's length is {norm:.4g}, not 1", path)
-    w, a, b, c = q / norm
-    R = np.array([[1 - 2 * (b * b + c * c), 2 * (a * b - c * w), 2 * (a * c + b * w)],
-                  [2 * (a * b + c * w), 1 - 2 * (a * a + c * c), 2 * (b * c - a * w)],
-                  [2 * (a * c - b * w), 2 * (b * c + a * w), 1 - 2 * (a * a + b * b)]])
+    R = quat_to_matrix([qw, qx, qy, qz])
     return check_rigid(invert(rigid(R, (x, y, z))), path)

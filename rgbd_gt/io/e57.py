@@ -21,6 +21,7 @@ from rgbd_gt.errors import InputError
 from rgbd_gt.io.atomic import atomic_output
 from rgbd_gt.io.scan import Scan
 from rgbd_gt.io.native import native_output
+from rgbd_gt.pose import matrix_to_quat, quat_to_matrix
 
 CHUNK = 1 << 18  # points per read: bounds the extra memory to a few tens of MB
 CARTESIAN = ("cartesianX", "cartesianY", "cartesianZ")
@@ -113,33 +114,6 @@ def _struct_numbers(node, names) -> list[float] | None:
     return [_number(_child(node, n)) for n in names]
 
 
-def _quat_to_matrix(q: list[float]) -> np.ndarray:
-    """(w, x, y, z), normalised (some writers store non-unit quaternions) -> (3, 3)."""
-    w, x, y, z = np.asarray(q, float) / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def _matrix_to_quat(R: np.ndarray) -> list[float]:
-    """(3, 3) rotation -> (w, x, y, z), numerically stable for any rotation."""
-    m = np.asarray(R, float)
-    tr = np.trace(m)
-    cands = [
-        (tr, [1 + tr, m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]]),
-        (m[0, 0], [m[2, 1] - m[1, 2], 1 + m[0, 0] - m[1, 1] - m[2, 2], m[0, 1] + m[1, 0], m[0, 2] + m[2, 0]]),
-        (m[1, 1], [m[0, 2] - m[2, 0], m[0, 1] + m[1, 0], 1 - m[0, 0] + m[1, 1] - m[2, 2], m[1, 2] + m[2, 1]]),
-        (m[2, 2], [m[1, 0] - m[0, 1], m[0, 2] + m[2, 0], m[1, 2] + m[2, 1], 1 - m[0, 0] - m[1, 1] + m[2, 2]]),
-    ]
-    q = np.array(max(cands, key=lambda c: c[0])[1])
-    q /= np.linalg.norm(q)
-    return list(q * np.sign(q[0] if q[0] != 0 else 1))
-
-
 def _pose(node, path: object = None) -> np.ndarray:
     """4x4 local-to-world transform of a data3D or images2D entry (identity when absent)."""
     T = np.eye(4)
@@ -153,7 +127,7 @@ def _pose(node, path: object = None) -> np.ndarray:
     if t is not None and not np.isfinite(t).all():
         raise InputError(f"pose translation {t} is not finite", path)
     if q is not None:
-        T[:3, :3] = _quat_to_matrix(q)
+        T[:3, :3] = quat_to_matrix(q)
     if t is not None:
         T[:3, 3] = t
     return T
@@ -515,7 +489,7 @@ def _write_scan(imf, data3d, scan: Scan, T: np.ndarray, spherical: bool, name: s
 
     pose = libe57.StructureNode(imf)
     rot, trans = libe57.StructureNode(imf), libe57.StructureNode(imf)
-    for key, v in zip("wxyz", _matrix_to_quat(T[:3, :3])):
+    for key, v in zip("wxyz", matrix_to_quat(T[:3, :3])):
         rot.set(key, libe57.FloatNode(imf, float(v)))
     for key, v in zip("xyz", T[:3, 3]):
         trans.set(key, libe57.FloatNode(imf, float(v)))
