@@ -531,7 +531,7 @@ def export_depth(
     from rgbd_gt.io.image import write_image
     from rgbd_gt.io.outputs import Outputs
     from rgbd_gt.render.depth import back_facing_fraction, back_facing_warning, point_depth, render_depth
-    from rgbd_gt.render.points import is_sweep
+    from rgbd_gt.render.points import as_points
 
     outs = Outputs([scan, camera, pose])
     staged = {name: outs.file(p, option, suffixes) for name, p, option, suffixes in [
@@ -548,7 +548,7 @@ def export_depth(
     the_scan = scan_in_view(scan, cam, [T], cache)
     with _progress() as bar:
         bar.add_task("rendering depth", total=None)
-        sparse = points if points is not None else is_sweep(the_scan)
+        sparse = as_points(the_scan, points)
         depth = (point_depth if sparse else render_depth)(the_scan, cam, T, max_depth, normals=normals is not None)
     valid = depth.z > 0
     if not valid.any():
@@ -670,7 +670,7 @@ def overlay(
     from rgbd_gt.io.image import read_image, write_image
     from rgbd_gt.io.outputs import Outputs
     from rgbd_gt.qa.overlay import overlay as make_overlay, points_image
-    from rgbd_gt.render.points import is_sweep
+    from rgbd_gt.render.points import as_points
 
     start = time.perf_counter()
     blend, points_png = beside(output, "blend"), beside(output, "points")
@@ -693,7 +693,7 @@ def overlay(
         checker, mixed, covered = make_overlay(the_scan, photo, cam, T, max_depth)
         if covered == 0:
             raise InputError("no scan surface in view of this pose (or only surfaces seen from behind)", pose)
-        draw_points = points if points is not None else is_sweep(the_scan)
+        draw_points = as_points(the_scan, points)
         images = [checker, mixed]
         if draw_points:
             dots, drawn = points_image(the_scan, photo, cam, T, max_depth)

@@ -215,7 +215,7 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
     from rgbd_gt.qa.edges import qa, side_by_side
     from rgbd_gt.qa.overlay import overlay, points_image
     from rgbd_gt.render.depth import back_facing_fraction, expect_poses, point_depth, render_depth
-    from rgbd_gt.render.points import is_sweep
+    from rgbd_gt.render.points import as_points, is_sweep
 
     start = time.perf_counter()
     res = PhotoResult(photo.name)
@@ -272,7 +272,7 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
     elif res.verdict == "failed" and not export_failed:
         res.skipped.append("depth (failed)")
     else:
-        points = cfg.depth_points if cfg.depth_points is not None else is_sweep(scan)
+        points = as_points(scan, cfg.depth_points)
         depth = (point_depth if points else render_depth)(scan, camera, T, cfg.max_depth, normals=False)
         res.seen_from_behind = back_facing_fraction(depth)
         write_depth_png16(d / "depth.png", depth.z)

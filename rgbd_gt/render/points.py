@@ -19,6 +19,11 @@ def is_sweep(scan: Scan) -> bool:
     return scan.rgb is None and not scan.has_grid
 
 
+def as_points(scan: Scan, choice: bool | None) -> bool:
+    """Whether to draw or export the scan as points: the user's choice, else for a sweep."""
+    return is_sweep(scan) if choice is None else choice
+
+
 def seen_points(scan: Scan, camera: Camera, T: np.ndarray,
                 max_depth: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The scan points the camera sees at T: their indices (n,), pixels uv (n, 2) and depths z
