@@ -18,8 +18,9 @@ class VerifyConfig:
     repeat_coarsest: int = 9  # the repeat runs' pyramid levels, coarse (9: the coarsest there is) ...
     repeat_finest: int = 2  # ... to fine (compared with the result's pose after that level)
     repeat_iterations: int = 6  # per level of a repeat run
-    # nid: the repeat runs go the whole way (every level, refine's iterations): L-BFGS stopped
-    # early on a coarse level lands anywhere (measured: 4-26 px apart where finished runs agree)
+    # nid: the repeat runs go the whole way, as refine does (its wide search, every level, its
+    # iterations): L-BFGS stopped early on a coarse level lands anywhere (measured: 4-26 px apart
+    # where finished runs agree), and from 3 deg inits only the search lands right
     repeat_nid_whole: bool = True
     start_floor_px: float = 2.0  # the starts move the image at least this much
     sharpness_step_px: float = 1.5  # the image motion of the sharpness probes (photo pixels) ...

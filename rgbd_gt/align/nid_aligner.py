@@ -332,19 +332,23 @@ class NidAligner:
     def _covariance(self, parts: list[_Part], T_local: np.ndarray, weights: torch.Tensor) -> np.ndarray:
         """Laplace approximation: the inverse Hessian of the negative log-likelihood
         sum_f n_f H_f NID_f (`_Evaluation.weights`); a lower bound, as neighbouring points share
-        photo pixels. The Hessian comes from central differences of the exact gradient over half a
-        pixel of image motion, which sees the curvature of the interpolated photo. All inf where
-        it is not positive definite: the result is no minimum."""
+        photo pixels. The Hessian comes from central differences of the objective's values over
+        one pixel of image motion along each parameter and each pair (73 evaluations): the exact
+        gradient of the bilinear interpolant jumps at pixel borders, and its differences over
+        half a pixel were not positive definite at most right results on real sweeps
+        (docs/lidar-method.md). All inf where it is not positive definite: no minimum."""
         units = self._units(parts, T_local)
 
-        def grad(x: np.ndarray) -> np.ndarray:
-            xt = torch.as_tensor(x, dtype=torch.float64, device=self.device).requires_grad_(True)
-            (self._evaluate(parts, T_local, xt * units).nid * weights).sum().backward()
-            return xt.grad.cpu().numpy()
+        def f(x: np.ndarray) -> float:
+            with torch.no_grad():
+                return float((self._evaluate(parts, T_local, torch.as_tensor(x, device=self.device) * units).nid * weights).sum())
 
-        h = 0.5
-        H = np.stack([(grad(h * e) - grad(-h * e)) / (2 * h) for e in np.eye(6)])
-        H = 0.5 * (H + H.T)
+        E = np.eye(6)  # steps of 1 px
+        f0 = f(np.zeros(6))
+        H = np.diag([f(e) - 2 * f0 + f(-e) for e in E])
+        for i, j in zip(*np.triu_indices(6, 1)):
+            a, b = E[i], E[j]
+            H[i, j] = H[j, i] = (f(a + b) - f(a - b) - f(b - a) + f(-a - b)) / 4
         if np.linalg.eigvalsh(H)[0] <= 0:
             return np.full((6, 6), np.inf)
         u = units.cpu().numpy()
@@ -353,11 +357,13 @@ class NidAligner:
     # -- what the verification asks (see `Aligner`) ---------------------------------------------------
     def refine_many(self, starts: list[np.ndarray], finest: int = 0, coarsest: int | None = None,
                     iterations: int | None = None) -> list[np.ndarray | None]:
-        """`refine` (without the search) from each start; None for a start that lost the scan."""
+        """`refine` from each start, with its wide search (a repeat that skips it answers another
+        question: from 3 deg inits such runs ended 90-220 px apart around right results); None for
+        a start that lost the scan."""
         out = []
         for T0 in starts:
             try:
-                out.append(self.refine(T0, finest=finest, coarsest=coarsest, iterations=iterations, search=False).T_cam_from_scan)
+                out.append(self.refine(T0, finest=finest, coarsest=coarsest, iterations=iterations).T_cam_from_scan)
             except InputError:
                 out.append(None)
         return out

@@ -99,8 +99,8 @@ def repeatability(aligner: Aligner, result: RefineResult, T_init: np.ndarray, vi
                   init_sigma: dict | None, seed: int) -> dict:
     """Refine again from the init and from cfg.repeats starts around it, all at once
     (`Aligner.refine_many`) on the coarse levels down to cfg.repeat_finest, with at most
-    cfg.repeat_iterations a level (for nid with cfg.repeat_nid_whole, all levels with refine's own
-    iterations, without the wide search); the largest distance (px, mm, deg) of the starts'
+    cfg.repeat_iterations a level (for nid with cfg.repeat_nid_whole, the whole way as refine runs:
+    its wide search, all levels, its own iterations); the largest distance (px, mm, deg) of the starts'
     results from the init's. (The runs may stop at a coarser level than the result, so they are
     compared among themselves, on the same levels.)"""
     finest = min(cfg.repeat_finest, len(result.levels) - 1)
