@@ -292,17 +292,17 @@ class NidAligner:
     # -- refine ------------------------------------------------------------------------------------
     def refine(self, T_init: np.ndarray, progress: Callable[[dict], None] | None = None,
                keep_residuals: bool = False, finest: int = 0, coarsest: int | None = None,
-               iterations: int | None = None, search: bool = True) -> RefineResult:
+               iterations: int | None = None) -> RefineResult:
         """Refine T_init (4x4 T_cam_from_scan) coarse to fine; the arguments are `Aligner.refine`'s
-        (keep_residuals is ignored: NID has no per-point residual). search: run the wide search
-        (cfg.search_starts) first."""
+        (keep_residuals is ignored: NID has no per-point residual). The wide search
+        (cfg.search_starts) runs first."""
         start = time.perf_counter()
         cfg = self.cfg
         T_init = np.asarray(T_init, np.float64)
         n_levels = len(self.prepared_levels(T_init))
         top = n_levels - 1 if coarsest is None else min(coarsest, n_levels - 1)
         T = translated(T_init, self.centre)
-        if search and cfg.search_starts > 0:
+        if cfg.search_starts > 0:
             T = self._search(top, T)
         history, level_info, total = [], [], 0
         for level in range(top, finest - 1, -1):
