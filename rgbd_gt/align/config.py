@@ -90,7 +90,8 @@ class RefineConfig:
     search_starts: int = 8  # nid: before the coarsest level, also run it from this many starts (0: none) ...
     search_rotation_deg: float = 3.0  # ... turned this much ...
     search_translation_m: float = 0.2  # ... and moved this much from the init
-    search_iterations: int = 10  # ... for at most this many iterations each; the lowest NID goes on
+    search_iterations: int = 10  # ... for at most this many iterations each ...
+    search_keep: int = 3  # ... and this many of lowest NID go on to level 1, where the lowest NID wins
     # photometric, lm: also refine the camera (render.project.INTRINSICS): none | focal |
     # focal+principal | focal+principal+k1k2
     refine_intrinsics: str = "none"
@@ -105,8 +106,9 @@ class RefineConfig:
             raise ValueError(f"optimizer must be 'lm' or 'adam', got {self.optimizer!r}")
         if self.objective not in OBJECTIVES:
             raise ValueError(f"objective must be one of {', '.join(OBJECTIVES)}, got {self.objective!r}")
-        if self.nid_bins < 6 or self.search_starts < 0 or self.search_iterations < 1 or self.max_depth < 0:
-            raise ValueError("nid_bins >= 6, search_starts >= 0, search_iterations >= 1 and max_depth >= 0")
+        if (self.nid_bins < 6 or self.search_starts < 0 or self.search_iterations < 1 or self.search_keep < 1
+                or self.max_depth < 0):
+            raise ValueError("nid_bins >= 6, search_starts >= 0, search_iterations >= 1, search_keep >= 1 and max_depth >= 0")
         from rgbd_gt.render.project import INTRINSICS
 
         if self.refine_intrinsics not in INTRINSICS:
@@ -117,7 +119,7 @@ class RefineConfig:
             raise ValueError("levels, upsample, iterations and max_points must be positive")
         if self.levels > 12 or self.upsample > 8:
             raise ValueError(f"levels at most 12 and upsample at most 8, got {self.levels} and {self.upsample}")
-        for name, most in (("iterations", 10_000), ("adam_iterations", 100_000), ("search_starts", 1_000),
+        for name, most in (("iterations", 10_000), ("adam_iterations", 100_000), ("search_starts", 1_000), ("search_keep", 1_000),
                            ("search_iterations", 10_000), ("max_points", 100_000_000), ("min_points", 100_000_000),
                            ("nid_bins", 256)):  # beyond these a run would take days: a typo
             if getattr(self, name) > most:

@@ -8,7 +8,8 @@ initial pose) are Z-buffered at the level's start pose with a cell sized for the
 the image, and L-BFGS (strong Wolfe line search) minimises NID over the 6 pose parameters, in
 units of one level pixel of image motion; the gradient is exact (autograd through the bilinear
 interpolant and the B-spline histogram). Before the coarsest level, an optional search runs that
-level from random starts around the init and keeps the lowest NID: a wider basin for poor inits.
+level from random starts around the init: a wider basin for poor inits. The few results of
+lowest NID each go on to level 1, and the lowest NID there goes on to the finest level.
 Points that land on the photo's sky add cfg.sky_weight times their fraction to NID (align/sky.py):
 a sweep has no returns from the sky, and NID alone drifts to poses that put points there.
 """
@@ -273,42 +274,31 @@ class NidAligner:
             loss = float(self._evaluate(parts, T, torch.zeros(6, device=self.device)).loss)
         return T, loss, n_iter, "iteration cap" if n_iter >= iterations else "converged"
 
-    def _search(self, level: int, T_local: np.ndarray) -> np.ndarray:
-        """The coarsest level from the init and from cfg.search_starts random starts around it;
-        the lowest NID wins (a start that loses the scan drops out)."""
+    def _search(self, level: int, T_local: np.ndarray) -> list[np.ndarray]:
+        """The coarsest level from the init and from cfg.search_starts random starts around it:
+        the cfg.search_keep results of lowest NID, lowest first (a start that loses the scan drops
+        out)."""
         cfg = self.cfg
         starts = [T_local] + random_starts(T_local, cfg.search_starts, math.radians(cfg.search_rotation_deg),
                                            cfg.search_translation_m, cfg.seed + 1)
-        best, best_loss = T_local, math.inf
+        found = []
         for T0 in starts:
             try:
                 T, loss, _, _ = self._level(level, T0, cfg.search_iterations)
             except InputError:
                 continue
-            if loss < best_loss:
-                best, best_loss = T, loss
-        return best
+            found.append((loss, T))
+        found.sort(key=lambda c: c[0])
+        return [T for _, T in found[: cfg.search_keep]] or [T_local]
 
-    # -- refine ------------------------------------------------------------------------------------
-    def refine(self, T_init: np.ndarray, progress: Callable[[dict], None] | None = None,
-               keep_residuals: bool = False, finest: int = 0, coarsest: int | None = None,
-               iterations: int | None = None) -> RefineResult:
-        """Refine T_init (4x4 T_cam_from_scan) coarse to fine; the arguments are `Aligner.refine`'s
-        (keep_residuals is ignored: NID has no per-point residual). The wide search
-        (cfg.search_starts) runs first."""
-        start = time.perf_counter()
-        cfg = self.cfg
-        T_init = np.asarray(T_init, np.float64)
-        n_levels = len(self.prepared_levels(T_init))
-        top = n_levels - 1 if coarsest is None else min(coarsest, n_levels - 1)
-        T = translated(T_init, self.centre)
-        if cfg.search_starts > 0:
-            T = self._search(top, T)
-        history, level_info, total = [], [], 0
-        for level in range(top, finest - 1, -1):
+    def _descend(self, T_local: np.ndarray, top: int, bottom: int, iterations: int,
+                 progress: Callable[[dict], None] | None = None) -> tuple[np.ndarray, float, list[dict], list[dict]]:
+        """L-BFGS level by level from top down to bottom (inclusive). Returns (pose, NID of the
+        last level, history records, per-level iterations and stop reasons)."""
+        T, loss, history, level_info = T_local, math.inf, [], []
+        for level in range(top, bottom - 1, -1):
             T_before = T
-            T, loss, n_it, stop = self._level(level, T, iterations or cfg.iterations)
-            total += n_it
+            T, loss, n_it, stop = self._level(level, T, iterations)
             level_info.append({"level": level, "iterations": n_it, "stop": stop})
             step = T @ np.linalg.inv(T_before)
             rec = {"level": level, "iteration": n_it, "loss": loss,
@@ -317,6 +307,39 @@ class NidAligner:
             history.append(rec)
             if progress is not None:
                 progress(rec)
+        return T, loss, history, level_info
+
+    # -- refine ------------------------------------------------------------------------------------
+    def refine(self, T_init: np.ndarray, progress: Callable[[dict], None] | None = None,
+               keep_residuals: bool = False, finest: int = 0, coarsest: int | None = None,
+               iterations: int | None = None) -> RefineResult:
+        """Refine T_init (4x4 T_cam_from_scan) coarse to fine; the arguments are `Aligner.refine`'s
+        (keep_residuals is ignored: NID has no per-point residual). The wide search
+        (cfg.search_starts) runs first; its cfg.search_keep best results each go down to level
+        1, where the lowest NID wins."""
+        start = time.perf_counter()
+        cfg = self.cfg
+        T_init = np.asarray(T_init, np.float64)
+        n_levels = len(self.prepared_levels(T_init))
+        top = n_levels - 1 if coarsest is None else min(coarsest, n_levels - 1)
+        T = translated(T_init, self.centre)
+        iterations = iterations or cfg.iterations
+        candidates = self._search(top, T) if cfg.search_starts > 0 else [T]
+        # The coarsest level's NID ranks the search's results poorly (at 1/16 scale a wrong
+        # basin can score lower); each of the best few goes on to level 1 and the lowest NID
+        # there wins (docs/lidar-method.md, "Which search result goes on").
+        judge = max(finest, min(1, top))
+        if len(candidates) > 1:
+            runs = [self._descend(c, top, judge, iterations) for c in candidates]
+            T, _, history, level_info = min(runs, key=lambda r: r[1])
+            for rec in history if progress is not None else []:
+                progress(rec)
+            top = judge - 1
+        else:
+            T, history, level_info = candidates[0], [], []
+        T, _, more_history, more_info = self._descend(T, top, finest, iterations, progress)
+        history, level_info = history + more_history, level_info + more_info
+        total = sum(rec["iterations"] for rec in level_info)
         parts = self._parts(finest, T)
         with torch.no_grad():
             final = self._evaluate(parts, T, torch.zeros(6, device=self.device))

@@ -100,14 +100,14 @@ def repeatability(aligner: Aligner, result: RefineResult, T_init: np.ndarray, vi
     """Refine again from the init and from cfg.repeats starts around it, all at once
     (`Aligner.refine_many`) on the coarse levels down to cfg.repeat_finest, with at most
     cfg.repeat_iterations a level (for nid with cfg.repeat_nid_whole, the whole way as refine runs:
-    its wide search, all levels, its own iterations); the largest distance (px, mm, deg) of the starts'
-    results from the init's. (The runs may stop at a coarser level than the result, so they are
+    its wide search, all levels, its own iterations, and the result itself stands for the init's run);
+    the largest distance (px, mm, deg) of the starts' results from the init's. (The runs may stop at a coarser level than the result, so they are
     compared among themselves, on the same levels.)"""
     finest = min(cfg.repeat_finest, len(result.levels) - 1)
     rot, trans = start_size(T_init, result.T_cam_from_scan, init_sigma, view, cfg.start_floor_px)
     starts = [T_init] + random_starts(T_init, cfg.repeats, rot, trans, seed)
-    if result.objective == "nid" and cfg.repeat_nid_whole:
-        ends = aligner.refine_many(starts)
+    if result.objective == "nid" and cfg.repeat_nid_whole:  # the init's run would be refine's again
+        ends = [result.T_cam_from_scan] + aligner.refine_many(starts[1:])
     else:
         ends = aligner.refine_many(starts, finest, cfg.repeat_coarsest, cfg.repeat_iterations)
     reference, others = ends[0], ends[1:]
