@@ -329,15 +329,9 @@ class NidAligner:
         # basin can score lower); each of the best few goes on to level 1 and the lowest NID
         # there wins (docs/lidar-method.md, "Which search result goes on").
         judge = max(finest, min(1, top))
-        if len(candidates) > 1:
-            runs = [self._descend(c, top, judge, iterations) for c in candidates]
-            T, _, history, level_info = min(runs, key=lambda r: r[1])
-            for rec in history if progress is not None else []:
-                progress(rec)
-            top = judge - 1
-        else:
-            T, history, level_info = candidates[0], [], []
-        T, _, more_history, more_info = self._descend(T, top, finest, iterations, progress)
+        runs = [self._descend(c, top, judge, iterations, progress) for c in candidates]
+        T, _, history, level_info = min(runs, key=lambda r: r[1])
+        T, _, more_history, more_info = self._descend(T, judge - 1, finest, iterations, progress)
         history, level_info = history + more_history, level_info + more_info
         total = sum(rec["iterations"] for rec in level_info)
         parts = self._parts(finest, T)

@@ -100,9 +100,9 @@ def repeatability(aligner: Aligner, result: RefineResult, T_init: np.ndarray, vi
     """Refine again from the init and from cfg.repeats starts around it, all at once
     (`Aligner.refine_many`) on the coarse levels down to cfg.repeat_finest, with at most
     cfg.repeat_iterations a level (for nid with cfg.repeat_nid_whole, the whole way as refine runs:
-    its wide search, all levels, its own iterations, and the result itself stands for the init's run);
-    the largest distance (px, mm, deg) of the starts' results from the init's. (The runs may stop at a coarser level than the result, so they are
-    compared among themselves, on the same levels.)"""
+    its wide search, all levels, its own iterations; the result itself stands for the init's run);
+    the largest distance (px, mm, deg) of the starts' results from the init's. (The runs may stop
+    at a coarser level than the result, so they are compared among themselves, on the same levels.)"""
     finest = min(cfg.repeat_finest, len(result.levels) - 1)
     rot, trans = start_size(T_init, result.T_cam_from_scan, init_sigma, view, cfg.start_floor_px)
     starts = [T_init] + random_starts(T_init, cfg.repeats, rot, trans, seed)
