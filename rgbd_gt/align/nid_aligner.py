@@ -30,7 +30,7 @@ from rgbd_gt.align.nid import nid_and_entropy
 from rgbd_gt.align.pyramid import PhotoLevel
 from rgbd_gt.align.sampling import bilinear, central_gradients
 from rgbd_gt.errors import InputError
-from rgbd_gt.pose import apply_update, random_starts, translated
+from rgbd_gt.pose import apply_update, random_starts, rotation_error_deg, translated
 from rgbd_gt.render.project import project_pinhole, projection_jacobian
 from rgbd_gt.render.normals import facing_camera
 from rgbd_gt.render.zbuffer import cell_for_density, check_spread_in_view, depth_edges, visible_points
@@ -301,8 +301,7 @@ class NidAligner:
             T, loss, n_it, stop = self._level(level, T, iterations)
             level_info.append({"level": level, "iterations": n_it, "stop": stop})
             step = T @ np.linalg.inv(T_before)
-            rec = {"level": level, "iteration": n_it, "loss": loss,
-                   "rotation_update_deg": float(np.degrees(np.arccos(np.clip((np.trace(step[:3, :3]) - 1) / 2, -1, 1)))),
+            rec = {"level": level, "iteration": n_it, "loss": loss, "rotation_update_deg": rotation_error_deg(T, T_before),
                    "translation_update_m": float(np.linalg.norm(step[:3, 3])), "accepted": True}
             history.append(rec)
             if progress is not None:
