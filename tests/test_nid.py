@@ -168,19 +168,14 @@ def test_search_results_are_judged_on_a_finer_level():
     scale). With the best three carried down to level 1 and judged there, both end at NID's
     minimum near the reference (docs/lidar-method.md, "Which search result goes on")."""
     from rgbd_gt.align.refine import RefineInputs, make_aligner
-    from rgbd_gt.bench.lidar import init_poses
-    from rgbd_gt.io.scan import scan_colors
-    from rgbd_gt.render.normals import with_normals
+    from rgbd_gt.bench.lidar import init_poses, pjlab_scene
 
-    d = _pjlab(3)
-    T_ref = read_pose(d / "calib.txt")[0]
-    scan, photo = with_normals(load_scan(d / "calib.pcd")), read_image(d / "calib.png")
-    camera = read_camera(d / "calib.txt", (photo.shape[1], photo.shape[0]))
-    inits = init_poses(T_ref, 1.0, 0.10, 10, seed=sum(map(ord, "pjlab_3")))
+    s = pjlab_scene(_pjlab(3))
+    inits = init_poses(s.T_ref, 1.0, 0.10, 10, seed=sum(map(ord, "pjlab_3")))
     for i in (3, 7):
-        inputs = RefineInputs(scan.xyz, scan_colors(scan), photo, camera, inits[i], None, scan)
+        inputs = RefineInputs(s.scan.xyz, s.colors, s.photo, s.camera, inits[i], None, s.scan)
         T = make_aligner(inputs, RefineConfig(objective="nid"), "cpu").refine(inits[i]).T_cam_from_scan
-        errors = (rotation_error_deg(T, T_ref), translation_error_m(T, T_ref))
+        errors = (rotation_error_deg(T, s.T_ref), translation_error_m(T, s.T_ref))
         print(f"pjlab_3, benchmark init #{i} (deg, m):", errors)
         assert errors[0] < 0.25 and errors[1] < 0.08, (i, errors)  # measured 0.14-0.18 deg, 4.3-4.7 cm
 

@@ -46,20 +46,22 @@ class Scene:
     T_ref: np.ndarray  # the shipped reference T_cam_from_scan
 
 
-def pjlab_scenes(folder: Path) -> list[Scene]:
-    """The scenes of ../shared/data/lidar_camera (calib.pcd, calib.jpg|png, calib.txt each)."""
+def pjlab_scene(d: Path) -> Scene:
+    """One scene folder of ../shared/data/lidar_camera (calib.pcd, calib.jpg|png, calib.txt)."""
     from rgbd_gt.io import load_scan, read_camera, read_pose
     from rgbd_gt.io.image import read_image
     from rgbd_gt.io.scan import scan_colors
     from rgbd_gt.render.normals import with_normals
 
-    out = []
-    for d in sorted(folder.glob("pjlab_*")):
-        scan = with_normals(load_scan(d / "calib.pcd"))
-        photo = read_image(next(p for p in sorted(d.glob("calib.*")) if p.suffix in (".jpg", ".png")))
-        camera = read_camera(d / "calib.txt", (photo.shape[1], photo.shape[0]))
-        out.append(Scene(d.name, scan, scan_colors(scan), photo, camera, read_pose(d / "calib.txt")[0]))
-    return out
+    scan = with_normals(load_scan(d / "calib.pcd"))
+    photo = read_image(next(p for p in sorted(d.glob("calib.*")) if p.suffix in (".jpg", ".png")))
+    camera = read_camera(d / "calib.txt", (photo.shape[1], photo.shape[0]))
+    return Scene(d.name, scan, scan_colors(scan), photo, camera, read_pose(d / "calib.txt")[0])
+
+
+def pjlab_scenes(folder: Path) -> list[Scene]:
+    """The scenes of ../shared/data/lidar_camera (`pjlab_scene` each)."""
+    return [pjlab_scene(d) for d in sorted(folder.glob("pjlab_*"))]
 
 
 def init_poses(T: np.ndarray, deg: float, m: float, count: int, seed: int) -> list[np.ndarray]:
