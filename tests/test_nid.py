@@ -119,8 +119,10 @@ def test_nid_refines_an_intensity_only_scan_where_photometric_cannot(intensity_s
     for objective in ("nid", "photometric"):
         out = tmp_path / f"{objective}.yaml"
         proc = run_cli("refine", "--scan", d / "intensity.ply", "--image", d / "photo.png", "--camera", d / "camera.yaml",
-                       "--init", d / "init_pose.yaml", "-o", out, "--objective", objective, "--repeats", "0")
+                       "--init", d / "init_pose.yaml", "-o", out, "--objective", objective, "--repeats", "0",
+                       "--report", tmp_path / f"report_{objective}")
         assert proc.returncode == 0, proc.stderr
+        assert (tmp_path / f"report_{objective}" / "convergence.png").stat().st_size > 0
         T, meta = read_pose(out)
         assert meta["objective"] == objective and meta["verdict"] in ("ok", "suspect", "failed")
         errs[objective] = (translation_error_m(T, gt) * 1e3, rotation_error_deg(T, gt))

@@ -68,13 +68,19 @@ def write_report(out_dir: Path, result: RefineResult, size: tuple[int, int]) -> 
     fig, axes = plt.subplots(3, 1, figsize=(7, 8), sharex=True)
     x = np.arange(len(h))
     levels = np.array([r["level"] for r in h])
-    axes[0].plot(x, [r["median_residual"] for r in h], ".-")
-    axes[0].set_ylabel("median color residual")
+    # nid records one entry per level and has no per-point residual: its objective instead
+    key, label = ("loss", "NID (+ sky charge)") if result.objective == "nid" else ("median_residual", "median color residual")
+    axes[0].plot(x, [r[key] for r in h], ".-")
+    axes[0].set_ylabel(label)
     axes[1].semilogy(x, [max(r["rotation_update_deg"], 1e-9) for r in h], ".-")
     axes[1].set_ylabel("rotation update (deg)")
     axes[2].semilogy(x, [max(r["translation_update_m"] * 1e3, 1e-9) for r in h], ".-")
     axes[2].set_ylabel("translation update (mm)")
-    axes[2].set_xlabel("iteration (pyramid levels coarse to fine, separated by lines)")
+    if result.objective == "nid":
+        axes[2].set_xticks(x, [str(v) for v in levels])
+        axes[2].set_xlabel("pyramid level, coarse to fine (each its own points and image scale)")
+    else:
+        axes[2].set_xlabel("iteration (pyramid levels coarse to fine, separated by lines)")
     for ax in axes:
         for k in np.nonzero(np.diff(levels))[0]:
             ax.axvline(k + 0.5, color="gray", lw=0.5)
