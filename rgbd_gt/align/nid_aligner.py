@@ -26,7 +26,7 @@ import torch
 
 from rgbd_gt.align.aligner import RefineResult
 from rgbd_gt.align.config import RefineConfig
-from rgbd_gt.align.nid import nid_and_entropy
+from rgbd_gt.align.nid import nid_of_windows, parzen_windows
 from rgbd_gt.align.pyramid import PhotoLevel
 from rgbd_gt.align.sampling import bilinear, central_gradients
 from rgbd_gt.errors import InputError
@@ -60,10 +60,10 @@ class _Part:
     the point stands in front of its sides, gray gradient magnitude)."""
 
     points: torch.Tensor  # (n, 3) float32
-    values: torch.Tensor  # (n, C)
-    image: torch.Tensor  # (H, W, C)
+    windows: torch.Tensor  # (n, C, bins) float64: the values, spread over NID's bins (`parzen_windows`)
+    image: torch.Tensor  # (H, W, C), or (H, W, C + 1) with the sky
     photo: PhotoLevel
-    sky: torch.Tensor | None  # (H, W, 1) in [0, 1]: where the photo shows sky (align/sky.py), or None
+    sky: bool  # the image's last channel is where the photo shows sky, in [0, 1] (align/sky.py)
 
 
 @dataclass
@@ -89,8 +89,8 @@ class _Evaluation:
 def so3_exp(w: torch.Tensor) -> torch.Tensor:
     """Rotation matrix (3, 3) of the rotation vector w (3,), differentiable (also at 0)."""
     theta2 = (w * w).sum()
-    K = torch.zeros(3, 3, dtype=w.dtype, device=w.device)
-    K[0, 1], K[0, 2], K[1, 0], K[1, 2], K[2, 0], K[2, 1] = -w[2], w[1], w[2], -w[0], -w[1], w[0]
+    zero = torch.zeros((), dtype=w.dtype, device=w.device)
+    K = torch.stack([zero, -w[2], w[1], w[2], zero, -w[0], -w[1], w[0], zero]).reshape(3, 3)
     small = theta2 < 1e-12
     theta = torch.sqrt(torch.where(small, torch.ones_like(theta2), theta2))
     a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
@@ -125,21 +125,23 @@ class NidAligner:
         self._values = [torch.as_tensor(f.values, dtype=torch.float32, device=self.device).reshape(-1) for f in frames]
         self._normals = [None if f.normals is None else torch.as_tensor(f.normals, dtype=torch.float32, device=self.device)
                          for f in frames]
+        # per frame, per level: the channels NID compares, and the sky (`_Part`) once it is found
         self._images = [[_channels(lv.image, cfg.nid_edges) for lv in f.pyramid] for f in frames]
         self._prepared: list[list[torch.Tensor]] | None = None  # per level, per frame: point indices
-        self._sky: list[list[torch.Tensor] | None] = []  # per frame, per level: `_Part.sky`
+        self._sky = [False] * len(frames)
 
     # -- the points of each level (chosen once, at the init) ---------------------------------------
     def prepared_levels(self, T_init: np.ndarray) -> list[list[torch.Tensor]]:
         """Per level, per frame: indices of a random subset of the points in view of T_init
         (within a 15% margin and cfg.max_depth), `max_points` at full resolution and a quarter per
         coarser level (nested), never fewer than `min_points`. Also finds each photo's sky, with the
-        points seen at T_init (`_find_sky`)."""
+        points seen at T_init (`_find_sky`), and appends it to the frame's images (one sampling
+        serves both)."""
         if self._prepared is not None:
             return self._prepared
         cfg = self.cfg
         R, t = self._pose(translated(T_init, self.centre))
-        per_frame, skies = [], []
+        per_frame = []
         for k, (f, pts) in enumerate(zip(self.frames, self._points)):
             finest = f.pyramid[0]
             uv, z = project_pinhole(pts @ R.T + t, finest.K)
@@ -154,10 +156,12 @@ class NidAligner:
                 raise InputError(f"fewer than {cfg.min_visible} scan points in view of the initial pose: "
                                  "check the pose, the camera file and the scan")
             check_spread_in_view(uv[idx], seen, cfg.min_visible)
-            skies.append(self._find_sky(f, uv[idx][seen]))
+            sky = self._find_sky(f, uv[idx][seen])
+            if sky is not None:
+                self._images[k] = [torch.cat([img, m], dim=2) for img, m in zip(self._images[k], sky)]
+                self._sky[k] = True
             gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
             per_frame.append(idx[torch.randperm(idx.numel(), generator=gen).to(self.device)])
-        self._sky = skies
         self._prepared = [[idx[: max(cfg.min_points, cfg.max_points // 4**level)] for idx in per_frame]
                           for level in range(len(self.frames[0].pyramid))]
         return self._prepared
@@ -202,8 +206,9 @@ class NidAligner:
             values = self._values[k][idx][:, None]
             if self.cfg.nid_edges:
                 values = torch.cat([values, depth_edges(uv, z, photo.camera.size, cell)[:, None]], 1)
-            sky = self._sky[k][level] if self._sky[k] is not None else None
-            parts.append(_Part(pts[vis], values[vis], self._images[k][level], photo, sky))
+            values = values[vis].double()
+            windows = torch.stack([parzen_windows(values[:, c], self.cfg.nid_bins) for c in range(values.shape[1])], 1)
+            parts.append(_Part(pts[vis], windows, self._images[k][level], photo, self._sky[k]))
         return parts
 
     # -- the objective -----------------------------------------------------------------------------
@@ -225,10 +230,11 @@ class NidAligner:
             if int(ok.sum()) < 50:
                 raise InputError("the pose left the scan: fewer than 50 points in view")
             sampled = bilinear(part.image, uv[ok]).double()
-            for c in range(sampled.shape[1]):
-                value, h_ab = nid_and_entropy(part.values[ok, c].double(), sampled[:, c], self.cfg.nid_bins)
-                if c == 0 and part.sky is not None:
-                    value = value + self.cfg.sky_weight * bilinear(part.sky, uv[ok]).double().mean()
+            windows = part.windows[ok]
+            for c in range(windows.shape[1]):
+                value, h_ab = nid_of_windows(windows[:, c], parzen_windows(sampled[:, c], self.cfg.nid_bins))
+                if c == 0 and part.sky:
+                    value = value + self.cfg.sky_weight * sampled[:, -1].mean()
                 nids.append(value)
                 counts.append(int(ok.sum()))
                 entropies.append(float(h_ab.detach()))
