@@ -348,25 +348,27 @@ class NidAligner:
             T_cam_from_scan=translated(T, -self.centre), color_transform=np.zeros((0, 0)), iterations=total,
             loss=float(final.loss), inlier_fraction=seen / max(n_candidates, 1),
             visible_points=seen, seconds=time.perf_counter() - start, history=history,
-            levels=level_info, objective="nid", covariance=self._covariance(parts, T, final.weights()) if finest == 0 else None,
+            levels=level_info, objective="nid", covariance=self._covariance(parts, T, final) if finest == 0 else None,
         )
 
-    def _covariance(self, parts: list[_Part], T_local: np.ndarray, weights: torch.Tensor) -> np.ndarray:
+    def _covariance(self, parts: list[_Part], T_local: np.ndarray, at: _Evaluation) -> np.ndarray:
         """Laplace approximation: the inverse Hessian of the negative log-likelihood
         sum_f n_f H_f NID_f (`_Evaluation.weights`); a lower bound, as neighbouring points share
         photo pixels. The Hessian comes from central differences of the objective's values over
         one pixel of image motion along each parameter and each pair (73 evaluations): the exact
         gradient of the bilinear interpolant jumps at pixel borders, and its differences over
         half a pixel were not positive definite at most right results on real sweeps
-        (docs/lidar-method.md). All inf where it is not positive definite: no minimum."""
+        (docs/lidar-method.md). All inf where it is not positive definite: no minimum. at: the
+        evaluation at T_local itself (its weights, and the centre value of the differences)."""
         units = self._units(parts, T_local)
+        weights = at.weights()
 
         def f(x: np.ndarray) -> float:
             with torch.no_grad():
                 return float((self._evaluate(parts, T_local, torch.as_tensor(x, device=self.device) * units).nid * weights).sum())
 
         E = np.eye(6)  # steps of 1 px
-        f0 = f(np.zeros(6))
+        f0 = float((at.nid * weights).sum())
         H = np.diag([f(e) - 2 * f0 + f(-e) for e in E])
         for i, j in zip(*np.triu_indices(6, 1)):
             a, b = E[i], E[j]
