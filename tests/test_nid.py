@@ -8,6 +8,7 @@ import torch
 import yaml
 
 from conftest import DATA, assert_one_line_error, run_cli
+from rgbd_gt.align import lbfgs
 from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.align.nid import joint_histogram, nid
 from rgbd_gt.align.nid_aligner import Frame, NidAligner, so3_exp
@@ -65,6 +66,38 @@ def intensity_scene(tmp_path_factory):
     save_scan(d / "intensity.ply", Scan(xyz=scan.xyz, intensity=(np.sin(3 * np.pi * gray) ** 2).astype(np.float32),
                                         origins=scan.origins))
     return d
+
+
+def test_own_lbfgs_takes_torch_optim_lbfgs_steps():
+    """align/lbfgs.py is torch.optim.LBFGS with the strong Wolfe line search without its 0.9 s
+    import of torch._dynamo: the same iterates, cut off after each iteration count."""
+    def rosenbrock(x):
+        return (100 * (x[1:] - x[:-1] ** 2) ** 2 + (1 - x[:-1]) ** 2).sum()
+
+    def value_and_gradient(x_np):
+        x = torch.tensor(x_np, requires_grad=True)
+        f = rosenbrock(x)
+        f.backward()
+        return float(f.detach()), x.grad.numpy().copy()
+
+    for seed in range(3):
+        x0 = np.random.default_rng(seed).normal(size=6)
+        for max_iter in (3, 12, 200):
+            x, n_iter = lbfgs.minimize(value_and_gradient, x0, max_iter)
+            xt = torch.tensor(x0, requires_grad=True)
+            opt = torch.optim.LBFGS([xt], lr=1, max_iter=max_iter, line_search_fn="strong_wolfe",
+                                    tolerance_grad=1e-9, tolerance_change=1e-9)
+
+            def closure():
+                opt.zero_grad()
+                f = rosenbrock(xt)
+                f.backward()
+                return f
+
+            opt.step(closure)
+            assert n_iter == opt.state[xt]["n_iter"]
+            assert np.abs(x - xt.detach().numpy()).max() < 1e-9
+    assert np.abs(x - 1).max() < 1e-5 and n_iter < 200  # converged to the minimum at (1, ..., 1)
 
 
 def test_pose_gradient_matches_finite_differences(intensity_scene):

@@ -24,6 +24,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from rgbd_gt.align import lbfgs
 from rgbd_gt.align.aligner import RefineResult
 from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.align.nid import nid_of_windows, parzen_windows
@@ -254,9 +255,8 @@ class NidAligner:
         """L-BFGS on one level from T_local. Returns (pose, NID, iterations, why it stopped)."""
         parts = self._parts(level, T_local)
         units = self._units(parts, T_local)
-        x = torch.zeros(6, dtype=torch.float64, device=self.device, requires_grad=True)
         with torch.no_grad():
-            weights = self._evaluate(parts, T_local, x).weights()
+            weights = self._evaluate(parts, T_local, torch.zeros(6, dtype=torch.float64, device=self.device)).weights()
 
         r, m = math.radians(self.cfg.search_rotation_deg), self.cfg.search_translation_m
         cap = torch.minimum(units * STEP_CAP_PX, torch.tensor([r, r, r, m, m, m], dtype=units.dtype, device=units.device))
@@ -264,18 +264,14 @@ class NidAligner:
         def update(x: torch.Tensor) -> torch.Tensor:  # smoothly at most `cap` per parameter
             return cap * torch.tanh(units * x / cap)
 
-        opt = torch.optim.LBFGS([x], lr=1, max_iter=iterations, line_search_fn="strong_wolfe",
-                                tolerance_grad=1e-9, tolerance_change=1e-9)
-
-        def closure():
-            opt.zero_grad()
+        def objective(x_np: np.ndarray) -> tuple[float, np.ndarray]:
+            x = torch.tensor(x_np, device=self.device, requires_grad=True)
             loss = (self._evaluate(parts, T_local, update(x)).nid * weights).sum()
             loss.backward()
-            return loss
+            return float(loss.detach()), x.grad.cpu().numpy()
 
-        opt.step(closure)
-        n_iter = int(opt.state[x].get("n_iter", 0))
-        T = apply_update(T_local, update(x.detach()).cpu().numpy())
+        x, n_iter = lbfgs.minimize(objective, np.zeros(6), iterations)
+        T = apply_update(T_local, update(torch.tensor(x, device=self.device)).cpu().numpy())
         with torch.no_grad():
             loss = float(self._evaluate(parts, T, torch.zeros(6, device=self.device)).loss)
         return T, loss, n_iter, "iteration cap" if n_iter >= iterations else "converged"
