@@ -381,7 +381,7 @@ def refine(
     objective: Optional[str] = typer.Option(None, "--objective", help="photometric (the colored-scan aligner), nid (normalised information distance of intensity or gray against the photo's gray, for scans whose values relate to the photo only statistically: intensity-only LiDAR and laser scans) or auto (default: nid for intensity-only scans)."),
     pairs: Optional[Path] = typer.Option(None, "--pairs", help="YAML listing further (scan, image[, camera]) pairs that share the one pose (a LiDAR-camera rig over several frames): `pairs: [{scan: a.pcd, image: a.jpg}, ...]`, paths relative to the file. Solved jointly (nid)."),
     max_depth: Optional[float] = typer.Option(None, "--max-depth", help="Leave out scan points farther than this from the initial camera (metres; 0 = none)."),
-    search_starts: Optional[int] = typer.Option(None, "--search-starts", help="nid: before the coarsest level, also run it from this many random starts around the init; the 3 of lowest NID (search_keep in the config) go on to level 1, where the lowest NID wins (default 8; 0 = none)."),
+    search_starts: Optional[int] = typer.Option(None, "--search-starts", help="nid: before the coarsest level, also run it from this many random starts around the init; the 3 of lowest NID (search_keep in the config) go on to level 1, where the lowest NID wins (default 16; 0 = none)."),
     config: Optional[Path] = typer.Option(None, "--config", help="Aligner settings (default: configs/refine.yaml)."),
     device: str = typer.Option("auto", "--device", help="auto (CUDA when present), cpu or cuda."),
     report: Optional[Path] = typer.Option(None, "--report", help="Folder for a convergence plot and color-difference images."),
