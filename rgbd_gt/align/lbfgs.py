@@ -120,8 +120,10 @@ def minimize(fun: Objective, x0: np.ndarray, max_iter: int, tolerance_grad: floa
             ys = float(y @ s)
             if ys > 1e-10:  # keep the pair only where the curvature is positive
                 if len(dirs) == history_size:
-                    dirs.pop(0), steps.pop(0), rho.pop(0)
-                dirs.append(y), steps.append(s), rho.append(1.0 / ys)
+                    del dirs[0], steps[0], rho[0]
+                dirs.append(y)
+                steps.append(s)
+                rho.append(1.0 / ys)
                 h_diag = ys / float(y @ y)
             q, alpha = -g, [0.0] * len(dirs)
             for i in range(len(dirs) - 1, -1, -1):
