@@ -111,7 +111,7 @@ def minimize(fun: Objective, x0: np.ndarray, max_iter: int, tolerance_grad: floa
     dirs: list[np.ndarray] = []  # gradient changes y
     steps: list[np.ndarray] = []  # position changes s
     rho: list[float] = []
-    h_diag, d, t, g_prev = 1.0, -g, 1.0, g
+    h_diag, d = 1.0, -g
     n_iter = 0
     while n_iter < max_iter:
         n_iter += 1
