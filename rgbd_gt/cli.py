@@ -516,6 +516,7 @@ def export_depth(
     camera: Path = typer.Option(..., "--camera", help="Camera file of the photo (the depth map has its size and distortion)."),
     pose: Path = typer.Option(..., "--pose", help="Pose file (T_cam_from_scan), e.g. from refine."),
     output: Path = typer.Option(..., "-o", "--output", help="Depth map to write (.exr, channel Z, metres, 0 = no depth)."),
+    image: Optional[Path] = typer.Option(None, "--image", help="The photo: its size is taken for a camera file that holds none (a calibration text or JSON file) and checked against one that does."),
     png16: Optional[Path] = typer.Option(None, "--png16", help="Also a 16-bit PNG in millimetres (0 = no depth)."),
     normals: Optional[Path] = typer.Option(None, "--normals", help="Also the camera-frame normals as an EXR (N.X, N.Y, N.Z)."),
     mask: Optional[Path] = typer.Option(None, "--mask", help="Also a validity mask PNG (255 where there is depth)."),
@@ -527,13 +528,14 @@ def export_depth(
     z-depth in metres, occlusion-correct (a grid mesh ray-cast, or surfels for unstructured scans;
     a LiDAR sweep's own points, sparse)."""
     from rgbd_gt.io import read_camera, read_pose
+    from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.depth_file import write_depth_exr, write_depth_png16
-    from rgbd_gt.io.image import write_image
+    from rgbd_gt.io.image import read_image, write_image
     from rgbd_gt.io.outputs import Outputs
     from rgbd_gt.render.depth import back_facing_fraction, back_facing_warning, point_depth, render_depth
     from rgbd_gt.render.points import as_points
 
-    outs = Outputs([scan, camera, pose])
+    outs = Outputs([scan, camera, pose] + ([image] if image else []))
     staged = {name: outs.file(p, option, suffixes) for name, p, option, suffixes in [
         ("depth", output, "-o", (".exr",)), ("png16", png16, "--png16", (".png",)),
         ("normals", normals, "--normals", (".exr",)), ("mask", mask, "--mask", (".png",))] if p is not None}
@@ -541,7 +543,10 @@ def export_depth(
     if max_depth is not None and max_depth < 0:
         raise InputError(f"--max-depth must be positive (0: no limit), got {max_depth}")
     start = time.perf_counter()
-    cam = read_camera(camera)
+    photo_shape = read_image(image).shape if image else None
+    cam = read_camera(camera, photo_shape and (photo_shape[1], photo_shape[0]))
+    if photo_shape:
+        check_image_matches(cam, photo_shape, image, camera)
     T, _ = read_pose(pose)
     from rgbd_gt.prepared import scan_in_view
 

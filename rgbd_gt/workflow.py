@@ -210,7 +210,7 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
     from rgbd_gt.io.atomic import atomic_output
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.depth_file import write_depth_exr, write_depth_png16
-    from rgbd_gt.io.image import read_image, write_image
+    from rgbd_gt.io.image import check_has_contrast, read_image, write_image
     from rgbd_gt.io.scan import scan_colors
     from rgbd_gt.qa.edges import qa, side_by_side
     from rgbd_gt.qa.overlay import overlay, points_image
@@ -232,6 +232,7 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
              "overlay": d / "overlay.png"}
     image = read_image(photo)
     check_image_matches(camera, image.shape, photo, "the camera file")
+    check_has_contrast(image, photo)
 
     progress("init-pose")
     if files["init"].exists():
@@ -244,7 +245,7 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
     if len(scan) == 0:
         raise InputError("no scan points in view of the initial pose", files["init"])
     expect_poses(scan, [T_init])  # qa renders it beside the refined pose: one ray-casting scene for both
-    colors = scan_colors(scan, prepared.source)
+    colors = scan_colors(scan, prepared.source, to_align=True)
     lap("view")
 
     progress("refine")
@@ -365,7 +366,7 @@ def shared_camera(photos: list[Path], prepared, camera, board: BoardConfig, cfg:
             (out / photo.stem).mkdir(parents=True, exist_ok=True)
             T_init, init_meta = initial_pose(photo, image, prepared, camera, board, out / photo.stem / "init.yaml", init)
             scan = prepared.view(camera, T_init)
-            inputs = RefineInputs(scan.xyz, scan_colors(scan, prepared.source), image, camera, T_init, None, scan, init_meta)
+            inputs = RefineInputs(scan.xyz, scan_colors(scan, prepared.source, to_align=True), image, camera, T_init, None, scan, init_meta)
             r = make_aligner(inputs, cfg.refine, cfg.device).refine(T_init)
         except InputError:
             continue  # the photo's own run reports why

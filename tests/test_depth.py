@@ -161,12 +161,12 @@ def test_export_depth_of_a_real_sweep_is_its_points(tmp_path):
     """A LiDAR sweep (PJLab scene 3) exports sparse depth by default: about one pixel per visible
     return, every one at a return's depth, no pixel between the rings."""
     from conftest import _need
-    from rgbd_gt.io import read_camera
 
     folder = _need("lidar_camera") / "pjlab_3"
-    write_camera(tmp_path / "camera.yaml", read_camera(folder / "calib.txt", (1920, 1200)))
-    proc = run_cli("export-depth", "--scan", folder / "calib.pcd", "--camera", tmp_path / "camera.yaml", "--pose",
-                   folder / "calib.txt", "-o", tmp_path / "d.exr", "--normals", tmp_path / "n.exr")
+    args = ("export-depth", "--scan", folder / "calib.pcd", "--camera", folder / "calib.txt", "--pose", folder / "calib.txt",
+            "-o", tmp_path / "d.exr")
+    assert_one_line_error(run_cli(*args), "calib.txt", "no image size", "--image")  # K and D, no size
+    proc = run_cli(*args, "--image", folder / "calib.png", "--normals", tmp_path / "n.exr")
     assert proc.returncode == 0, proc.stderr
     assert "sparse" in proc.stdout
     z, _ = read_depth_exr(tmp_path / "d.exr")

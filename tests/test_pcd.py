@@ -56,6 +56,15 @@ def test_broken_pcd_files(tmp_path):
     (tmp_path / "noxyz.pcd").write_text(header.replace("FIELDS x y z", "FIELDS a b c"))
     with pytest.raises(InputError, match="no x y z"):
         load_scan(tmp_path / "noxyz.pcd")
+    ascii_header = header.replace("DATA binary", "DATA ascii").replace("100", "2")
+    (tmp_path / "word.pcd").write_text(ascii_header + "1 2 3\n1 2 x\n")  # Open3D reads the word as 0
+    with pytest.raises(InputError, match="line 2: 'x'"):
+        load_scan(tmp_path / "word.pcd")
+    (tmp_path / "row.pcd").write_text(ascii_header + "1 2 3\n1 2\n")  # Open3D fills it from uninitialised memory
+    with pytest.raises(InputError, match="5 numbers where the header declares 6"):
+        load_scan(tmp_path / "row.pcd")
+    (tmp_path / "nan.pcd").write_text(ascii_header + "1 2 3\nnan nan nan\n")  # PCL's 'no return'
+    assert len(load_scan(tmp_path / "nan.pcd")) == 1
     assert_one_line_error(run_cli("ingest", tmp_path / "short.pcd", "-o", tmp_path / "out.ply"), "short.pcd")
     assert not (tmp_path / "out.ply").exists()
 

@@ -58,11 +58,12 @@ def load_inputs(scan_path: Path, image_path: Path, camera_path: Path, init_path:
                 mask_path: Path | None = None) -> RefineInputs:
     from rgbd_gt.io import load_scan, read_camera, read_pose
     from rgbd_gt.io.camera_file import check_image_matches
-    from rgbd_gt.io.image import read_image, read_mask
+    from rgbd_gt.io.image import check_has_contrast, read_image, read_mask
     from rgbd_gt.render.blocks import view_of
     from rgbd_gt.render.normals import with_normals
 
     photo = read_image(image_path)
+    check_has_contrast(photo, image_path)
     camera = read_camera(camera_path, (photo.shape[1], photo.shape[0]))
     check_image_matches(camera, photo.shape, image_path, camera_path)
     T_init, init_meta = read_pose(init_path)
@@ -74,7 +75,7 @@ def load_inputs(scan_path: Path, image_path: Path, camera_path: Path, init_path:
     if len(scan) == 0:
         raise InputError("no scan points in view of the initial pose (nor near it): check the pose, the camera file "
                          "and the scan", init_path)
-    return RefineInputs(scan.xyz, scan_colors(scan, scan_path), photo, camera, T_init, ignore, scan, init_meta)
+    return RefineInputs(scan.xyz, scan_colors(scan, scan_path, to_align=True), photo, camera, T_init, ignore, scan, init_meta)
 
 
 def camera_disagreement(camera, init_meta: dict, camera_path) -> str | None:

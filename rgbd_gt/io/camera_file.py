@@ -109,9 +109,15 @@ def read_camera(path: str | os.PathLike, size: tuple[int, int] | None = None) ->
     path = require_file(path)
     if needs_photo_size(path):
         if size is None:
-            raise InputError("a calibration text or JSON file has no image size: use it where the photo is given, "
-                             "or write a camera YAML", path)
-        return (read_json_camera if is_calib_json(path) else read_calib_camera)(path, size)
+            raise InputError("a calibration text or JSON file has no image size: give the photo too (export-depth: "
+                             "--image) or write a camera YAML", path)
+        cam = (read_json_camera if is_calib_json(path) else read_calib_camera)(path, size)
+        # the photo's size is taken on trust here: a principal point outside it gives a resized
+        # or another camera's photo away
+        if not (0 < cam.cx < cam.width and 0 < cam.cy < cam.height):
+            raise InputError(f"the principal point ({cam.cx:g}, {cam.cy:g}) lies outside the {cam.width}x{cam.height} "
+                             "photo: is this file for that photo (a resized photo needs K scaled)?", path)
+        return cam
     text = path.read_text(errors="replace")
     if text.lstrip().startswith("%YAML:1.0") or "opencv-matrix" in text or path.suffix.lower() == ".xml":
         return _read_opencv(path)

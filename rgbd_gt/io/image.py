@@ -58,6 +58,12 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     return np.ascontiguousarray(img[:, :, ::-1])
 
 
+def check_has_contrast(image: np.ndarray, path) -> None:
+    """InputError for a photo of one value (a lens cap, a failed exposure): nothing to align by."""
+    if image.size and image.min() == image.max():
+        raise InputError(f"every pixel of the photo is {int(image.flat[0])}: nothing to align the scan to", path)
+
+
 def read_mask(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarray:
     """Read a mask image: (H, W) bool, True where pixels are to be IGNORED (non-zero pixels).
 

@@ -72,6 +72,29 @@ def _check_sizes(path: Path, header: dict[str, list[str]], data_offset: int) -> 
     room = left // row if kind == "binary" else (left + 1) // 2 if kind == "ascii" else (2**32 - 1) // row
     if points > room:
         raise InputError(f"PCD declares {points:,} points but the file cannot hold them (truncated?)", path)
+    if kind == "ascii":
+        _check_ascii(path, data_offset, points * sum(counts))
+
+
+_NUMBER_BYTES = np.zeros(256, bool)
+_NUMBER_BYTES[list(b"0123456789+-.eEnaNAifIF")] = True
+_SPACE_BYTES = np.zeros(256, bool)
+_SPACE_BYTES[list(b" \t\r\n")] = True
+
+
+def _check_ascii(path: Path, data_offset: int, values: int) -> None:
+    """ASCII data holds numbers only, as many as the header declares. Open3D reads a word as 0
+    and fills a short row from uninitialised memory, without a word of warning."""
+    data = np.fromfile(path, np.uint8, offset=data_offset)
+    bad = ~(_NUMBER_BYTES[data] | _SPACE_BYTES[data])
+    if bad.any():
+        at = int(np.argmax(bad))
+        line = int(np.count_nonzero(data[:at] == ord("\n"))) + 1
+        raise InputError(f"PCD data line {line}: {chr(data[at])!r} is not part of a number", path)
+    space = _SPACE_BYTES[data]
+    found = int(np.count_nonzero(~space[1:] & space[:-1])) + int(data.size > 0 and not space[0])
+    if found != values:
+        raise InputError(f"PCD data holds {found:,} numbers where the header declares {values:,} (rows short or long?)", path)
 
 
 def normalise_intensity(raw: np.ndarray) -> np.ndarray:

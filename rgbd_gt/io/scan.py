@@ -65,13 +65,19 @@ class Scan:
         return out
 
 
-def scan_colors(scan: Scan, path: object = None) -> np.ndarray:
-    """What photos are matched against: RGB (N, 3) uint8, else intensity (N, 1) in [0, 1]."""
+def scan_colors(scan: Scan, path: object = None, to_align: bool = False) -> np.ndarray:
+    """What photos are matched against: RGB (N, 3) uint8, else intensity (N, 1) in [0, 1].
+    `to_align`: InputError when every point has the same value (nothing to align a photo by)."""
     if scan.rgb is not None:
-        return scan.rgb
-    if scan.intensity is not None:
-        return scan.intensity.reshape(-1, 1)
-    raise InputError("the scan has neither colors nor intensity", path)
+        colors = scan.rgb
+    elif scan.intensity is not None:
+        colors = scan.intensity.reshape(-1, 1)
+    else:
+        raise InputError("the scan has neither colors nor intensity", path)
+    if to_align and len(colors) and (colors == colors[0]).all():
+        what = "color" if scan.rgb is not None else "intensity"
+        raise InputError(f"every point in view has the same {what}: nothing to align the photo by", path)
+    return colors
 
 
 def colors_to_gray(colors: np.ndarray) -> np.ndarray:
