@@ -159,6 +159,18 @@ def covariance(H: np.ndarray, energy: float, count: int) -> np.ndarray:
     return energy / max(count - len(H), 1) * (s[:, None] * np.linalg.inv(Hs) * s[None, :])
 
 
+def refine_each(aligner, starts: list[np.ndarray], **refine_args) -> list[np.ndarray | None]:
+    """`aligner.refine(T0, **refine_args)`'s pose from each start in turn; None for a start that
+    lost the scan."""
+    out = []
+    for T0 in starts:
+        try:
+            out.append(aligner.refine(T0, **refine_args).T_cam_from_scan)
+        except InputError:
+            out.append(None)
+    return out
+
+
 def _valid_at(valid: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     """All four bilinear neighbours of uv (N, 2) are usable pixels."""
     h, w = valid.shape
@@ -410,13 +422,7 @@ class Aligner:
         damping, acceptance and stop). Returns the poses, None for a start that lost the scan.
         (The paper's Adam has no batched form here: one run after another.)"""
         if self.cfg.optimizer != "lm":
-            out = []
-            for T0 in starts:
-                try:
-                    out.append(self.refine(T0, finest=finest, coarsest=coarsest, iterations=iterations).T_cam_from_scan)
-                except InputError:
-                    out.append(None)
-            return out
+            return refine_each(self, starts, finest=finest, coarsest=coarsest, iterations=iterations)
         levels = self._prepared[1]
         Ts = [self._to_local(np.asarray(T, np.float64)) for T in starts]
         lost = np.zeros(len(Ts), bool)

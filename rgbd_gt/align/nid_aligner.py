@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from rgbd_gt.align import lbfgs
-from rgbd_gt.align.aligner import RefineResult
+from rgbd_gt.align.aligner import RefineResult, refine_each
 from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.align.nid import nid_of_windows, parzen_windows
 from rgbd_gt.align.pyramid import PhotoLevel
@@ -380,13 +380,7 @@ class NidAligner:
         """`refine` from each start, with its wide search (a repeat that skips it answers another
         question: from 3 deg inits such runs ended 90-220 px apart around right results); None for
         a start that lost the scan."""
-        out = []
-        for T0 in starts:
-            try:
-                out.append(self.refine(T0, finest=finest, coarsest=coarsest, iterations=iterations).T_cam_from_scan)
-            except InputError:
-                out.append(None)
-        return out
+        return refine_each(self, starts, finest=finest, coarsest=coarsest, iterations=iterations)
 
     def visible_scan_points(self, T: np.ndarray) -> np.ndarray:
         """(n, 3) float64 scan-frame points of the first frame's finest level visible at T."""
