@@ -72,7 +72,8 @@ def scene(tmp_path_factory):
     write_camera(d / "camera.yaml", CAMERA)
     write_pose(d / "behind.yaml", camera_pose())
     write_pose(d / "wall_only.yaml", camera_pose(eye=(4.0, 0.0, 1.8), target=(0.0, 0.0, 2.5)))
-    write_image(d / "photo.png", np.full((CAMERA.height, CAMERA.width, 3), 128, np.uint8))
+    noise = np.random.default_rng(0).integers(0, 256, (CAMERA.height, CAMERA.width, 3), dtype=np.uint8)
+    write_image(d / "photo.png", noise)  # a photo of one value is refused before the view is looked at
     return d, scan
 
 

@@ -147,7 +147,8 @@ def test_non_finite_and_degenerate_input(scene, tmp_path):
     assert_one_line_error(run_cli("ingest", tmp_path / "inf.ply", "-o", tmp_path / "out.ply"), "inf.ply", "point 7")
     assert not (tmp_path / "out.ply").exists()
     # 1000 identical points cannot be aligned to
-    write_ply(tmp_path / "same.ply", Scan(np.tile([[0.1, 0.0, 2.0]], (1000, 1)), rgb=np.full((1000, 3), 128, np.uint8)))
+    colors = np.random.default_rng(0).integers(0, 256, (1000, 3), dtype=np.uint8)  # one color is refused first
+    write_ply(tmp_path / "same.ply", Scan(np.tile([[0.1, 0.0, 2.0]], (1000, 1)), rgb=colors))
     (tmp_path / "eye.yaml").write_text(yaml.safe_dump({"T_cam_from_scan": np.eye(4).tolist()}))
     proc = run_cli("refine", "--scan", tmp_path / "same.ply", "--image", scene / "photo.png", "--camera",
                    scene / "camera.yaml", "--init", tmp_path / "eye.yaml", "-o", tmp_path / "pose.yaml")

@@ -15,7 +15,8 @@ from rgbd_gt.pose import rotation_error_deg, translation_error_m
 def test_run_two_photos_then_resume(tmp_path):
     scene = tmp_path / "scene"
     assert run_cli("synth", scene, "--size", "small", "--seed", 2, "--photos", 2).returncode == 0
-    cv2.imwrite(str(scene / "photo_blank.png"), np.full((480, 640, 3), 90, np.uint8))  # a photo without the board
+    noise = np.random.default_rng(0).integers(0, 256, (480, 640, 3), dtype=np.uint8)
+    cv2.imwrite(str(scene / "photo_blank.png"), noise)  # a photo without the board
     config = {"scan": "scene/scan.e57", "camera": "scene/camera.yaml", "photos": ["scene/photo*.png"],
               "output": "out", "refine": {"max_points": 40000}}
     (tmp_path / "run.yaml").write_text(yaml.safe_dump(config))
