@@ -161,6 +161,8 @@ def test_labelled_picks_report_each_pair(scenes, tmp_path):
         assert_one_line_error(run_cli(*args, "-o", tmp_path / "c.yaml", *bad), what)
     (tmp_path / "bad.csv").write_text("u,v,x,y\n1,2,3,4\n")
     assert_one_line_error(run_cli(*args[:-1], tmp_path / "bad.csv", "-o", tmp_path / "c.yaml"), "bad.csv", "no column z")
+    (tmp_path / "same.csv").write_text("u,v,x,y,z\n" + "100,200,1.0,2.0,1.0\n" * 7)  # one pair pasted seven times
+    assert_one_line_error(run_cli(*args[:-1], tmp_path / "same.csv", "-o", tmp_path / "c.yaml"), "same.csv", "distinct")
     assert not (tmp_path / "c.yaml").exists()
 
 
