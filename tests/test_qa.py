@@ -57,3 +57,17 @@ def test_qa_score_falls_on_icl_pairs(icl_dir):
         _, after = qa(scan, scan.rgb, case.photo, ICL_CAMERA, res.T_cam_from_scan)
         assert after.mean_distance_px < before.mean_distance_px
         assert after.within_1px > before.within_1px
+
+
+def test_qa_edges_on_a_sweep_says_its_structural_score_says_nothing(tmp_path):
+    """A LiDAR sweep's rings are drawn as splats tens of pixels wide: the structural score near 1
+    then says nothing about the pose, and qa-edges says so beside the number (as the verdict does)."""
+    from conftest import _need
+
+    d = _need("lidar_camera") / "pjlab_3"
+    proc = run_cli("qa-edges", "--scan", d / "calib.pcd", "--image", d / "calib.png", "--camera", d / "calib.txt",
+                   "--pose", d / "calib.txt", "-o", tmp_path / "qa.png", "--json", tmp_path / "qa.json")
+    assert proc.returncode == 0, proc.stderr
+    score = json.loads((tmp_path / "qa.json").read_text())
+    assert not score["edge_check_usable"] and score["splat_radius_px"] > 6
+    assert "says nothing" in " ".join(proc.stdout.split())
