@@ -72,8 +72,10 @@ class SynthConfig:
                 raise ValueError(f"{name} must be [low, high] with 0 <= low <= high, got {lo_hi}")
         if not (1 <= self.hfov_deg[0] and self.hfov_deg[1] < 170):
             raise ValueError(f"hfov_deg must lie in 1..170, got {self.hfov_deg}")
-        if self.board_cols < 2 or self.board_rows < 2 or not self.square_m > 0 or not self.texel_m > 0:
-            raise ValueError("board_cols and board_rows at least 2, square_m and texel_m positive")
+        # the board must fit in the photo from 1.8-2.6 m (the generator tries layouts until it does)
+        if not (2 <= self.board_cols <= 50 and 2 <= self.board_rows <= 50 and 0 < self.square_m <= 0.5
+                and self.texel_m > 0):
+            raise ValueError("board_cols and board_rows 2..50, square_m in (0, 0.5], texel_m positive")
         if self.range_noise_m < 0 or self.scan_margin_deg < 0 or self.max_layout_tries < 1:
             raise ValueError("range_noise_m and scan_margin_deg 0 or more, max_layout_tries at least 1")
         return self
