@@ -63,6 +63,9 @@ def test_broken_pcd_files(tmp_path):
     (tmp_path / "row.pcd").write_text(ascii_header + "1 2 3\n1 2\n")  # Open3D fills it from uninitialised memory
     with pytest.raises(InputError, match="5 numbers where the header declares 6"):
         load_scan(tmp_path / "row.pcd")
+    (tmp_path / "width.pcd").write_text(ascii_header.replace("WIDTH 2", "WIDTH -5") + "1 2 3\n4 5 6\n")
+    with pytest.raises(InputError, match="WIDTH x HEIGHT"):
+        load_scan(tmp_path / "width.pcd")
     (tmp_path / "nan.pcd").write_text(ascii_header + "1 2 3\nnan nan nan\n")  # PCL's 'no return'
     assert len(load_scan(tmp_path / "nan.pcd")) == 1
     assert_one_line_error(run_cli("ingest", tmp_path / "short.pcd", "-o", tmp_path / "out.ply"), "short.pcd")

@@ -60,8 +60,11 @@ def _check_sizes(path: Path, header: dict[str, list[str]], data_offset: int) -> 
         points = int(header["POINTS"][0])
         sizes = [int(v) for v in header.get("SIZE", ["4"] * n_fields)]
         counts = [int(v) for v in header.get("COUNT", ["1"] * n_fields)]
+        shape = [int(header[k][0]) for k in ("WIDTH", "HEIGHT") if k in header]
     except (ValueError, IndexError):
-        raise InputError("PCD header: POINTS, SIZE and COUNT must be whole numbers", path) from None
+        raise InputError("PCD header: POINTS, WIDTH, HEIGHT, SIZE and COUNT must be whole numbers", path) from None
+    if len(shape) == 2 and (min(shape) < 0 or shape[0] * shape[1] != points):
+        raise InputError(f"PCD header: WIDTH x HEIGHT ({shape[0]} x {shape[1]}) is not POINTS ({points})", path)
     if len(sizes) != n_fields or len(counts) != n_fields or len(header.get("TYPE", ["F"] * n_fields)) != n_fields:
         raise InputError("PCD header: FIELDS, SIZE, TYPE and COUNT differ in length", path)
     if points < 0 or any(s not in (1, 2, 4, 8) for s in sizes) or any(c < 1 for c in counts):
