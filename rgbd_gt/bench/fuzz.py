@@ -407,9 +407,10 @@ def make_trial(k: int, tpls: list[dict], seeds: dict[str, Path], root: Path, rng
             argv[j + 1] = val
         elif how in ("value", "add"):
             val = rng.choice(ODD_ARGS)
+            later = extra in argv  # an option given twice takes its last value (Click's rule)
             argv[1:1] = [extra, val]
-            name += f" | added {extra} {val!r}"
-            invalid = val in ("nan", "inf", "-inf", "abc", "", "99999999999999999999", "0x10", "1,2")
+            name += f" | added {extra} {val!r}" + (" (given again later)" if later else "")
+            invalid = val in ("nan", "inf", "-inf", "abc", "", "99999999999999999999", "0x10", "1,2") and not later
         elif how == "unknown":
             argv.append("--no-such-option")
             name += " | unknown option"
