@@ -221,6 +221,7 @@ def init_pose(
     """Coarse pose of a photo from a checkerboard seen in both the photo and the scan (PnP), or
     from hand-picked correspondences (RANSAC PnP)."""
     from rgbd_gt.init.detect import MAX_SQUARE_M, BoardSpec
+    from rgbd_gt.init.pnp import check_spread
     from rgbd_gt.init.run import (board_in_scan, check_picks, detect_photo_board, init_from_board,
                                   init_from_correspondences, read_correspondences, read_csv_rows, write_report)
     from rgbd_gt.io import read_camera, write_pose
@@ -259,6 +260,7 @@ def init_pose(
             the_scan = whole_scan(scan, cache)
             picks = read_correspondences(correspondences)
             check_picks(picks, cam, the_scan.xyz, correspondences, the_scan.origins)
+            check_spread(picks.obj, picks.img, str(correspondences), 6)  # named after the file
             result = init_from_correspondences(picks, cam, estimate_focal, ransac_px)
         else:
             spec = BoardSpec(cols, rows, square, charuco, marker)

@@ -212,7 +212,6 @@ def check_picks(picks: Picks, camera: Camera, points: np.ndarray, path: object,
         k = outside[0]
         raise InputError(f"pair {picks.labels[k]}: scan point {picks.obj[k].tolist()} lies outside the scan "
                          f"({np.round(lo, 2).tolist()} .. {np.round(hi, 2).tolist()}): picked on another scan?", path)
-    check_spread(picks.obj, picks.img, str(path), 6)
 
 
 def init_from_correspondences(picks: Picks, camera: Camera, focal: bool, ransac_px: float = 4.0) -> InitResult:

@@ -85,17 +85,23 @@ _SPACE_BYTES = np.zeros(256, bool)
 _SPACE_BYTES[list(b" \t\r\n")] = True
 
 
-def _check_ascii(path: Path, data_offset: int, values: int) -> None:
+def _check_ascii(path: Path, data_offset: int, values: int, chunk: int = 1 << 26) -> None:
     """ASCII data holds numbers only, as many as the header declares. Open3D reads a word as 0
-    and fills a short row from uninitialised memory, without a word of warning."""
-    data = np.fromfile(path, np.uint8, offset=data_offset)
-    bad = ~(_NUMBER_BYTES[data] | _SPACE_BYTES[data])
-    if bad.any():
-        at = int(np.argmax(bad))
-        line = int(np.count_nonzero(data[:at] == ord("\n"))) + 1
-        raise InputError(f"PCD data line {line}: {chr(data[at])!r} is not part of a number", path)
-    space = _SPACE_BYTES[data]
-    found = int(np.count_nonzero(~space[1:] & space[:-1])) + int(data.size > 0 and not space[0])
+    and fills a short row from uninitialised memory, without a word of warning. Read in chunks
+    of `chunk` bytes: an ascii scan of millions of points is gigabytes."""
+    data = np.memmap(path, np.uint8, mode="r", offset=data_offset) if path.stat().st_size > data_offset else np.zeros(0, np.uint8)
+    found, lines, after_space = 0, 1, True
+    for start in range(0, data.size, chunk):
+        part = np.asarray(data[start:start + chunk])
+        space = _SPACE_BYTES[part]
+        bad = ~(_NUMBER_BYTES[part] | space)
+        if bad.any():
+            at = int(np.argmax(bad))
+            line = lines + int(np.count_nonzero(part[:at] == ord("\n")))
+            raise InputError(f"PCD data line {line}: {chr(part[at])!r} is not part of a number", path)
+        found += int(np.count_nonzero(~space[1:] & space[:-1])) + int(after_space and not space[0])
+        lines += int(np.count_nonzero(part == ord("\n")))
+        after_space = bool(space[-1])
     if found != values:
         raise InputError(f"PCD data holds {found:,} numbers where the header declares {values:,} (rows short or long?)", path)
 
