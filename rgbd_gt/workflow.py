@@ -261,7 +261,8 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
     T, meta = read_pose(files["refine"])
     res.refine_loss, res.inlier_fraction = meta.get("final_loss"), meta.get("inlier_fraction")
     res.verdict, res.reasons = meta.get("verdict"), "; ".join(meta.get("reasons") or [])
-    res.edge_ratio = (meta.get("evidence") or {}).get("edges", {}).get("edge_ratio")
+    edges = (meta.get("evidence") or {}).get("edges", {})
+    res.edge_ratio = edges.get("edge_ratio") if edges.get("edge_check_usable", True) else None  # a sweep's says nothing
 
     progress("export-depth")
     if files["depth"].exists():

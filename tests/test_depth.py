@@ -36,6 +36,12 @@ def test_unstructured_scan_is_rendered_as_surfels(icl_dir):
     assert filled.sum() > 0.95 * both.sum()
     err = np.abs(out.z[filled] - truth[filled])
     assert np.median(err) < 0.002 and np.mean(err > 0.05) < 0.01
+    # a check that cannot use splats wider than it asks for (the verdict's edge check) gets
+    # their size and no drawing
+    T = invert(read_trajectory(icl_dir / "trajectory.log")[1])
+    skipped = render_depth(scan, ICL_CAMERA, T, max_splat_px=out.splat_radius - 1)
+    assert skipped.splat_radius == out.splat_radius and not skipped.z.any()
+    assert render_depth(scan, ICL_CAMERA, T, max_splat_px=out.splat_radius).z.any()
 
 
 @pytest.fixture

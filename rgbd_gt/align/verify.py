@@ -223,7 +223,8 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
     if cfg.repeats > 0:
         ev["repeatability"] = timed("repeatability", repeatability, aligner, result, T_init, view, cfg, init_sigma, seed)
     ev["sharpness"] = timed("sharpness", sharpness, aligner, T, M, cfg.sharpness_step_px, cfg.sharpness_level)
-    _, score = timed("edges", structural_qa, scan, colors, photo, camera, T, cfg.edge_max_side, cfg.edge_shift_px)
+    _, score = timed("edges", lambda: structural_qa(scan, colors, photo, camera, T, cfg.edge_max_side, cfg.edge_shift_px,
+                                                    score_only=True))
     ev["edges"] = score.as_dict()
     if check is not None:
         ev["check"] = check_pairs(check, camera, T_init, T)

@@ -50,10 +50,13 @@ def auto_canny(gray: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
     return edges
 
 
-def scan_view(scan: Scan, colors: np.ndarray, camera: Camera, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+def scan_view(scan: Scan, colors: np.ndarray, camera: Camera, T: np.ndarray,
+              max_splat_px: int | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     """The scan as the camera sees it: gray values (H, W) float32 0..255, z-depth (H, W) metres
-    (0 where it sees no scan) and the splat radius in pixels (0 for a mesh)."""
-    out = render_depth(scan, camera, T, values=colors_to_gray(colors).reshape(-1, 1), normals=False)
+    (0 where it sees no scan, or everywhere when splats would be wider than max_splat_px) and
+    the splat radius in pixels (0 for a mesh)."""
+    out = render_depth(scan, camera, T, values=colors_to_gray(colors).reshape(-1, 1), normals=False,
+                       max_splat_px=max_splat_px)
     return out.colors[..., 0], out.z, out.splat_radius
 
 
@@ -94,10 +97,10 @@ class WorkingView:
 
 
 def working_view(scan: Scan, colors: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray,
-                 max_side: int = 1280) -> WorkingView:
+                 max_side: int = 1280, max_splat_px: int | None = None) -> WorkingView:
     cam = working_camera(camera, max_side)
     small = photo if cam.size == camera.size else cv2.resize(photo, cam.size, interpolation=cv2.INTER_AREA)
-    return WorkingView(cam, small, *scan_view(scan, colors, cam, T))
+    return WorkingView(cam, small, *scan_view(scan, colors, cam, T, max_splat_px))
 
 
 def qa(scan: Scan, colors: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray,
@@ -195,11 +198,13 @@ def working_camera(camera: Camera, max_side: int) -> Camera:
 
 
 def structural_qa(scan: Scan, colors: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray,
-                  max_side: int = 1280, shift_px: int = 6, view: WorkingView | None = None) -> tuple[np.ndarray, StructuralScore]:
+                  max_side: int = 1280, shift_px: int = 6, view: WorkingView | None = None,
+                  score_only: bool = False) -> tuple[np.ndarray, StructuralScore]:
     """(overlay at the working resolution: red = the photo's strongest gradients, blue = the
     scan's structural edges that were scored, white = both; the chance-relative score) for one
-    pose. shift_px is in working-resolution pixels; splats wider than it make the score unusable."""
-    view = view or working_view(scan, colors, photo, camera, T, max_side)
+    pose. shift_px is in working-resolution pixels; splats wider than it make the score unusable,
+    and with score_only they are not drawn at all (the overlay then lacks the scan's edges)."""
+    view = view or working_view(scan, colors, photo, camera, T, max_side, shift_px if score_only else None)
     small, gray, z, radius = view.photo, view.gray, view.z, view.radius
     strength = photo_strength(cv2.cvtColor(small, cv2.COLOR_RGB2GRAY))
     edges = structural_edges(z, gray)

@@ -82,19 +82,21 @@ def pixel_rays(camera: Camera, rows: tuple[int, int] | None = None, normalised: 
 
 
 def render_depth(scan: Scan, camera: Camera, T_cam_from_scan: np.ndarray, max_depth: float | None = None,
-                 values: np.ndarray | None = None, normals: bool = True) -> DepthMap:
+                 values: np.ndarray | None = None, normals: bool = True, max_splat_px: int | None = None) -> DepthMap:
     """Occlusion-correct depth: a structured scan is triangulated along its grid and ray-cast
     (Open3D); a scan without a grid is splatted with discs sized by its point spacing.
     values: optional per-point (N, C) values (colors) rendered along, as DepthMap.colors (of the
     values' dtype: uint8 colors stay uint8). normals: also the camera-frame normals (else
-    DepthMap.normals is None, which saves 12 bytes a pixel).
+    DepthMap.normals is None, which saves 12 bytes a pixel). max_splat_px: splats wider than
+    this are not drawn (z all 0; splat_radius says how wide they would be), for a check that
+    cannot use them (a sweep's are tens of pixels and take seconds).
 
     Surfaces seen from behind (their normals, `render.normals`, facing away from the camera)
     render as 0 and are counted in DepthMap.back_facing; they still hide what lies behind them."""
     if scan.has_grid:
         out = _raycast_mesh(scan, camera, T_cam_from_scan, values, normals)
     else:
-        out = _splat(scan, camera, T_cam_from_scan, values)
+        out = _splat(scan, camera, T_cam_from_scan, values, max_splat_px)
         if not normals:
             out.normals = None
     if max_depth is not None:
@@ -391,7 +393,8 @@ def surfel_slope(p: np.ndarray, n: np.ndarray, z: np.ndarray, camera: Camera, ra
     return (s * scale[:, None]).astype(np.float32)
 
 
-def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None) -> DepthMap:
+def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None,
+           max_splat_px: int | None = None) -> DepthMap:
     import torch
 
     from rgbd_gt.render.normals import facing_camera, with_normals
@@ -405,10 +408,13 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None)
     m = 0.05 * max(camera.size)
     seen = (z > 1e-3) & (uv[:, 0] > -m) & (uv[:, 1] > -m) & (uv[:, 0] < camera.width + m) & (uv[:, 1] < camera.height + m)
     uv, z = uv[seen], z[seen]
-    if len(z) < 4:
+    def nothing(why: str, radius: int = 0) -> DepthMap:
         zz = np.zeros((camera.height, camera.width), np.float32)
         colors = None if values is None else np.zeros(zz.shape + (values.shape[1],), values.dtype)
-        return DepthMap(zz, np.zeros(zz.shape + (3,), np.float32), "splats (nothing in view)", colors)
+        return DepthMap(zz, np.zeros(zz.shape + (3,), np.float32), why, colors, radius)
+
+    if len(z) < 4:
+        return nothing("splats (nothing in view)")
     vals = values[seen].astype(np.float32) if values is not None else np.zeros((len(z), 1), np.float32)
     normals = with_normals(scan).normals
     surfels, back = None, None
@@ -419,10 +425,13 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None)
         # discs of the local spacing (a scanner's grows with range and on surfaces seen at a
         # slant), just closing the gaps of a square sampling (s / sqrt 2) with a 6% margin: a larger
         # disc grows every silhouette (docs/depth_benchmark.md)
-        n_cam = normals[seen] @ T[:3, :3].T
         reach = 0.75 * local_spacing(p[seen])
         reach_px = reach * camera.fx / z
         radius = max(1, int(np.ceil(min(np.quantile(reach_px, 0.99), 4 * np.median(reach_px)))))
+    if max_splat_px is not None and radius > max_splat_px:
+        return nothing(f"splats of radius {radius} px (over {max_splat_px}: not drawn)", radius)
+    if normals is not None:
+        n_cam = normals[seen] @ T[:3, :3].T
         slope = surfel_slope(p[seen], n_cam, z, camera, radius)
         surfels = Surfels(torch.as_tensor(slope), torch.as_tensor(reach), camera.fx, camera.fy)
     img, depth, index = splat(torch.as_tensor(uv), torch.as_tensor(z), torch.as_tensor(vals), camera.size, radius, surfels)
