@@ -408,6 +408,7 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None,
     m = 0.05 * max(camera.size)
     seen = (z > 1e-3) & (uv[:, 0] > -m) & (uv[:, 1] > -m) & (uv[:, 0] < camera.width + m) & (uv[:, 1] < camera.height + m)
     uv, z = uv[seen], z[seen]
+
     def nothing(why: str, radius: int = 0) -> DepthMap:
         zz = np.zeros((camera.height, camera.width), np.float32)
         colors = None if values is None else np.zeros(zz.shape + (values.shape[1],), values.dtype)
