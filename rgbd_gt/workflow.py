@@ -210,7 +210,7 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
     from rgbd_gt.io.atomic import atomic_output
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.depth_file import write_depth_exr, write_depth_png16
-    from rgbd_gt.io.image import check_has_contrast, read_image, write_image
+    from rgbd_gt.io.image import read_image, write_image
     from rgbd_gt.io.scan import scan_colors
     from rgbd_gt.qa.edges import qa, side_by_side
     from rgbd_gt.qa.overlay import overlay, points_image
@@ -230,9 +230,8 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
     d.mkdir(parents=True, exist_ok=True)
     files = {"init": d / "init.yaml", "refine": d / "pose.yaml", "depth": d / "depth.exr", "qa": d / "qa.json",
              "overlay": d / "overlay.png"}
-    image = read_image(photo)
+    image = read_image(photo, to_align=True)
     check_image_matches(camera, image.shape, photo, "the camera file")
-    check_has_contrast(image, photo)
 
     progress("init-pose")
     if files["init"].exists():
@@ -362,7 +361,7 @@ def shared_camera(photos: list[Path], prepared, camera, board: BoardConfig, cfg:
     for photo in photos:
         progress(f"{photo.name}: camera")
         try:
-            image = read_image(photo)
+            image = read_image(photo, to_align=True)
             check_image_matches(camera, image.shape, photo, "the camera file")
             (out / photo.stem).mkdir(parents=True, exist_ok=True)
             T_init, init_meta = initial_pose(photo, image, prepared, camera, board, out / photo.stem / "init.yaml", init)

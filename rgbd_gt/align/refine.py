@@ -58,12 +58,11 @@ def load_inputs(scan_path: Path, image_path: Path, camera_path: Path, init_path:
                 mask_path: Path | None = None) -> RefineInputs:
     from rgbd_gt.io import load_scan, read_camera, read_pose
     from rgbd_gt.io.camera_file import check_image_matches
-    from rgbd_gt.io.image import check_has_contrast, read_image, read_mask
+    from rgbd_gt.io.image import read_image, read_mask
     from rgbd_gt.render.blocks import view_of
     from rgbd_gt.render.normals import with_normals
 
-    photo = read_image(image_path)
-    check_has_contrast(photo, image_path)
+    photo = read_image(image_path, to_align=True)
     camera = read_camera(camera_path, (photo.shape[1], photo.shape[0]))
     check_image_matches(camera, photo.shape, image_path, camera_path)
     T_init, init_meta = read_pose(init_path)

@@ -41,8 +41,10 @@ def _imread(path: Path, flags: int) -> np.ndarray:
     return img
 
 
-def read_image(path: str | os.PathLike) -> np.ndarray:
-    """Read a photo as (H, W, 3) uint8 RGB (grayscale and 16-bit images are converted)."""
+def read_image(path: str | os.PathLike, to_align: bool = False) -> np.ndarray:
+    """Read a photo as (H, W, 3) uint8 RGB (grayscale and 16-bit images are converted).
+    `to_align`: InputError for a photo of one value (a lens cap, a failed exposure): nothing to
+    align a scan to."""
     import cv2
 
     path = require_file(path)
@@ -51,17 +53,13 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
         img = (img / 257.0 + 0.5).astype(np.uint8)
     elif img.dtype != np.uint8:
         raise InputError(f"unsupported image type {img.dtype}", path)
+    if to_align and img.size and img.min() == img.max():
+        raise InputError(f"every pixel of the photo is {int(img.flat[0])}: nothing to align the scan to", path)
     if img.ndim == 2:
         return np.repeat(img[:, :, None], 3, axis=2)
     if img.shape[2] == 4:
         img = img[:, :, :3]
     return np.ascontiguousarray(img[:, :, ::-1])
-
-
-def check_has_contrast(image: np.ndarray, path) -> None:
-    """InputError for a photo of one value (a lens cap, a failed exposure): nothing to align by."""
-    if image.size and image.min() == image.max():
-        raise InputError(f"every pixel of the photo is {int(image.flat[0])}: nothing to align the scan to", path)
 
 
 def read_mask(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarray:

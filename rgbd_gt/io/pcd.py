@@ -135,13 +135,13 @@ def read_pcd(path: str | Path) -> Scan:
         lines = [re.sub(r"\x1b\[[0-9;]*m|.*\.cpp:\d+:\s*|\[[0-9;]*m", "", ln).strip() for ln in said if "Error" in ln]
         why = next((ln for ln in lines if ln), "unreadable")
         raise InputError(f"could not read the PCD data ({why[:200]})", path)
-    declared = int(header["POINTS"][0]) if header["POINTS"] and header["POINTS"][0].isdigit() else -1
+    declared = int(header["POINTS"][0])  # a whole number of 0 or more: read_header checked it
     if "positions" not in cloud.point or len(cloud.point.positions) == 0:
         if declared == 0:
             return Scan(xyz=np.zeros((0, 3)))
         raise InputError("could not read the PCD data (truncated or corrupt)", path)
     xyz = cloud.point.positions.numpy().astype(np.float64)
-    if declared >= 0 and len(xyz) != declared:
+    if len(xyz) != declared:
         raise InputError(f"PCD declares {declared} points but holds {len(xyz)}", path)
     ok = np.isfinite(xyz).all(axis=1)
     intensity = rgb = None
