@@ -136,6 +136,8 @@ def ingest(
             images += extract_images(path, images_dir)
     merged = merge_scans(scans)
     del scans
+    if len(merged) == 0:
+        raise InputError("no points", ", ".join(str(p) for p in paths))
     if box is not None:
         merged = crop(merged, *box)
         if len(merged) == 0:

@@ -68,6 +68,9 @@ def test_ingest_bad_inputs(e57_dir, tmp_path):
     assert_one_line_error(run_cli("ingest", e57_dir / "pumpA.e57", "-o", tmp_path / "o.txt"), ".ply")
     (tmp_path / "notes.xyz").write_text("1 2 3\n")
     assert_one_line_error(run_cli("ingest", tmp_path / "notes.xyz", "-o", tmp_path / "o.ply"), "unknown scan format")
+    (tmp_path / "none.pcd").write_text("FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 0\nHEIGHT 1\n"
+                                       "POINTS 0\nDATA ascii\n")
+    assert_one_line_error(run_cli("ingest", tmp_path / "none.pcd", "-o", tmp_path / "o.ply"), "none.pcd", "no points")
     assert not (tmp_path / "o.ply").exists()
 
 
