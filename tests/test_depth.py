@@ -180,3 +180,54 @@ def test_export_depth_of_a_real_sweep_is_its_points(tmp_path):
     assert 4000 < have.sum() < 12000  # of about 10k returns in view, those the Z-buffer keeps
     rows = have.any(1)  # points, not bands: under 10% of the pixels of the rows that hold depth
     assert have[rows].mean() < 0.1
+
+
+def _rings(n_rings: int = 32, step_deg: float = 0.2, seed: int = 0) -> np.ndarray:
+    """(n, 3) returns of a spinning LiDAR at the origin: rings of fixed elevation -15..15 deg,
+    one return every step_deg of azimuth, at random ranges 2-60 m."""
+    rng = np.random.default_rng(seed)
+    el, az = np.meshgrid(np.radians(np.linspace(-15, 15, n_rings)), np.radians(np.arange(0, 360, step_deg)), indexing="ij")
+    r = rng.uniform(2, 60, el.shape)
+    return np.stack([r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)], -1).reshape(-1, 3)
+
+
+def test_a_sweep_is_known_by_its_rings_not_by_its_fields(icl_dir):
+    """`is_sweep`: points on cones of fixed elevation about the sensor are a sweep, colored or
+    not, wherever the sensor stands (its origin); a dense scan stripped of its grid, or a scan
+    with a grid, renders as surfaces even with intensity only."""
+    from rgbd_gt.render.points import is_sweep
+
+    xyz = _rings()
+    assert is_sweep(Scan(xyz=xyz, intensity=np.ones(len(xyz), np.float32)))
+    moved = np.array([[120.0, -40.0, 3.0]])
+    assert is_sweep(Scan(xyz=xyz + moved, rgb=np.zeros((len(xyz), 3), np.uint8), origins=moved))
+    assert is_sweep(Scan(xyz=_rings(128, 0.1)))  # a 128-ring sensor
+    assert not is_sweep(Scan(xyz=xyz + moved))  # seen from elsewhere: no rings
+    grid = np.indices((32, 1800)).reshape(2, -1).astype(np.int32)
+    assert not is_sweep(Scan(xyz=xyz, row=grid[0], col=grid[1]))  # a grid renders as surfaces
+    dense = frame_grid_scan(icl_dir, 0)  # a room seen from the camera that took it
+    flat = dataclasses.replace(dense, row=None, col=None, rgb=None, intensity=np.full(len(dense), 0.5, np.float32))
+    assert not is_sweep(flat)
+
+
+def test_export_depth_of_a_real_scan_without_grid_or_color_is_dense(e57_dir, tmp_path):
+    """pumpA with its grid and colors dropped (the form of an intensity-only scan exported as a
+    bare point list) is still a dense scan: export-depth renders its surfaces by default, not
+    a sweep's sparse points."""
+    from rgbd_gt.io import load_scan
+
+    scan = load_scan(e57_dir / "pumpA.e57")
+    save_scan(tmp_path / "bare.ply", dataclasses.replace(scan, rgb=None, row=None, col=None, scan_id=None))
+    write_camera(tmp_path / "cam.yaml", Camera(640, 480, 400.0, 400.0, 319.5, 239.5))
+    a = np.radians(-105)  # the middle of the scanned sector, level (z up), from the scanner
+    forward = np.array([np.cos(a), np.sin(a), 0])
+    T = np.eye(4)
+    T[:3, :3] = [[forward[1], -forward[0], 0], [0, 0, -1], forward]  # rows: right, down, forward
+    write_pose(tmp_path / "pose.yaml", T)
+    args = ("export-depth", "--scan", tmp_path / "bare.ply", "--camera", tmp_path / "cam.yaml", "--pose", tmp_path / "pose.yaml")
+    proc = run_cli(*args, "-o", tmp_path / "d.exr")
+    assert proc.returncode == 0, proc.stderr
+    assert "surfels" in proc.stdout
+    assert run_cli(*args, "-o", tmp_path / "p.exr", "--points").returncode == 0
+    filled = [(read_depth_exr(tmp_path / name)[0] > 0).mean() for name in ("d.exr", "p.exr")]
+    assert filled[0] > 1.5 * filled[1]  # measured: 31% against 17.5% (the scan's columns leave gaps)

@@ -12,11 +12,36 @@ from rgbd_gt.camera import Camera
 from rgbd_gt.io.scan import Scan
 
 
+RING_BIN_DEG = 0.02  # finer than a spinning LiDAR's ring spacing (0.1-2 deg), coarser than its ring's spread
+RING_BINS_MOST = 0.25  # rings put 90% of the far points into 3-8% of the elevation bins; a scanner's grid, 60-70%
+RING_SAMPLE = 200_000  # points enough to see rings; keeps the test cheap on scans of millions
+
+
 def is_sweep(scan: Scan) -> bool:
-    """A scan with intensity only and no row/column grid: in practice a LiDAR sweep (a colored or
-    structured scan renders as surfaces). The default for drawing and exporting points, not
-    surfaces: `overlay`'s points picture, pick's view, `export-depth`'s sparse depth."""
-    return scan.rgb is None and not scan.has_grid
+    """A spinning LiDAR's sweep: no row/column grid, and seen from its sensor (the first scan's
+    origin, else 0, 0, 0) its points lie on a few cones of fixed elevation, its rings. Their gaps
+    are degrees wide, and rendered surfaces could only fill them with invented blobs: so the
+    default for drawing and exporting points, not surfaces (`overlay`'s points picture, pick's
+    view, `export-depth`'s sparse depth). A scan with a grid, or a dense one stripped of its grid
+    (elevations continuous), renders as surfaces, whatever its fields.
+
+    Measured on the far half of the points (a laser's own offset from the sensor smears the
+    elevations of near returns): the share of `RING_BIN_DEG` elevation bins, between the 1st
+    and 99th percentile, that hold 90% of them."""
+    if scan.has_grid or len(scan) < 100:
+        return False
+    xyz = scan.xyz
+    if scan.scan_id is not None:
+        xyz = xyz[scan.scan_id == scan.scan_id.min()]
+    xyz = xyz[:: max(1, len(xyz) // RING_SAMPLE)]
+    d = xyz - (scan.origins[0] if len(scan.origins) else 0.0)
+    r = np.linalg.norm(d, axis=1)
+    far = r >= np.median(r)
+    el = np.degrees(np.arcsin(np.clip(d[far, 2] / np.maximum(r[far], 1e-9), -1, 1)))
+    lo, hi = np.percentile(el, [1, 99])
+    counts = np.sort(np.histogram(el, bins=max(1, int((hi - lo) / RING_BIN_DEG)), range=(lo, hi))[0])[::-1]
+    needed = int(np.searchsorted(np.cumsum(counts), 0.9 * counts.sum())) + 1
+    return needed / len(counts) < RING_BINS_MOST
 
 
 def as_points(scan: Scan, choice: bool | None) -> bool:
