@@ -203,6 +203,8 @@ def test_a_sweep_is_known_by_its_rings_not_by_its_fields(icl_dir):
     assert is_sweep(Scan(xyz=xyz + moved, rgb=np.zeros((len(xyz), 3), np.uint8), origins=moved))
     assert is_sweep(Scan(xyz=_rings(128, 0.1)))  # a 128-ring sensor
     assert not is_sweep(Scan(xyz=xyz + moved))  # seen from elsewhere: no rings
+    second = Scan(xyz=xyz + moved, scan_id=np.ones(len(xyz), np.int32), origins=np.vstack([np.zeros((1, 3)), moved]))
+    assert is_sweep(second)  # the points of scan 1 seen from scan 1's origin
     grid = np.indices((32, 1800)).reshape(2, -1).astype(np.int32)
     assert not is_sweep(Scan(xyz=xyz, row=grid[0], col=grid[1]))  # a grid renders as surfaces
     dense = frame_grid_scan(icl_dir, 0)  # a room seen from the camera that took it

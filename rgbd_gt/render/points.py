@@ -19,22 +19,24 @@ RING_SAMPLE = 200_000  # points enough to see rings; keeps the test cheap on sca
 
 def is_sweep(scan: Scan) -> bool:
     """A spinning LiDAR's sweep: no row/column grid, and seen from its sensor (the first scan's
-    origin, else 0, 0, 0) its points lie on a few cones of fixed elevation, its rings. Their gaps
-    are degrees wide, and rendered surfaces could only fill them with invented blobs: so the
-    default for drawing and exporting points, not surfaces (`overlay`'s points picture, pick's
-    view, `export-depth`'s sparse depth). A scan with a grid, or a dense one stripped of its grid
-    (elevations continuous), renders as surfaces, whatever its fields.
+    origin, else 0, 0, 0; its axis the frame's z, as in a sweep's own frame) its points lie on a
+    few cones of fixed elevation, its rings. Their gaps are degrees wide, and rendered surfaces
+    could only fill them with invented blobs: so the default for drawing and exporting points,
+    not surfaces (`overlay`'s points picture, pick's view, `export-depth`'s sparse depth). A scan
+    with a grid, or a dense one stripped of its grid (elevations continuous), renders as
+    surfaces, whatever its fields.
 
     Measured on the far half of the points (a laser's own offset from the sensor smears the
     elevations of near returns): the share of `RING_BIN_DEG` elevation bins, between the 1st
     and 99th percentile, that hold 90% of them."""
     if scan.has_grid or len(scan) < 100:
         return False
-    xyz = scan.xyz
+    xyz, sid = scan.xyz, 0
     if scan.scan_id is not None:
-        xyz = xyz[scan.scan_id == scan.scan_id.min()]
+        sid = int(scan.scan_id.min())
+        xyz = xyz[scan.scan_id == sid]
     xyz = xyz[:: max(1, len(xyz) // RING_SAMPLE)]
-    d = xyz - (scan.origins[0] if len(scan.origins) else 0.0)
+    d = xyz - (scan.origins[min(sid, len(scan.origins) - 1)] if len(scan.origins) else 0.0)
     r = np.linalg.norm(d, axis=1)
     far = r >= np.median(r)
     el = np.degrees(np.arcsin(np.clip(d[far, 2] / np.maximum(r[far], 1e-9), -1, 1)))
