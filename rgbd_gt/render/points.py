@@ -31,11 +31,12 @@ def is_sweep(scan: Scan) -> bool:
     and 99th percentile, that hold 90% of them."""
     if scan.has_grid or len(scan) < 100:
         return False
-    xyz, sid = scan.xyz, 0
+    pick, sid = slice(None, None, max(1, len(scan) // RING_SAMPLE)), 0
+    xyz = scan.xyz[pick]
     if scan.scan_id is not None:
-        sid = int(scan.scan_id.min())
-        xyz = xyz[scan.scan_id == sid]
-    xyz = xyz[:: max(1, len(xyz) // RING_SAMPLE)]
+        ids = scan.scan_id[pick]
+        sid = int(ids.min())
+        xyz = xyz[ids == sid]
     d = xyz - (scan.origins[min(sid, len(scan.origins) - 1)] if len(scan.origins) else 0.0)
     r = np.linalg.norm(d, axis=1)
     far = r >= np.median(r)
