@@ -132,6 +132,10 @@ class StructuralScore:
     splat_radius: int = 0
     usable: bool = True
 
+    def summary(self) -> str:
+        sparse = "" if self.usable else f" (says nothing: the scan is too sparse, splats of {self.splat_radius} px)"
+        return f"edges vs chance {self.ratio:.2f}{sparse}"
+
     def as_dict(self, prefix: str = "") -> dict:
         return {f"{prefix}edge_ratio": self.ratio, f"{prefix}edge_strength": self.score,
                 f"{prefix}edge_strength_chance": self.chance, f"{prefix}structural_edge_pixels": self.edge_pixels,
