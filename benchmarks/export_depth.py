@@ -33,7 +33,7 @@ def main() -> None:
     ]
     for grid, title in ((True, "With its grid (pixels as rows/columns): triangulated and ray-cast"),
                         (False, "Without a grid (as merged or downsampled scans come): k-nearest-neighbour normals, "
-                                "rendered as surfels (tangent-plane discs of the local spacing)")):
+                                "rendered as surfels (tangent-plane discs of the local spacing; gaps between pixels of one surface closed)")):
         rows = []
         for i, j in pairs:
             t = time.perf_counter()

@@ -398,7 +398,7 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None,
     import torch
 
     from rgbd_gt.render.normals import facing_camera, with_normals
-    from rgbd_gt.render.splat import Surfels, splat
+    from rgbd_gt.render.splat import Surfels, close_gaps, splat
     from rgbd_gt.render.zbuffer import estimate_spacing
 
     p = transform_points(T, scan.xyz)
@@ -437,9 +437,12 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None,
         surfels = Surfels(torch.as_tensor(slope), torch.as_tensor(reach), camera.fx, camera.fy)
     img, depth, index = splat(torch.as_tensor(uv), torch.as_tensor(z), torch.as_tensor(vals), camera.size, radius, surfels)
     zz = depth.numpy().astype(np.float32)
-    if normals is not None:  # a pixel whose nearest point faces away is seen from behind
+    if normals is not None:
+        # the gaps between a scanner's columns, on one surface
+        zz, idx = close_gaps(zz, index.numpy(), radius)
+        img = torch.as_tensor(vals)[np.maximum(idx, 0)] * torch.as_tensor(idx >= 0)[..., None]
+        # a pixel whose nearest point faces away is seen from behind
         away = ~facing_camera(torch.as_tensor(p[seen], dtype=torch.float32), torch.as_tensor(n_cam, dtype=torch.float32))
-        idx = index.numpy()
         behind = (idx >= 0) & away.numpy()[np.maximum(idx, 0)]
         zz[behind] = 0
         back = int(behind.sum())
