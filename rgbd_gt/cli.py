@@ -96,7 +96,7 @@ def _fmt_bounds(b: np.ndarray) -> str:
 
 @app.command()
 def ingest(
-    scans: List[Path] = typer.Argument(..., help="Scan files (.e57, .ply or .pcd); several are merged in one world frame."),
+    scans: List[Path] = typer.Argument(..., help="Scan files (.e57, .ply or .pcd); several are merged in one world frame, keeping the fields (colors, intensity, grid, normals) that every one has."),
     output: Path = typer.Option(..., "-o", "--output", help="Output PLY (binary little-endian)."),
     scan_index: Optional[int] = typer.Option(None, "--scan-index", help="Read only this scan (0-based) of each E57 file."),
     voxel: Optional[float] = typer.Option(None, "--voxel", help="Voxel size in metres for downsampling (averages colors and intensity)."),
@@ -152,6 +152,8 @@ def ingest(
         out.print(it)
     else:
         out.print("Embedded images: none")
+    for w in result.warnings:
+        _warn(w)
     out.print(f"wrote {output} ({result.output.points:,} points)")
 
 

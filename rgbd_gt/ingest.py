@@ -47,6 +47,7 @@ class IngestResult:
     inputs: list[ScanSummary]
     output: ScanSummary
     images: list[ImageSummary] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
 
 
 def summarize(label: str, scan: Scan) -> ScanSummary:
@@ -129,15 +130,15 @@ def ingest(
     scans, inputs, images = [], [], []
     for path in paths:
         cb = (lambda done, total, p=path: progress(p, done, total)) if progress else None
-        scan = load_scan(path, scan_index=scan_index if path.suffix.lower() == ".e57" else None, progress=cb)
+        scan = load_scan(path, scan_index=scan_index if path.suffix.lower() == ".e57" else None, progress=cb,
+                         require_points=True)
         inputs += _per_scan_summaries(path, scan)
         scans.append(scan)
         if path.suffix.lower() == ".e57":
             images += extract_images(path, images_dir)
+    warnings = dropped_fields(paths, scans)
     merged = merge_scans(scans)
     del scans
-    if len(merged) == 0:
-        raise InputError("no points", ", ".join(str(p) for p in paths))
     if box is not None:
         merged = crop(merged, *box)
         if len(merged) == 0:
@@ -149,4 +150,17 @@ def ingest(
                              "one point would remain")
         merged = voxel_downsample(merged, voxel)
     save_scan(output, merged)
-    return IngestResult(inputs, summarize(output.name, merged), images)
+    return IngestResult(inputs, summarize(output.name, merged), images, warnings)
+
+
+def dropped_fields(paths: list[Path], scans: list[Scan]) -> list[str]:
+    """One line per field that some inputs have and others lack: merging keeps only the fields
+    every input has, and colors lost to a file without them are worth a word."""
+    lines = []
+    for name, what, then in (("rgb", "colors", ""), ("intensity", "intensity", ""), ("normals", "normals", ""),
+                             ("row", "the scan grid", " (its surfaces are rendered as surfels)")):
+        lack = [p.name for p, s in zip(paths, scans) if getattr(s, name) is None]
+        if 0 < len(lack) < len(scans):
+            lines.append(f"{what} dropped from the merged scan{then}: {', '.join(lack)} "
+                         f"{'has' if len(lack) == 1 else 'have'} none")
+    return lines

@@ -1,9 +1,11 @@
+import dataclasses
+
 import numpy as np
 import pytest
 
 from conftest import assert_one_line_error, run_cli
 from rgbd_gt.cli import app
-from rgbd_gt.io import load_scan
+from rgbd_gt.io import load_scan, save_scan
 
 import typer
 
@@ -71,7 +73,21 @@ def test_ingest_bad_inputs(e57_dir, tmp_path):
     (tmp_path / "none.pcd").write_text("FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 0\nHEIGHT 1\n"
                                        "POINTS 0\nDATA ascii\n")
     assert_one_line_error(run_cli("ingest", tmp_path / "none.pcd", "-o", tmp_path / "o.ply"), "none.pcd", "no points")
+    # one empty file among others is refused too (merged, it would have dropped their colors)
+    proc = run_cli("ingest", e57_dir / "bunnyDouble.e57", tmp_path / "none.pcd", "-o", tmp_path / "o.ply")
+    assert_one_line_error(proc, "none.pcd", "no points")
     assert not (tmp_path / "o.ply").exists()
+
+
+def test_ingest_says_which_fields_a_merge_drops(e57_dir, tmp_path):
+    scan = load_scan(e57_dir / "pipeSpherical.e57")
+    save_scan(tmp_path / "bare.ply", dataclasses.replace(scan, rgb=None, intensity=None))
+    proc = run_cli("ingest", e57_dir / "pipeSpherical.e57", tmp_path / "bare.ply", "-o", tmp_path / "o.ply")
+    assert proc.returncode == 0, proc.stderr
+    kept = load_scan(tmp_path / "o.ply")
+    assert kept.rgb is None and kept.intensity is None and len(kept) == 2 * len(scan)
+    for word in ("colors", "intensity"):
+        assert f"warning: {word} dropped from the merged scan: bare.ply has none" in proc.stderr
 
 
 def test_ingest_never_overwrites_its_input(e57_dir, tmp_path):
