@@ -45,35 +45,45 @@ def splat(uv: torch.Tensor, z: torch.Tensor, values: torch.Tensor, size: tuple[i
     ok = (z > 1e-6) & (px[:, 0] >= -radius) & (px[:, 1] >= -radius) & (px[:, 0] < w + radius) & (px[:, 1] < h + radius)
     ids = torch.nonzero(ok).squeeze(1)
     px, z = px[ids], z[ids]
+    footprint = torch.full_like(z, radius, dtype=torch.long)
     if surfels is not None:
         slope, reach = surfels.inv_depth_slope[ids].to(z.dtype), surfels.radius_m[ids].to(z.dtype)
         frac = uv[ids].to(z.dtype) - px.to(z.dtype)  # the footprint's offsets are from the point's own position
-    r = torch.arange(-radius, radius + 1, device=px.device)
-    offsets = torch.stack(torch.meshgrid(r, r, indexing="ij"), -1).reshape(-1, 2)  # (K, 2) as (dy, dx)
+        # most discs are far smaller than the largest, so each is drawn with its own footprint:
+        # d pixels out, where the plane's inverse depth is 1/z + s d (s its slope), the ray meets it
+        # reach away once d = reach f / z / (1 - reach f s)
+        f = max(surfels.fx, surfels.fy)
+        tilt = (1 - reach * f * slope.norm(dim=1)).clamp_min(1e-3)
+        footprint = torch.ceil(reach * f / z / tilt).long().clamp(1, max(radius, 1))
     zmin = torch.full((h * w,), float("inf"), dtype=z.dtype, device=z.device)
     index = torch.full((h * w,), -1, dtype=torch.long, device=z.device)
-    # every point's footprint at once, in chunks of offsets that keep a pass near 2^22 entries
-    chunk = max(1, (1 << 22) // max(len(ids), 1))
     passes = []
-    for k in range(0, len(offsets), chunk):
-        off = offsets[k:k + chunk]
-        x = px[None, :, 0] + off[:, None, 1]
-        y = px[None, :, 1] + off[:, None, 0]
-        inside = (x >= 0) & (y >= 0) & (x < w) & (y < h)
-        if surfels is None:
-            zz = z.expand_as(x)
-        else:
-            du = off[:, None, 1].to(z.dtype) - frac[None, :, 0]
-            dv = off[:, None, 0].to(z.dtype) - frac[None, :, 1]
-            zz = 1 / (1 / z[None] + slope[None, :, 0] * du + slope[None, :, 1] * dv).clamp_min(1e-6)
-            # the ray meets the plane this far from the point: sideways and in depth
-            lateral2 = zz**2 * ((du / surfels.fx) ** 2 + (dv / surfels.fy) ** 2)
-            inside &= lateral2 + (zz - z[None]) ** 2 <= reach[None] ** 2
-        key = (y * w + x)[inside]
-        zz = zz[inside]
-        owner = ids.expand_as(x)[inside]
-        zmin.scatter_reduce_(0, key, zz, reduce="amin", include_self=True)
-        passes.append((key, zz, owner))
+    for size_px in torch.unique(footprint).tolist():
+        group = torch.nonzero(footprint == size_px).squeeze(1)
+        r = torch.arange(-size_px, size_px + 1, device=px.device)
+        offsets = torch.stack(torch.meshgrid(r, r, indexing="ij"), -1).reshape(-1, 2)  # (K, 2) as (dy, dx)
+        # the group's footprints at once, in chunks of offsets that keep a pass near 2^22 entries
+        chunk = max(1, (1 << 22) // max(len(group), 1))
+        for k in range(0, len(offsets), chunk):
+            off = offsets[k:k + chunk]
+            x = px[None, group, 0] + off[:, None, 1]
+            y = px[None, group, 1] + off[:, None, 0]
+            inside = (x >= 0) & (y >= 0) & (x < w) & (y < h)
+            zg = z[group]
+            if surfels is None:
+                zz = zg.expand_as(x)
+            else:
+                du = off[:, None, 1].to(z.dtype) - frac[None, group, 0]
+                dv = off[:, None, 0].to(z.dtype) - frac[None, group, 1]
+                zz = 1 / (1 / zg[None] + slope[None, group, 0] * du + slope[None, group, 1] * dv).clamp_min(1e-6)
+                # the ray meets the plane this far from the point: sideways and in depth
+                lateral2 = zz**2 * ((du / surfels.fx) ** 2 + (dv / surfels.fy) ** 2)
+                inside &= lateral2 + (zz - zg[None]) ** 2 <= reach[None, group] ** 2
+            key = (y * w + x)[inside]
+            zz = zz[inside]
+            owner = ids[group].expand_as(x)[inside]
+            zmin.scatter_reduce_(0, key, zz, reduce="amin", include_self=True)
+            passes.append((key, zz, owner))
     for key, zz, owner in passes:  # the nearest point of each pixel owns it
         win = zz <= zmin[key]
         index[key[win]] = owner[win]
