@@ -240,13 +240,15 @@ def test_gaps_between_pixels_of_one_surface_are_closed_and_silhouettes_kept():
 
     z = np.array([[2.0, 0, 0, 2.02, 0, 0, 5.0, 0, 0, 0, 0, 5.0]], np.float32)
     index = np.where(z > 0, np.arange(z.shape[1]), -1)
-    out, idx = close_gaps(z, index, most_px=3)
+    reach = np.full(z.shape[1], 1.5)  # each point's disc, pixels
+    out, idx = close_gaps(z, index, reach)
     t = np.array([1, 2]) / 3
     assert np.allclose(out[0, 1:3], 1 / ((1 - t) / 2.0 + t / 2.02))  # inverse depth is affine on a plane
     assert list(idx[0, 1:3]) == [0, 3]  # the nearer end owns the pixel
     assert not out[0, 4:6].any()  # 2.02 against 5 m: a silhouette
-    assert not out[0, 7:11].any()  # longer than 3 px
-    assert np.array_equal(close_gaps(z.T, index.T, most_px=3)[0], out.T)  # columns alike
+    assert not out[0, 7:11].any()  # 4 px, more than the two discs reach: two bars against the sky
+    assert np.array_equal(close_gaps(z.T, index.T, reach)[0], out.T)  # columns alike
+    assert close_gaps(z, index, np.full(z.shape[1], 2.0))[0][0, 7:11].all()  # larger discs: one surface
 
 
 def test_a_scanners_unequal_rows_and_columns_leave_no_stripes():

@@ -94,16 +94,20 @@ def splat(uv: torch.Tensor, z: torch.Tensor, values: torch.Tensor, size: tuple[i
     return image.reshape(h, w, -1), depth.reshape(h, w), index.reshape(h, w)
 
 
-def close_gaps(depth: np.ndarray, index: np.ndarray, most_px: int, tolerance: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
-    """Fill the empty runs of at most `most_px` pixels, along rows and along columns, that lie
-    between two pixels of one surface: depths (H, W) metres (0 empty) within `tolerance` of each
-    other. The inverse depth is interpolated (affine in the image on a plane) and each pixel
-    takes the index (H, W) of the nearer end. A scanner's columns are often much farther apart
-    than the points within one (pumpA: 4 times), and discs that cover the columns' gaps grow
-    every silhouette along them by as much; a gap between two pixels of unlike depth (a
-    silhouette, a hole one sees through) stays empty. Returns new arrays."""
+def close_gaps(depth: np.ndarray, index: np.ndarray, reach_px: np.ndarray,
+               tolerance: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
+    """Fill the empty runs of pixels, along rows and along columns, that lie between two pixels
+    of one surface: depths (H, W) metres (0 empty) within `tolerance` of each other, and a run
+    no longer than the discs of the points that own its two ends reach together (reach_px (N,)
+    pixels, by the points' index (H, W)): a gap the scan's sampling does not resolve. The
+    inverse depth is interpolated (affine in the image on a plane) and each pixel takes the
+    index of the nearer end. A scanner's columns are often much farther apart than the points
+    within one (pumpA: 4 times), and discs that covered the columns' gaps would grow every
+    silhouette along them by as much; a run between unlike depths (a silhouette) or wider than
+    the two discs (a gap between two bars against the sky) stays empty. Returns new arrays."""
     filled_z, filled_i = depth.copy(), index.copy()
     best = np.full(depth.shape, np.inf)
+    longest = int(np.ceil(2 * reach_px.max())) if len(reach_px) else 0
     for axis in (1, 0):
         z, idx = (depth, index) if axis == 1 else (depth.T, index.T)
         n = z.shape[1]
@@ -111,10 +115,11 @@ def close_gaps(depth: np.ndarray, index: np.ndarray, most_px: int, tolerance: fl
         have = z > 0
         left = np.maximum.accumulate(np.where(have, at, -1), axis=1)
         right = np.minimum.accumulate(np.where(have, at, n)[:, ::-1], axis=1)[:, ::-1]
-        r, c = np.nonzero(~have & (left >= 0) & (right < n) & (right - left <= most_px + 1))
+        r, c = np.nonzero(~have & (left >= 0) & (right < n) & (right - left <= longest + 1))
         lo, hi = left[r, c], right[r, c]
         zl, zr = z[r, lo], z[r, hi]
-        keep = np.abs(zl - zr) <= tolerance * np.minimum(zl, zr)
+        keep = (np.abs(zl - zr) <= tolerance * np.minimum(zl, zr)) & \
+            (hi - lo - 1 <= reach_px[idx[r, lo]] + reach_px[idx[r, hi]])
         r, c, lo, hi, zl, zr = r[keep], c[keep], lo[keep], hi[keep], zl[keep], zr[keep]
         t = (c - lo) / (hi - lo)
         z_new = 1 / ((1 - t) / zl + t / zr)
