@@ -67,13 +67,14 @@ def load_inputs(scan_path: Path, image_path: Path, camera_path: Path, init_path:
     check_image_matches(camera, photo.shape, image_path, camera_path)
     T_init, init_meta = read_pose(init_path)
     ignore = read_mask(mask_path, photo.shape[:2]) if mask_path is not None else None
-    scan = with_normals(load_scan(scan_path, require_points=True))
     # what the photo can see from poses well around T_init (searches included): a big scan's
-    # renders then cost what the photo sees
-    scan = view_of(scan, camera, [T_init], REFINE_VIEW_MARGIN)
+    # renders, and its normals (minutes for tens of millions of points without a grid), then
+    # cost what the photo sees
+    scan = view_of(load_scan(scan_path, require_points=True), camera, [T_init], REFINE_VIEW_MARGIN)
     if len(scan) == 0:
         raise InputError("no scan points in view of the initial pose (nor near it): check the pose, the camera file "
                          "and the scan", init_path)
+    scan = with_normals(scan)
     return RefineInputs(scan.xyz, scan_colors(scan, scan_path, to_align=True), photo, camera, T_init, ignore, scan, init_meta)
 
 
