@@ -37,7 +37,7 @@ def splat(uv: torch.Tensor, z: torch.Tensor, values: torch.Tensor, size: tuple[i
     point wins. values: (N, C); size: (width, height). surfels: each point is then a disc of its
     tangent plane, whose depth varies over its footprint, and which covers only the pixels whose
     rays meet the disc (a flat square at the point's depth grows every silhouette by the
-    footprint). Returns image (H, W, C) (0 where empty),
+    footprint); radius then bounds the footprints. Returns image (H, W, C) (0 where empty),
     depth (H, W) metres (0 where empty) and index (H, W) int64 of the winning point (-1 where empty).
     """
     w, h = size
@@ -64,12 +64,12 @@ def splat(uv: torch.Tensor, z: torch.Tensor, values: torch.Tensor, size: tuple[i
         offsets = torch.stack(torch.meshgrid(r, r, indexing="ij"), -1).reshape(-1, 2)  # (K, 2) as (dy, dx)
         # the group's footprints at once, in chunks of offsets that keep a pass near 2^22 entries
         chunk = max(1, (1 << 22) // max(len(group), 1))
+        zg, owners = z[group], ids[group]
         for k in range(0, len(offsets), chunk):
             off = offsets[k:k + chunk]
             x = px[None, group, 0] + off[:, None, 1]
             y = px[None, group, 1] + off[:, None, 0]
             inside = (x >= 0) & (y >= 0) & (x < w) & (y < h)
-            zg = z[group]
             if surfels is None:
                 zz = zg.expand_as(x)
             else:
@@ -81,7 +81,7 @@ def splat(uv: torch.Tensor, z: torch.Tensor, values: torch.Tensor, size: tuple[i
                 inside &= lateral2 + (zz - zg[None]) ** 2 <= reach[None, group] ** 2
             key = (y * w + x)[inside]
             zz = zz[inside]
-            owner = ids[group].expand_as(x)[inside]
+            owner = owners.expand_as(x)[inside]
             zmin.scatter_reduce_(0, key, zz, reduce="amin", include_self=True)
             passes.append((key, zz, owner))
     for key, zz, owner in passes:  # the nearest point of each pixel owns it
