@@ -439,7 +439,7 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None,
     zz = depth.numpy().astype(np.float32)
     if normals is not None:
         # the gaps between a scanner's columns, on one surface
-        zz, idx = close_gaps(zz, index.numpy(), reach * camera.fx / z)
+        zz, idx = close_gaps(zz, index.numpy(), reach_px)
         img = torch.as_tensor(vals)[np.maximum(idx, 0)] * torch.as_tensor(idx >= 0)[..., None]
         # a pixel whose nearest point faces away is seen from behind
         away = ~facing_camera(torch.as_tensor(p[seen], dtype=torch.float32), torch.as_tensor(n_cam, dtype=torch.float32))
