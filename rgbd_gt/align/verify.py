@@ -166,9 +166,9 @@ def decide(ev: dict, cfg: VerifyConfig) -> tuple[str, list[str]]:
     sh = ev.get("sharpness")
     if sh is not None:
         if sh["median_rise"] < cfg.sharpness_failed:
-            failed.append(f"the objective has no clear minimum here (median rise {sh['median_rise']:.3f} at {sh['step_px']} px)")
+            failed.append(f"the objective has no clear minimum here (median rise {sh['median_rise']:.2g} at {sh['step_px']} px)")
         elif sh["min_rise"] < cfg.sharpness_ok:
-            suspect.append(f"the objective is flat in some direction (smallest rise {sh['min_rise']:.3f} at {sh['step_px']} px)")
+            suspect.append(f"the objective is flat in some direction (smallest rise {sh['min_rise']:.2g} at {sh['step_px']} px)")
     unc = ev["uncertainty"]
     if not unc["image_px"] <= cfg.sigma_failed_px:
         failed.append(f"the data do not fix the pose (1-sigma {unc['image_px']:.2f} px)")
