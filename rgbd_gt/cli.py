@@ -603,15 +603,15 @@ def qa_edges(
     photo's gradient strength at the scan's structural edges (depth discontinuities, strong color
     edges) against the same with those edges shifted by 6 px (edge_ratio; 1.0 = no better than
     chance). The Canny score: how far the scan's Canny edges lie from the photo's (median/mean
-    distance in pixels, fraction within 1 px); on busy real photos it is close to chance."""
-    import json
-
+    distance in pixels, fraction within 1 px); on busy real photos it is close to chance. Both
+    say nothing for a scan too sparse for its splats (a LiDAR sweep): they are then marked
+    unusable (null in --json)."""
     from rgbd_gt.io.scan import scan_colors
     from rgbd_gt.io import read_camera, read_pose
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import IMAGE_SUFFIXES, read_image, write_image
     from rgbd_gt.io.outputs import Outputs
-    from rgbd_gt.qa.edges import qa, side_by_side, structural_qa, working_view
+    from rgbd_gt.qa.edges import as_json, qa, side_by_side, structural_qa, working_view
 
     outs = Outputs([scan, image, camera, pose, before])
     staged = outs.file(output, "-o", IMAGE_SUFFIXES)
@@ -648,9 +648,8 @@ def qa_edges(
             rows.insert(0, ("before", f"{structural_b.summary()}; Canny {score_b.summary()}"))
     with outs:
         write_image(staged, img)
-        if json_out:  # JSON has no NaN: a score without edges to score is null
-            staged_json.write_text(json.dumps({k: None if isinstance(v, float) and not np.isfinite(v) else v
-                                               for k, v in result.items()}, indent=1))
+        if json_out:
+            staged_json.write_text(as_json(result))
     _summary("qa-edges", rows, output, None)
 
 

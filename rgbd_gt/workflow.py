@@ -212,7 +212,7 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
     from rgbd_gt.io.depth_file import write_depth_exr, write_depth_png16
     from rgbd_gt.io.image import read_image, write_image
     from rgbd_gt.io.scan import scan_colors
-    from rgbd_gt.qa.edges import qa, side_by_side
+    from rgbd_gt.qa.edges import as_json, qa, side_by_side
     from rgbd_gt.qa.overlay import overlay, points_image
     from rgbd_gt.render.depth import back_facing_fraction, expect_poses, point_depth, render_depth
     from rgbd_gt.render.points import as_points, is_sweep
@@ -288,7 +288,7 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
         img_a, after = qa(scan, colors, image, camera, T)
         write_image(d / "qa.png", side_by_side(img_b, img_a))
         with atomic_output(files["qa"]) as tmp:
-            tmp.write_text(json.dumps({**after.as_dict(), **before.as_dict("before_")}, indent=1))
+            tmp.write_text(as_json({**after.as_dict(), **before.as_dict("before_")}))
         lap("qa")
     progress("overlay")
     if files["overlay"].exists():

@@ -36,7 +36,7 @@ def test_qa_edges_on_a_synthetic_scene(tmp_path):
     assert score["mean_distance_px"] < 1.0
     # the structural score: clearly better than chance at the refined pose, and better than at the init
     assert score["edge_ratio"] > 1.25 and score["edge_ratio"] > score["before_edge_ratio"]
-    assert score["edge_check_usable"] and score["structural_edge_pixels"] > 1000
+    assert score["edge_check_usable"] and score["structural_edge_pixels"] > 1000 and score["canny_usable"]
     import cv2
 
     assert cv2.imread(str(tmp_path / "qa.png")).shape == (480, 2 * 640 + 8, 3)
@@ -59,7 +59,7 @@ def test_qa_score_falls_on_icl_pairs(icl_dir):
         assert after.within_1px > before.within_1px
 
 
-def test_qa_edges_on_a_sweep_says_its_structural_score_says_nothing(tmp_path):
+def test_qa_edges_on_a_sweep_says_its_scores_say_nothing(tmp_path):
     """A LiDAR sweep's rings are drawn as splats tens of pixels wide: the structural score near 1
     then says nothing about the pose, and qa-edges says so beside the number (as the verdict does)."""
     from conftest import _need
@@ -70,4 +70,6 @@ def test_qa_edges_on_a_sweep_says_its_structural_score_says_nothing(tmp_path):
     assert proc.returncode == 0, proc.stderr
     score = json.loads((tmp_path / "qa.json").read_text())
     assert not score["edge_check_usable"] and score["splat_radius_px"] > 6
-    assert "says nothing" in " ".join(proc.stdout.split())
+    # the Canny distances are those of the splats' discs: not reported as numbers either
+    assert not score["canny_usable"] and score["mean_distance_px"] is None and score["scan_edge_pixels"] > 0
+    assert "Canny says nothing" in " ".join(proc.stdout.split())

@@ -22,18 +22,26 @@ from rgbd_gt.render.depth import render_depth
 
 @dataclass
 class EdgeScore:
+    """Distances (photo pixels) from the scan's Canny edges to the photo's; scan_edge_pixels: how
+    many were measured. usable is False where the scan was drawn with splats wider than
+    `qa`'s max_splat_px: their own discs are then the edges, and the distances (nan) say nothing."""
+
     median_distance_px: float
     mean_distance_px: float
     within_1px: float
     scan_edge_pixels: int
+    usable: bool = True
 
     def summary(self) -> str:
+        if not self.usable:
+            return "says nothing (the scan is too sparse: its splats are the edges)"
         return (f"median {self.median_distance_px:.2f} px, mean {self.mean_distance_px:.2f} px, "
                 f"within 1 px {self.within_1px:.1%}")
 
     def as_dict(self, prefix: str = "") -> dict:
         return {f"{prefix}median_distance_px": self.median_distance_px, f"{prefix}mean_distance_px": self.mean_distance_px,
-                f"{prefix}within_1px": self.within_1px, f"{prefix}scan_edge_pixels": self.scan_edge_pixels}
+                f"{prefix}within_1px": self.within_1px, f"{prefix}scan_edge_pixels": self.scan_edge_pixels,
+                f"{prefix}canny_usable": self.usable}
 
 
 def auto_canny(gray: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
@@ -70,6 +78,14 @@ def edge_score(photo_edges: np.ndarray, scan_edges: np.ndarray, pixel: float = 1
     return EdgeScore(float(np.median(d)), float(d.mean()), float(np.mean(d <= 1.0)), int(d.size))
 
 
+def as_json(scores: dict) -> str:
+    """Scores (`as_dict`s merged) as JSON text: JSON has no NaN, so a score that says nothing is null."""
+    import json
+
+    return json.dumps({k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in scores.items()},
+                      indent=1)
+
+
 def overlay(photo: np.ndarray, photo_edges: np.ndarray, scan_edges: np.ndarray) -> np.ndarray:
     """Darkened photo with red photo edges, blue scan edges, white where both (H, W, 3) uint8 RGB."""
     out = (photo.astype(np.float32) * 0.35).astype(np.uint8)
@@ -104,15 +120,19 @@ def working_view(scan: Scan, colors: np.ndarray, photo: np.ndarray, camera: Came
 
 
 def qa(scan: Scan, colors: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray,
-       max_side: int = 1280, view: WorkingView | None = None) -> tuple[np.ndarray, EdgeScore]:
+       max_side: int = 1280, view: WorkingView | None = None, max_splat_px: int = 6) -> tuple[np.ndarray, EdgeScore]:
     """(overlay image, score) for one pose, at a working resolution whose longer side is at most
     max_side (distances in the photo's own pixels): Canny on every pixel of a 24 MP photo costs
-    seconds and gigabytes, and its edges are no surer."""
+    seconds and gigabytes, and its edges are no surer. A scan drawn with splats wider than
+    max_splat_px (working pixels; a LiDAR sweep's are 30 and more) scores as not usable, as
+    `structural_qa` does with its shift."""
     view = view or working_view(scan, colors, photo, camera, T, max_side)
     photo_edges = auto_canny(cv2.cvtColor(view.photo, cv2.COLOR_RGB2GRAY))
     scan_edges = auto_canny(view.gray, view.z > 0)
-    return (overlay(view.photo, photo_edges, scan_edges),
-            edge_score(photo_edges, scan_edges, camera.width / view.camera.width))
+    score = edge_score(photo_edges, scan_edges, camera.width / view.camera.width)
+    if view.radius > max_splat_px:
+        score = EdgeScore(float("nan"), float("nan"), float("nan"), score.scan_edge_pixels, usable=False)
+    return overlay(view.photo, photo_edges, scan_edges), score
 
 
 @dataclass
