@@ -805,9 +805,10 @@ def run_workflow(
     write_run_record(out_dir / "run.json", prepared, seconds, "ray" if ray_address is not None else "local", workers)
     table = Table(title=f"rgbd-gt run: {len(results)} photo(s) in {seconds:.0f} s")
     site = len(jobs) > 1 or bool(cfg.scans)
-    for col in (["scan"] if site else []) + ["photo", "status", "verdict", "init rms px", "edges vs chance",
-                                             "edge mean px before -> after", "within 1 px", "s", "skipped"]:
-        table.add_column(col)
+    for col in (["scan"] if site else []) + ["photo", "status", "verdict", "init rms px", "edges / chance",
+                                             "Canny px before -> after", "within 1 px", "s"]:
+        # a narrow terminal or a log wraps a cell, never cuts a verdict to "suspe…"
+        table.add_column(col, overflow="fold", min_width=7 if col in ("status", "verdict") else None)
 
     def f(v, fmt):
         return "-" if v is None else format(v, fmt)
@@ -816,11 +817,13 @@ def run_workflow(
         table.add_row(*([r.scan] if site else []), r.photo, r.status if not r.error else f"failed: {r.error}",
                       _verdict_text(r.verdict), f(r.init_rms_px, ".3f"), f(r.edge_ratio, ".2f"),
                       f"{f(r.edge_before_px, '.2f')} -> {f(r.edge_after_px, '.2f')}",
-                      f"{f(r.within_1px_before, '.0%')} -> {f(r.within_1px_after, '.0%')}", f(r.seconds, ".1f"), " ".join(r.skipped))
+                      f"{f(r.within_1px_before, '.0%')} -> {f(r.within_1px_after, '.0%')}", f(r.seconds, ".1f"))
     out.print(table)
     for r in results:
         if r.reasons:
             out.print(f"{r.photo}: {r.verdict}: {r.reasons}", markup=False, highlight=False)
+        if r.skipped:
+            out.print(f"{r.photo}: skipped {' '.join(r.skipped)}", markup=False, highlight=False)
     out.print(f"verdicts: {verdict_counts(results)}")
     where = "<scan>/<photo>" if site else "<photo>"
     out.print(f"outputs in {out_dir}/{where}/ (init.yaml, pose.yaml, depth.exr, depth.png, qa.png, qa.json, overlay*.png); "

@@ -27,6 +27,7 @@ def test_run_two_photos_then_resume(tmp_path):
     assert rows["photo_blank.png"]["status"] == "failed" and "checkerboard" in rows["photo_blank.png"]["error"]
     assert rows["# verdicts"]["verdict"] == "2 ok, 0 suspect, 1 failed"  # the blank photo failed before refine
     assert "verdicts: 2 ok, 0 suspect, 1 failed" in proc.stdout
+    assert "…" not in proc.stdout  # the table wraps its cells at 80 columns (a log), it does not cut them
     for photo, truth in (("photo", "gt_pose.yaml"), ("photo_1", "gt_pose_1.yaml")):
         r = rows[f"{photo}.png"]
         assert r["status"] == "ok" and r["verdict"] == "ok", r
