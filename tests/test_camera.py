@@ -120,8 +120,30 @@ def test_bad_camera_files(tmp_path, text, needle):
 
 def test_image_size_must_match():
     check_image_matches(CAM, (480, 640, 3), "p.png", "c.yaml")
-    with pytest.raises(InputError, match="image is 800x600 but camera file c.yaml is for 640x480"):
+    with pytest.raises(InputError, match="image is 800x600 but camera file c.yaml is for 640x480$"):
         check_image_matches(CAM, (600, 800, 3), "p.png", "c.yaml")
+    with pytest.raises(InputError, match="is for 640x480 \\(turned by 90 deg"):
+        check_image_matches(CAM, (640, 480, 3), "p.png", "c.yaml")
+
+
+def test_a_photo_is_read_turned_as_its_exif_orientation_says(tmp_path):
+    """A portrait phone JPEG is stored on its side with EXIF orientation 6 (turn 90 deg clockwise):
+    read as viewers and OpenCV's imread show it, so an OpenCV calibration of it fits."""
+    from PIL import Image
+
+    from rgbd_gt.io.image import read_image
+
+    stored = np.zeros((40, 60, 3), np.uint8)
+    stored[:10, :10] = (255, 0, 0)  # red in the stored top-left corner
+    im = Image.fromarray(stored)
+    exif = im.getexif()
+    exif[274] = 6
+    im.save(tmp_path / "p.jpg", exif=exif, quality=95)
+    photo = read_image(tmp_path / "p.jpg")
+    assert photo.shape == (60, 40, 3)
+    assert photo[:10, -10:, 0].mean() > 200 and photo[:10, :10, 0].mean() < 50  # turned clockwise: now top right
+    im.save(tmp_path / "q.jpg", quality=95)  # no orientation: as stored
+    assert read_image(tmp_path / "q.jpg").shape == (40, 60, 3)
 
 
 def test_project_backproject_round_trip():

@@ -158,6 +158,7 @@ def check_image_matches(camera: Camera, image_shape: tuple[int, ...], image_path
     """Raise InputError when an image's size is not the camera file's size."""
     h, w = image_shape[:2]
     if (w, h) != (camera.width, camera.height):
+        turned = " (turned by 90 deg: a camera calibrated on the photo on its side?)" if (h, w) == camera.size else ""
         raise InputError(
-            f"image is {w}x{h} but camera file {camera_path} is for {camera.width}x{camera.height}", image_path
+            f"image is {w}x{h} but camera file {camera_path} is for {camera.width}x{camera.height}{turned}", image_path
         )

@@ -42,13 +42,16 @@ def _imread(path: Path, flags: int) -> np.ndarray:
 
 
 def read_image(path: str | os.PathLike, to_align: bool = False) -> np.ndarray:
-    """Read a photo as (H, W, 3) uint8 RGB (grayscale and 16-bit images are converted).
+    """Read a photo as (H, W, 3) uint8 RGB (grayscale and 16-bit images are converted, alpha
+    dropped), turned as its EXIF orientation says: the photo as viewers show it and as OpenCV's
+    imread gives it by default, so that a camera calibrated with OpenCV on it fits (a phone's
+    portrait JPEG is stored on its side).
     `to_align`: InputError for a photo of one value (a lens cap, a failed exposure): nothing to
     align a scan to."""
     import cv2
 
     path = require_file(path)
-    img = _imread(path, cv2.IMREAD_UNCHANGED)
+    img = _imread(path, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)  # IMREAD_UNCHANGED ignores the orientation
     if img.dtype == np.uint16:
         img = (img / 257.0 + 0.5).astype(np.uint8)
     elif img.dtype != np.uint8:
@@ -57,8 +60,6 @@ def read_image(path: str | os.PathLike, to_align: bool = False) -> np.ndarray:
         raise InputError(f"every pixel of the photo is {int(img.flat[0])}: nothing to align the scan to", path)
     if img.ndim == 2:
         return np.repeat(img[:, :, None], 3, axis=2)
-    if img.shape[2] == 4:
-        img = img[:, :, :3]
     return np.ascontiguousarray(img[:, :, ::-1])
 
 
