@@ -20,11 +20,14 @@ from rgbd_gt.io.scan import Scan, colors_to_gray
 from rgbd_gt.render.depth import render_depth
 
 
+SHIFT_PX = 6  # working pixels: the structural score's chance shift, and the widest splats either score can use
+
+
 @dataclass
 class EdgeScore:
     """Distances (photo pixels) from the scan's Canny edges to the photo's; scan_edge_pixels: how
     many were measured. usable is False where the scan was drawn with splats wider than
-    `qa`'s max_splat_px: their own discs are then the edges, and the distances (nan) say nothing."""
+    `qa`'s usable_splat_px: their own discs are then the edges, and the distances (nan) say nothing."""
 
     median_distance_px: float
     mean_distance_px: float
@@ -120,17 +123,18 @@ def working_view(scan: Scan, colors: np.ndarray, photo: np.ndarray, camera: Came
 
 
 def qa(scan: Scan, colors: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray,
-       max_side: int = 1280, view: WorkingView | None = None, max_splat_px: int = 6) -> tuple[np.ndarray, EdgeScore]:
+       max_side: int = 1280, view: WorkingView | None = None,
+       usable_splat_px: int = SHIFT_PX) -> tuple[np.ndarray, EdgeScore]:
     """(overlay image, score) for one pose, at a working resolution whose longer side is at most
     max_side (distances in the photo's own pixels): Canny on every pixel of a 24 MP photo costs
     seconds and gigabytes, and its edges are no surer. A scan drawn with splats wider than
-    max_splat_px (working pixels; a LiDAR sweep's are 30 and more) scores as not usable, as
-    `structural_qa` does with its shift."""
+    usable_splat_px (working pixels; a LiDAR sweep's are 30 and more) scores as not usable, as
+    `structural_qa` does beyond its shift."""
     view = view or working_view(scan, colors, photo, camera, T, max_side)
     photo_edges = auto_canny(cv2.cvtColor(view.photo, cv2.COLOR_RGB2GRAY))
     scan_edges = auto_canny(view.gray, view.z > 0)
     score = edge_score(photo_edges, scan_edges, camera.width / view.camera.width)
-    if view.radius > max_splat_px:
+    if view.radius > usable_splat_px:
         score = EdgeScore(float("nan"), float("nan"), float("nan"), score.scan_edge_pixels, usable=False)
     return overlay(view.photo, photo_edges, scan_edges), score
 
@@ -222,7 +226,7 @@ def working_camera(camera: Camera, max_side: int) -> Camera:
 
 
 def structural_qa(scan: Scan, colors: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray,
-                  max_side: int = 1280, shift_px: int = 6, view: WorkingView | None = None,
+                  max_side: int = 1280, shift_px: int = SHIFT_PX, view: WorkingView | None = None,
                   score_only: bool = False) -> tuple[np.ndarray, StructuralScore]:
     """(overlay at the working resolution: red = the photo's strongest gradients, blue = the
     scan's structural edges that were scored, white = both; the chance-relative score) for one
