@@ -752,6 +752,11 @@ def run_workflow(
     Outputs(inputs).folder(out_dir, "output")
     cameras = {j.name: job_camera(j) for j in jobs}
     cache_root = out_dir / CACHE_FOLDER
+    site = len(jobs) > 1 or bool(cfg.scans)
+
+    def name(r) -> str:
+        return f"{r.scan}/{r.photo}" if site else r.photo  # two scans' photos may share a name
+
     results: list = []
     prepared: list = []
     start = time.perf_counter()
@@ -764,7 +769,7 @@ def run_workflow(
         def done(r) -> None:
             bar.advance(task)
             if r.error:
-                err.print(f"{r.photo}: failed: {r.error}", markup=False, highlight=False)
+                err.print(f"{name(r)}: failed: {r.error}", markup=False, highlight=False)
 
         def report(p) -> None:
             prepared.append(p)
@@ -804,7 +809,6 @@ def run_workflow(
     seconds = time.perf_counter() - start
     write_run_record(out_dir / "run.json", prepared, seconds, "ray" if ray_address is not None else "local", workers)
     table = Table(title=f"rgbd-gt run: {len(results)} photo(s) in {seconds:.0f} s")
-    site = len(jobs) > 1 or bool(cfg.scans)
     wide = out.width >= 100  # on a narrow terminal or in a log (80 columns) the Canny columns go (summary.csv has them)
 
     def f(v, fmt):
@@ -825,9 +829,9 @@ def run_workflow(
     out.print(table)
     for r in results:
         if r.reasons:
-            out.print(f"{r.photo}: {r.verdict}: {r.reasons}", markup=False, highlight=False)
+            out.print(f"{name(r)}: {r.verdict}: {r.reasons}", markup=False, highlight=False)
         if r.skipped:
-            out.print(f"{r.photo}: skipped {' '.join(r.skipped)}", markup=False, highlight=False)
+            out.print(f"{name(r)}: skipped {' '.join(r.skipped)}", markup=False, highlight=False)
     out.print(f"verdicts: {verdict_counts(results)}")
     where = "<scan>/<photo>" if site else "<photo>"
     out.print(f"outputs in {out_dir}/{where}/ (init.yaml, pose.yaml, depth.exr, depth.png, qa.png, qa.json, overlay*.png); "

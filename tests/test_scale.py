@@ -181,3 +181,5 @@ def test_site_runs_the_same_locally_in_workers_and_on_ray(scenes, tmp_path):
             np.testing.assert_allclose(read_pose(outs[name] / scan / photo / "pose.yaml")[0], T, atol=1e-5)
     resumed = {r["photo"]: r["skipped"] for r in csv.DictReader(open(outs["ray"] / "summary.csv"))}
     assert resumed["photo_1.png"] == "init refine depth qa overlay"
+    # both scans have a photo.png: the lines under the table name the scan too
+    assert "room_a/photo.png: skipped" in again.stdout and "room_b/photo.png: skipped" in again.stdout
