@@ -194,6 +194,8 @@ def test_real_sweep_converges_from_a_one_degree_init(tmp_path):
     # The Hessian from the objective's values over 1 px is positive definite here (its 1-sigma
     # image motion 0.25-0.5 px at right pjlab_3 results; docs/lidar-method.md).
     assert meta["evidence"]["uncertainty"]["image_px"] < 1.0, meta["evidence"]["uncertainty"]
+    # it stands for the sharpness probe, whose 1e-5..1e-3 rises called every nid result flat
+    assert "sharpness" not in meta["evidence"] and not any("flat" in r for r in meta["reasons"]), meta["reasons"]
 
 
 def test_search_results_are_judged_on_a_finer_level():

@@ -222,7 +222,8 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
     init_sigma = (init_meta or {}).get("uncertainty")
     if cfg.repeats > 0:
         ev["repeatability"] = timed("repeatability", repeatability, aligner, result, T_init, view, cfg, init_sigma, seed)
-    ev["sharpness"] = timed("sharpness", sharpness, aligner, T, M, cfg.sharpness_step_px, cfg.sharpness_level)
+    if result.objective != "nid":  # NID's values rise by 1e-5..1e-3: its uncertainty, from their Hessian, stands for it
+        ev["sharpness"] = timed("sharpness", sharpness, aligner, T, M, cfg.sharpness_step_px, cfg.sharpness_level)
     _, score = timed("edges", lambda: structural_qa(scan, colors, photo, camera, T, cfg.edge_max_side, cfg.edge_shift_px,
                                                     score_only=True))
     ev["edges"] = score.as_dict()

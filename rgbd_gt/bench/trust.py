@@ -358,8 +358,8 @@ def EVIDENCE_ROWS(cfg: VerifyConfig):  # noqa: N802 - a table, not a function to
     return [
         ("edge ratio (1 = chance)", lambda e: e["edges"]["edge_ratio"], f"< {cfg.edge_ratio_ok} / < {cfg.edge_ratio_failed}"),
         ("repeat spread (px)", lambda e: e.get("repeatability", {}).get("spread_px"), f"> {cfg.spread_ok_px} / > {cfg.spread_failed_px}"),
-        ("sharpness: smallest rise", lambda e: e["sharpness"]["min_rise"], f"< {cfg.sharpness_ok} / -"),
-        ("sharpness: median rise", lambda e: e["sharpness"]["median_rise"], f"- / < {cfg.sharpness_failed}"),
+        ("sharpness: smallest rise", lambda e: e.get("sharpness", {}).get("min_rise"), f"< {cfg.sharpness_ok} / -"),
+        ("sharpness: median rise", lambda e: e.get("sharpness", {}).get("median_rise"), f"- / < {cfg.sharpness_failed}"),
         ("1-sigma image motion (px)", lambda e: e["uncertainty"]["image_px"], f"> {cfg.sigma_ok_px} / > {cfg.sigma_failed_px}"),
         ("1-sigma translation (mm)", lambda e: e["uncertainty"]["translation_mm"], "-"),
         ("1-sigma rotation (deg)", lambda e: e["uncertainty"]["rotation_deg"], "-"),
