@@ -2,6 +2,7 @@
 solve (issue: intensity-only scans). Writes docs/lidar.md.
 
     python benchmarks/lidar.py [--data ../shared/data] [--inits 10] [--rewrite] [--picks-only]
+                               [--objectives nid 'nid + edges' ...]
 """
 
 from rgbd_gt.bench.lidar import main

@@ -86,7 +86,8 @@ class RefineConfig:
     max_depth: float = 0.0  # metres: points farther from the initial camera are not used (0: all)
     nid_bins: int = 16  # nid: bins per axis of the joint histogram
     nid_edges: bool = False  # nid: also NID of depth discontinuities against the photo's gradient magnitude
-    sky_weight: float = 0.5  # nid: added to NID per unit fraction of points that land on the photo's sky (align/sky.py; 0: off)
+    sky_weight: float = 0.5  # nid: added to NID per unit fraction of points that land on the photo's sky (align/sky.py; 0: off) ...
+    sky_coarse_level: int = 2  # ... on pyramid levels this coarse and coarser (0: every level; the sky is found at 1/8 scale)
     search_starts: int = 16  # nid: before the coarsest level, also run it from this many starts (0: none) ...
     search_rotation_deg: float = 3.0  # ... turned this much ...
     search_translation_m: float = 0.2  # ... and moved this much from the init
@@ -127,7 +128,7 @@ class RefineConfig:
         positive = ("adam_iterations", "adam_lr_rotation", "adam_lr_translation", "beta_max", "nu", "min_points",
                     "min_visible")
         not_negative = ("stop_rotation_deg", "stop_translation_m", "zbuffer_rel_tol", "zbuffer_abs_tol", "seed",
-                        "texture_floor", "search_rotation_deg", "search_translation_m", "sky_weight")
+                        "texture_floor", "search_rotation_deg", "search_translation_m", "sky_weight", "sky_coarse_level")
         for name in positive + not_negative:
             v = getattr(self, name)
             if not (v == v and abs(v) != float("inf")) or (v <= 0 if name in positive else v < 0):

@@ -11,7 +11,9 @@ interpolant and the B-spline histogram). Before the coarsest level, an optional 
 level from random starts around the init: a wider basin for poor inits. The few results of
 lowest NID each go on to level 1, and the lowest NID there goes on to the finest level.
 Points that land on the photo's sky add cfg.sky_weight times their fraction to NID (align/sky.py):
-a sweep has no returns from the sky, and NID alone drifts to poses that put points there.
+a sweep has no returns from the sky, and NID alone drifts to poses that put points there. The
+charge applies on the levels from cfg.sky_coarse_level up: the sky is found at 1/8 scale, and its
+coarse border would otherwise steer the fine levels (docs/lidar-method.md).
 """
 
 from __future__ import annotations
@@ -209,7 +211,8 @@ class NidAligner:
                 values = torch.cat([values, depth_edges(uv, z, photo.camera.size, cell)[:, None]], 1)
             values = values[vis].double()
             windows = torch.stack([parzen_windows(values[:, c], self.cfg.nid_bins) for c in range(values.shape[1])], 1)
-            parts.append(_Part(pts[vis], windows, self._images[k][level], photo, self._sky[k]))
+            sky = self._sky[k] and level >= self.cfg.sky_coarse_level
+            parts.append(_Part(pts[vis], windows, self._images[k][level], photo, sky))
         return parts
 
     # -- the objective -----------------------------------------------------------------------------
@@ -395,4 +398,3 @@ class NidAligner:
         with torch.no_grad():
             at = lambda d: float(self._evaluate(parts, T_local, torch.as_tensor(d, dtype=torch.float64, device=self.device)).loss)  # noqa: E731
             return at(np.zeros(6)), np.array([at(d) for d in deltas])
-

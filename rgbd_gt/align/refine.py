@@ -132,7 +132,8 @@ def refine_meta(result: RefineResult, cfg: RefineConfig, T_init: np.ndarray, ini
         meta = dict(verdict=verification.verdict, reasons=verification.reasons, evidence=verification.evidence)
     meta.update(method=f"rgbd-gt refine ({result.objective})", init=str(init_path), objective=result.objective)
     if result.objective == "nid":
-        meta.update(nid_bins=cfg.nid_bins, nid_edges=cfg.nid_edges, sky_weight=cfg.sky_weight, pairs=pairs)
+        meta.update(nid_bins=cfg.nid_bins, nid_edges=cfg.nid_edges, sky_weight=cfg.sky_weight,
+                    sky_coarse_level=cfg.sky_coarse_level, pairs=pairs)
     else:
         meta.update(color_model=cfg.color_model, gradient=cfg.gradient, optimizer=cfg.optimizer,
                     refine_intrinsics=cfg.refine_intrinsics, color_transform=result.color_transform.tolist())

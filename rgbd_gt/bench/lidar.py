@@ -92,12 +92,13 @@ def run_case(scenes: list[Scene], T_init: np.ndarray, cfg: RefineConfig) -> dict
             "verify_seconds": v.seconds}
 
 
-def collect(data: Path, inits: int = 10, log: Callable[[str], None] = print) -> list[dict]:
+def collect(data: Path, inits: int = 10, log: Callable[[str], None] = print,
+            objectives: tuple[str, ...] = tuple(OBJECTIVES)) -> list[dict]:
     """Every case: per objective, scene and init size, then the joint solve (nid)."""
     scenes = pjlab_scenes(data / "lidar_camera")
     by_name = {s.name: s for s in scenes}
-    groups = [(objective, [s]) for objective in OBJECTIVES for s in scenes]
-    if all(n in by_name for n in JOINT):
+    groups = [(objective, [s]) for objective in objectives for s in scenes]
+    if all(n in by_name for n in JOINT) and "nid" in objectives:
         groups.append(("nid", [by_name[n] for n in JOINT]))
     records = []
     for objective, group in groups:
@@ -251,7 +252,7 @@ def write_markdown(path: Path, records: list[dict], picks: list[dict] = ()) -> N
         f"Success: within {SUCCESS[0]} deg and {SUCCESS[1] * 100:g} cm of the reference.",
         "`photometric` is the colored-scan aligner (the paper's, here predicting intensity from the photo's",
         "colors); `nid` minimises the normalised information distance between intensity and gray plus",
-        "the charge for points on the photo's sky (docs/lidar-method.md); `nid, no sky` is the same without",
+        "the charge for points on the photo's sky on the coarse levels (docs/lidar-method.md); `nid, no sky` is the same without",
         "that charge; `nid + edges` adds the NID of the points' depth discontinuities against the photo's",
         "gradient magnitude. The last rows solve scenes 1 and 2 jointly (nid): one pose, two frames.",
         "",
@@ -289,6 +290,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--inits", type=int, default=10)
     ap.add_argument("--rewrite", action="store_true", help="only re-write docs/lidar.md from --work/cases.json and picks.json")
     ap.add_argument("--picks-only", action="store_true", help="run the picked-pairs rows only (the refine rows from --work/cases.json)")
+    ap.add_argument("--objectives", nargs="+", choices=list(OBJECTIVES), default=list(OBJECTIVES),
+                    help="run these objectives' rows (and the picked pairs); the others' from --work/cases.json")
     args = ap.parse_args(argv)
     from rgbd_gt.io.atomic import atomic_output
 
@@ -305,7 +308,9 @@ def main(argv: list[str] | None = None) -> None:
             return
         if not args.picks_only:
             t = time.perf_counter()
-            save(cases, collect(args.data, args.inits), t)
+            kept = [r for r in json.loads(cases.read_text()) if r["objective"] not in args.objectives] \
+                if set(args.objectives) != set(OBJECTIVES) else []
+            save(cases, kept + collect(args.data, args.inits, objectives=tuple(args.objectives)), t)
         t = time.perf_counter()
         save(picks, collect_picks(pjlab_scenes(args.data / "lidar_camera")), t)
     write_markdown(args.out / "lidar.md", json.loads(cases.read_text()),
