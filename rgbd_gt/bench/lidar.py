@@ -309,7 +309,7 @@ def main(argv: list[str] | None = None) -> None:
         if not args.picks_only:
             t = time.perf_counter()
             kept = [r for r in json.loads(cases.read_text()) if r["objective"] not in args.objectives] \
-                if set(args.objectives) != set(OBJECTIVES) else []
+                if cases.exists() and set(args.objectives) != set(OBJECTIVES) else []
             save(cases, kept + collect(args.data, args.inits, objectives=tuple(args.objectives)), t)
         t = time.perf_counter()
         save(picks, collect_picks(pjlab_scenes(args.data / "lidar_camera")), t)
