@@ -638,14 +638,18 @@ def qa_edges(
             raise InputError("no scan edges in view of this pose (no scan points in view?)", pose)
         img, structural = structural_qa(the_scan, colors, photo, cam, T, view=view)
         result = {**structural.as_dict(), **score.as_dict()}
-        rows = [("after" if before else "score", f"{structural.summary()}; Canny {score.summary()}")]
+
+        def row(structural, score) -> str:
+            return f"{structural.summary()}; Canny {score.summary()}"
+
+        rows = [("after" if before else "score", row(structural, score))]
         if T_before is not None:
             view_b = working_view(the_scan, colors, photo, cam, T_before)
             _, score_b = qa(the_scan, colors, photo, cam, T_before, view=view_b)
             img_b, structural_b = structural_qa(the_scan, colors, photo, cam, T_before, view=view_b)
             img = side_by_side(img_b, img)
             result.update({**structural_b.as_dict("before_"), **score_b.as_dict("before_")})
-            rows.insert(0, ("before", f"{structural_b.summary()}; Canny {score_b.summary()}"))
+            rows.insert(0, ("before", row(structural_b, score_b)))
     with outs:
         write_image(staged, img)
         if json_out:

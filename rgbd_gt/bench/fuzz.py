@@ -361,6 +361,7 @@ def templates(seeds: dict[str, Path]) -> list[dict]:
     return t
 
 
+NEVER_VALID = ("nan", "inf", "-inf", "abc", "", "0x10", "1,2")  # of ODD_ARGS, what no option takes
 UNBOUNDED = ("--max-depth",)  # a distance with no upper bound: 1e20 m means no limit, as 0 does
 ODD_ARGS = ["nan", "inf", "-inf", "-1", "0", "abc", "", "1e308", "-0", "99999999999999999999", "0x10", "1,2"]
 
@@ -403,7 +404,7 @@ def make_trial(k: int, tpls: list[dict], seeds: dict[str, Path], root: Path, rng
             j = rng.choice(opts)
             val = rng.choice(ODD_ARGS)
             name += f" | {argv[j]} {val!r}"
-            invalid = val in ("nan", "inf", "-inf", "abc", "", "0x10", "1,2") or (
+            invalid = val in NEVER_VALID or (
                 val in ("1e308", "99999999999999999999") and argv[j] not in UNBOUNDED) or (
                 val in ("-1",) and argv[j] not in ("--max-depth",))
             argv[j + 1] = val
@@ -412,7 +413,7 @@ def make_trial(k: int, tpls: list[dict], seeds: dict[str, Path], root: Path, rng
             later = extra in argv  # an option given twice takes its last value (Click's rule)
             argv[1:1] = [extra, val]
             name += f" | added {extra} {val!r}" + (" (given again later)" if later else "")
-            invalid = (val in ("nan", "inf", "-inf", "abc", "", "0x10", "1,2") or (
+            invalid = (val in NEVER_VALID or (
                 val == "99999999999999999999" and extra not in UNBOUNDED)) and not later
         elif how == "unknown":
             argv.append("--no-such-option")

@@ -133,9 +133,10 @@ def qa(scan: Scan, colors: np.ndarray, photo: np.ndarray, camera: Camera, T: np.
     view = view or working_view(scan, colors, photo, camera, T, max_side)
     photo_edges = auto_canny(cv2.cvtColor(view.photo, cv2.COLOR_RGB2GRAY))
     scan_edges = auto_canny(view.gray, view.z > 0)
-    score = edge_score(photo_edges, scan_edges, camera.width / view.camera.width)
     if view.radius > usable_splat_px:
-        score = EdgeScore(float("nan"), float("nan"), float("nan"), score.scan_edge_pixels, usable=False)
+        score = EdgeScore(float("nan"), float("nan"), float("nan"), int(scan_edges.sum()), usable=False)
+    else:
+        score = edge_score(photo_edges, scan_edges, camera.width / view.camera.width)
     return overlay(view.photo, photo_edges, scan_edges), score
 
 

@@ -398,7 +398,7 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None,
     import torch
 
     from rgbd_gt.render.normals import facing_camera, with_normals
-    from rgbd_gt.render.splat import Surfels, close_gaps, splat
+    from rgbd_gt.render.splat import Surfels, close_gaps, splat, values_at
     from rgbd_gt.render.zbuffer import estimate_spacing
 
     p = transform_points(T, scan.xyz)
@@ -440,7 +440,7 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None,
     if normals is not None:
         # the gaps between a scanner's columns, on one surface
         zz, idx = close_gaps(zz, index.numpy(), reach_px)
-        img = torch.as_tensor(vals)[np.maximum(idx, 0)] * torch.as_tensor(idx >= 0)[..., None]
+        img = values_at(torch.as_tensor(vals), torch.as_tensor(idx))
         # a pixel whose nearest point faces away is seen from behind
         away = ~facing_camera(torch.as_tensor(p[seen], dtype=torch.float32), torch.as_tensor(n_cam, dtype=torch.float32))
         behind = (idx >= 0) & away.numpy()[np.maximum(idx, 0)]

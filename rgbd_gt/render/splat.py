@@ -87,11 +87,18 @@ def splat(uv: torch.Tensor, z: torch.Tensor, values: torch.Tensor, size: tuple[i
     for key, zz, owner in passes:  # the nearest point of each pixel owns it
         win = zz <= zmin[key]
         index[key[win]] = owner[win]
+    index, zmin = index.reshape(h, w), zmin.reshape(h, w)
+    depth = torch.where(index >= 0, zmin, torch.zeros_like(zmin))
+    return values_at(values, index), depth, index
+
+
+def values_at(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """The image (H, W, C) of the points' values (N, C) at the pixels they own (index (H, W),
+    -1 where empty: 0)."""
     have = index >= 0
-    image = torch.zeros(h * w, values.shape[1], dtype=values.dtype, device=values.device)
+    image = torch.zeros(index.shape + (values.shape[1],), dtype=values.dtype, device=values.device)
     image[have] = values[index[have]]
-    depth = torch.where(have, zmin, torch.zeros_like(zmin))
-    return image.reshape(h, w, -1), depth.reshape(h, w), index.reshape(h, w)
+    return image
 
 
 def close_gaps(depth: np.ndarray, index: np.ndarray, reach_px: np.ndarray,
