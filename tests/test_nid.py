@@ -392,3 +392,32 @@ def test_the_sky_is_charged_on_the_coarse_levels_only():
     assert losses[0.5][:2] == losses[0.0][:2]  # levels 0 and 1: no charge
     for level in (2, 3):
         assert losses[0.5][level] > losses[0.0][level] + 0.01, losses  # the points on the sky cost (measured 0.03)
+
+
+def test_auto_device_runs_nid_on_the_cpu():
+    """NID's few thousand points per level leave a GPU waiting on kernel launches (2x slower
+    than the CPU on an H100 machine, docs/gpu.md): 'auto' keeps it on the CPU."""
+    from rgbd_gt.align.refine import resolve_device
+    from rgbd_gt.errors import InputError
+
+    assert resolve_device("auto", "nid").type == "cpu"
+    assert resolve_device("auto", "photometric").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    assert resolve_device("cpu", "nid").type == "cpu"
+    with pytest.raises(InputError, match="--device"):
+        resolve_device("tpu")
+
+
+def test_gpu_benchmark_compares_each_case_with_its_twin_on_the_cpu():
+    from rgbd_gt.bench.gpu import compare
+
+    T = np.eye(4)
+    moved = T.copy()
+    moved[0, 3] = 0.002
+    recs = [{"device": d, "kind": k, "case": "a", "T": (moved if d == "cuda" and k == "nid" else T).tolist(),
+             "deg": 0.1, "cm": 1.0, "seconds": s} for d, s in (("cpu", 1.0), ("cuda", 3.0)) for k in ("nid", "photometric")]
+    recs.append({"device": "cuda", "kind": "nid", "case": "b", "error": "boom"})
+    rows = {(r["kind"], r["device"]): r for r in compare(recs, "cpu")}
+    assert rows["nid", "cuda"]["worst_apart_mm"] == pytest.approx(2.0)
+    assert rows["photometric", "cuda"]["worst_apart_mm"] == 0
+    assert rows["nid", "cuda"]["errors"] == 1 and rows["nid", "cuda"]["cases"] == 2
+    assert rows["nid", "cuda"]["aligner_s"] == 3.0 and rows["nid", "cpu"]["worst_apart_mm"] == 0

@@ -17,12 +17,14 @@ if TYPE_CHECKING:  # the aligners import torch: loaded where they run, so that b
     from rgbd_gt.align.verify import Verification
 
 
-def resolve_device(name: str):
-    """'auto' | 'cpu' | 'cuda' -> torch.device ('auto' takes CUDA when present)."""
+def resolve_device(name: str, objective: str = "photometric"):
+    """'auto' | 'cpu' | 'cuda' -> torch.device. 'auto' takes CUDA when present, except for the
+    nid objective: its ~10k points per frame leave a GPU waiting on kernel launches, 2x slower
+    than the CPU on an H100 machine (docs/gpu.md)."""
     import torch
 
     if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        return torch.device("cuda" if torch.cuda.is_available() and objective != "nid" else "cpu")
     if name == "cuda" and not torch.cuda.is_available():
         raise InputError("--device cuda: no CUDA device is available")
     if name not in ("cpu", "cuda"):
@@ -158,10 +160,11 @@ def make_aligner(inputs: RefineInputs, cfg: RefineConfig, device: str, more: lis
     from rgbd_gt.align.pyramid import photo_pyramid
     from rgbd_gt.io.scan import colors_to_gray
 
-    dev = resolve_device(device)
-    if cfg.refine_intrinsics != "none" and objective_of(cfg, inputs.colors) != "photometric":
+    objective = objective_of(cfg, inputs.colors)
+    dev = resolve_device(device, objective)
+    if cfg.refine_intrinsics != "none" and objective != "photometric":
         raise InputError("--refine-intrinsics works with the photometric objective (a colored scan) only")
-    if objective_of(cfg, inputs.colors) == "photometric":
+    if objective == "photometric":
         if more:
             raise InputError("several pairs are solved jointly with --objective nid only")
         pyramid = photo_pyramid(inputs.photo, inputs.camera, cfg.levels, dev, inputs.ignore, cfg.upsample)

@@ -74,7 +74,7 @@ def init_poses(T: np.ndarray, deg: float, m: float, count: int, seed: int) -> li
     return out
 
 
-def run_case(scenes: list[Scene], T_init: np.ndarray, cfg: RefineConfig) -> dict:
+def run_case(scenes: list[Scene], T_init: np.ndarray, cfg: RefineConfig, device: str = "cpu") -> dict:
     """Refine T_init against the scenes (jointly when several; they share T_ref) and judge it."""
     from rgbd_gt.align.refine import RefineInputs, refine_verified
     from rgbd_gt.errors import InputError
@@ -83,7 +83,7 @@ def run_case(scenes: list[Scene], T_init: np.ndarray, cfg: RefineConfig) -> dict
     T_ref = scenes[0].T_ref
     rec = {"init_deg": rotation_error_deg(T_init, T_ref), "init_cm": translation_error_m(T_init, T_ref) * 100}
     try:
-        result, v = refine_verified(inputs[0], cfg, "cpu", more=inputs[1:])
+        result, v = refine_verified(inputs[0], cfg, device, more=inputs[1:])
     except InputError as exc:
         return {**rec, "error": str(exc)}
     T = result.T_cam_from_scan

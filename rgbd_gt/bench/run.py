@@ -70,7 +70,7 @@ def machine() -> str:
             f"Python {platform.python_version()}, torch {torch.__version__}")
 
 
-def time_refine_command(case: Case, repeats: int = 3) -> tuple[float, float, float]:
+def time_refine_command(case: Case, repeats: int = 3, device: str = "auto") -> tuple[float, float, float]:
     """Wall time of the whole `rgbd-gt refine` command on one case written to files, and the
     aligner and verification times it records (the medians of `repeats` runs)."""
     import yaml
@@ -88,7 +88,7 @@ def time_refine_command(case: Case, repeats: int = 3) -> tuple[float, float, flo
         for _ in range(repeats):
             t = time.perf_counter()
             subprocess.run([sys.executable, "-m", "rgbd_gt", "refine", "--scan", d / "scan.ply", "--image", d / "photo.png",
-                            "--camera", d / "camera.yaml", "--init", d / "init.yaml", "-o", d / "pose.yaml"],
+                            "--camera", d / "camera.yaml", "--init", d / "init.yaml", "-o", d / "pose.yaml", "--device", device],
                            check=True, capture_output=True)
             walls.append(time.perf_counter() - t)
             meta = yaml.safe_load((d / "pose.yaml").read_text())
@@ -104,7 +104,7 @@ def run_benchmark(data: Path, out_dir: Path, device: str = "cpu", effects_near: 
         "i±3": make_cases(data, offsets=(3,), effects_per_pair=effects_far, seed=3),
     }
     # timed first: after the runs below, this process's idle torch threads would compete with it
-    cmd_wall, cmd_aligner, cmd_verify = time_refine_command(groups["i±1"][0])
+    cmd_wall, cmd_aligner, cmd_verify = time_refine_command(groups["i±1"][0], device=device)
     all_methods: dict[str, Callable[[Case], np.ndarray]] = {}
     for name, change in PHOTOMETRIC.items():
         all_methods[name] = photometric_method(change, device)
