@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 
 from rgbd_gt.align.config import RefineConfig
-from rgbd_gt.bench.lidar import JOINT, SIZES, init_poses, pjlab_scenes, run_case
+from rgbd_gt.bench.lidar import JOINT, SIZES, group_inits, pjlab_scenes, run_case
 from rgbd_gt.pose import rotation_error_deg, translation_error_m
 
 SCENES = "pjlab.pickle.gz"
@@ -37,19 +37,14 @@ def prepare(data: Path, out: Path) -> None:
 
 
 def lidar_cases(inputs: Path, inits: int) -> list[tuple[str, list, np.ndarray]]:
-    """(name, scenes, T_init): `inits` of each init size per scene (the LiDAR benchmark's first
-    ones), and the joint solve of JOINT from its 1 deg / 10 cm inits."""
+    """(name, scenes, T_init): the LiDAR benchmark's first `inits` inits of each size per scene
+    (`bench.lidar.group_inits`), and the joint solve of JOINT from its 1 deg / 10 cm ones."""
     with gzip.open(inputs / SCENES, "rb") as f:
         scenes = pickle.load(f)
     by_name = {s.name: s for s in scenes}
     groups = [[s] for s in scenes] + [[by_name[n] for n in JOINT]]
-    cases = []
-    for group in groups:
-        name = " + ".join(s.name for s in group)
-        for k, (deg, m) in enumerate(SIZES[:1] if len(group) > 1 else SIZES):
-            for i, T0 in enumerate(init_poses(group[0].T_ref, deg, m, inits, seed=1000 * k + sum(map(ord, name)))):
-                cases.append((f"{name} {deg:g} deg #{i}", group, T0))
-    return cases
+    return [(f"{' + '.join(s.name for s in group)} {deg:g} deg #{i}", group, T0) for group in groups
+            for deg, _, i, T0 in group_inits(group, inits, SIZES[:1] if len(group) > 1 else SIZES)]
 
 
 def _guarded(fn, *args) -> dict:
@@ -63,22 +58,10 @@ def _guarded(fn, *args) -> dict:
         return {"error": " | ".join(traceback.format_exc().strip().splitlines()[-3:])}
 
 
-def aligner_case(scenes: list, T_init: np.ndarray, cfg: RefineConfig, device: str) -> dict:
-    """`bench.lidar.run_case` without the verdict (whose edge check needs open3d)."""
-    from rgbd_gt.align.refine import RefineInputs, make_aligner
-
-    inputs = [RefineInputs(s.scan.xyz, s.colors, s.photo, s.camera, T_init, None, s.scan) for s in scenes]
-    result = make_aligner(inputs[0], cfg, device, inputs[1:]).refine(T_init)
-    T, T_ref = result.T_cam_from_scan, scenes[0].T_ref
-    return {"deg": rotation_error_deg(T, T_ref), "cm": translation_error_m(T, T_ref) * 100, "T": T.tolist(),
-            "seconds": result.seconds}
-
-
 def profile(fn, *args, rows: int = 25) -> str:
     """torch.profiler's table of fn(*args): the operators by their own host time."""
-    from torch.profiler import ProfilerActivity, profile as torch_profile
-
     import torch
+    from torch.profiler import ProfilerActivity, profile as torch_profile
 
     acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if torch.cuda.is_available() else [])
     with torch_profile(activities=acts) as prof:
@@ -108,9 +91,7 @@ def run(inputs: Path, devices: list[str], inits: int = 3, icl_cases: int = 8, ve
 
         def icl_case(method, case) -> dict:
             t = time.perf_counter()
-            T = method(case)
-            if device == "cuda":
-                torch.cuda.synchronize()
+            T = method(case)  # a numpy pose: the device's work is done
             return {"deg": rotation_error_deg(T, case.T_true), "cm": translation_error_m(T, case.T_true) * 100,
                     "T": T.tolist(), "seconds": time.perf_counter() - t}
 
@@ -121,15 +102,14 @@ def run(inputs: Path, devices: list[str], inits: int = 3, icl_cases: int = 8, ve
                 return {"error": exc.stderr.decode(errors="replace")[-600:]}
             return {"seconds": aligner, "verify_seconds": verify, "wall_seconds": wall}
 
-        lidar_case = run_case if verdict else aligner_case
         # the first run on a device pays its start (CUDA context, kernels' first loads): not timed
         t = time.perf_counter()
-        _guarded(lidar_case, lidar[0][1], lidar[0][2], cfg, device)
+        _guarded(run_case, lidar[0][1], lidar[0][2], cfg, device, verdict)
         for method in photometric.values():
             _guarded(icl_case, method, icl[0])
         log(f"{label:6s} first runs (not timed): {time.perf_counter() - t:.1f} s")
         if profiled:
-            log(profile(aligner_case, lidar[0][1], lidar[0][2], cfg, device))
+            log(profile(run_case, lidar[0][1], lidar[0][2], cfg, device, False))
             log(profile(icl_case, photometric["photometric (ICL-NUIM)"], icl[0]))
 
         def record(kind: str, case: str, fn, *args) -> None:
@@ -141,7 +121,7 @@ def run(inputs: Path, devices: list[str], inits: int = 3, icl_cases: int = 8, ve
                 + f" {rec.get('verdict', '')}"))
 
         for name, group, T0 in lidar:
-            record("nid (PJLab)", name, lidar_case, group, T0, cfg, device)
+            record("nid (PJLab)", name, run_case, group, T0, cfg, device, verdict)
         if not threads:  # a process of its own: it takes every thread
             record("`rgbd-gt refine` on an ICL-NUIM pair", "refine command", command)
         for kind, method in photometric.items():

@@ -74,22 +74,38 @@ def init_poses(T: np.ndarray, deg: float, m: float, count: int, seed: int) -> li
     return out
 
 
-def run_case(scenes: list[Scene], T_init: np.ndarray, cfg: RefineConfig, device: str = "cpu") -> dict:
-    """Refine T_init against the scenes (jointly when several; they share T_ref) and judge it."""
-    from rgbd_gt.align.refine import RefineInputs, refine_verified
+def group_inits(group: list[Scene], inits: int, sizes=SIZES) -> list[tuple[float, float, int, np.ndarray]]:
+    """(degrees, metres, index, T_init): the benchmark's `inits` inits of each size for a group
+    of scenes that share T_ref, seeded by the group's name, so that every run and every
+    benchmark that asks for them gets the same ones."""
+    name = " + ".join(s.name for s in group)
+    return [(deg, m, i, T0) for k, (deg, m) in enumerate(sizes)
+            for i, T0 in enumerate(init_poses(group[0].T_ref, deg, m, inits, seed=1000 * k + sum(map(ord, name))))]
+
+
+def run_case(scenes: list[Scene], T_init: np.ndarray, cfg: RefineConfig, device: str = "cpu",
+             verdict: bool = True) -> dict:
+    """Refine T_init against the scenes (jointly when several; they share T_ref) and, unless
+    verdict is False (the aligner alone), judge it."""
+    from rgbd_gt.align.refine import RefineInputs, make_aligner, refine_verified
     from rgbd_gt.errors import InputError
 
     inputs = [RefineInputs(s.scan.xyz, s.colors, s.photo, s.camera, T_init, None, s.scan) for s in scenes]
     T_ref = scenes[0].T_ref
     rec = {"init_deg": rotation_error_deg(T_init, T_ref), "init_cm": translation_error_m(T_init, T_ref) * 100}
     try:
-        result, v = refine_verified(inputs[0], cfg, device, more=inputs[1:])
+        if verdict:
+            result, v = refine_verified(inputs[0], cfg, device, more=inputs[1:])
+        else:
+            result, v = make_aligner(inputs[0], cfg, device, inputs[1:]).refine(T_init), None
     except InputError as exc:
         return {**rec, "error": str(exc)}
     T = result.T_cam_from_scan
-    return {**rec, "deg": rotation_error_deg(T, T_ref), "cm": translation_error_m(T, T_ref) * 100,
-            "T": T.tolist(), "verdict": v.verdict, "reasons": v.reasons, "seconds": result.seconds,
-            "verify_seconds": v.seconds}
+    rec.update(deg=rotation_error_deg(T, T_ref), cm=translation_error_m(T, T_ref) * 100, T=T.tolist(),
+               seconds=result.seconds)
+    if v is not None:
+        rec.update(verdict=v.verdict, reasons=v.reasons, verify_seconds=v.seconds)
+    return rec
 
 
 def collect(data: Path, inits: int = 10, log: Callable[[str], None] = print,
@@ -104,13 +120,12 @@ def collect(data: Path, inits: int = 10, log: Callable[[str], None] = print,
     for objective, group in groups:
         cfg = replace(RefineConfig(), **OBJECTIVES[objective])
         name = " + ".join(s.name for s in group)
-        for k, (deg, m) in enumerate(SIZES):
-            for i, T0 in enumerate(init_poses(group[0].T_ref, deg, m, inits, seed=1000 * k + sum(map(ord, name)))):
-                rec = {"objective": objective, "scenes": name, "size": f"{deg:g} deg / {m * 100:g} cm", "init": i,
-                       **run_case(group, T0, cfg)}
-                records.append(rec)
-                log(f"{objective:11s} {name:18s} {rec['size']:12s} #{i}: "
-                    + (rec["error"] if "error" in rec else f"{rec['deg']:.3f} deg {rec['cm']:.1f} cm {rec['verdict']} {rec['seconds']:.1f} s"))
+        for deg, m, i, T0 in group_inits(group, inits):
+            rec = {"objective": objective, "scenes": name, "size": f"{deg:g} deg / {m * 100:g} cm", "init": i,
+                   **run_case(group, T0, cfg)}
+            records.append(rec)
+            log(f"{objective:11s} {name:18s} {rec['size']:12s} #{i}: "
+                + (rec["error"] if "error" in rec else f"{rec['deg']:.3f} deg {rec['cm']:.1f} cm {rec['verdict']} {rec['seconds']:.1f} s"))
     return records
 
 
