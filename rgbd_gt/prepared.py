@@ -70,13 +70,15 @@ class PreparedScan:
              far: float | None = None) -> Scan:
         """The points a photo can see from about T_cam_from_scan (`render.blocks.points_in_view`),
         found through the blocks: every step of that photo works on this subset."""
-        return self.subset(self._in_view(camera, T_cam_from_scan, margin, far))
+        return self.subset(self.view_index(camera, T_cam_from_scan, margin, far))
 
     def views(self, camera: Camera, poses: list[np.ndarray], margin: float = VIEW_MARGIN) -> Scan:
         """The points in view of any of the poses (`view`)."""
-        return self.subset(np.unique(np.concatenate([self._in_view(camera, T, margin) for T in poses])))
+        return self.subset(np.unique(np.concatenate([self.view_index(camera, T, margin) for T in poses])))
 
-    def _in_view(self, camera: Camera, T_cam_from_scan: np.ndarray, margin: float, far: float | None = None) -> np.ndarray:
+    def view_index(self, camera: Camera, T_cam_from_scan: np.ndarray, margin: float = VIEW_MARGIN,
+                   far: float | None = None) -> np.ndarray:
+        """(n,) int64 ascending indices (block order) of the points `view` returns."""
         idx = block_points(self.blocks, blocks_in_view(self.blocks, camera, T_cam_from_scan, margin, far))
         T_local = T_cam_from_scan.copy()
         T_local[:3, 3] += T_local[:3, :3] @ self.centre  # the pose of the local (float32) frame

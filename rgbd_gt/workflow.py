@@ -17,6 +17,10 @@ import numpy as np
 from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.errors import InputError
 
+# of the photo's extent: the points the refined pose sees within it must be in the view (a render
+# near the border needs the triangles and splats a little beyond it)
+REFINED_VIEW_SLACK = 0.01
+
 
 @dataclass
 class BoardConfig:
@@ -211,10 +215,9 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.depth_file import write_depth_exr, write_depth_png16
     from rgbd_gt.io.image import read_image, write_image
-    from rgbd_gt.io.scan import scan_colors
     from rgbd_gt.qa.edges import as_json, qa, side_by_side
     from rgbd_gt.qa.overlay import overlay, points_image
-    from rgbd_gt.render.depth import back_facing_fraction, expect_poses, point_depth, render_depth
+    from rgbd_gt.render.depth import back_facing_fraction, point_depth, render_depth
     from rgbd_gt.render.points import as_points, is_sweep
 
     start = time.perf_counter()
@@ -239,12 +242,10 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
     T_init, init_meta = initial_pose(photo, image, prepared, camera, board, files["init"], init)
     res.init_rms_px = init_meta.get("reprojection_rms_px")
     lap("init")
-    scan = prepared.view(camera, T_init)
-    res.view_points = len(scan)
-    if len(scan) == 0:
+    seen = prepared.view_index(camera, T_init)
+    if len(seen) == 0:
         raise InputError("no scan points in view of the initial pose", files["init"])
-    expect_poses(scan, [T_init])  # qa renders it beside the refined pose: one ray-casting scene for both
-    colors = scan_colors(scan, prepared.source, to_align=True)
+    scan, colors = _view(prepared, seen, T_init)
     lap("view")
 
     progress("refine")
@@ -258,6 +259,14 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
         res.steps["aligner"] = round(r.seconds, 3)
         lap("refine")
     T, meta = read_pose(files["refine"])
+    # a poor init: the refined pose may see beyond the initial view's margin, and the depth map,
+    # qa and overlay must have all that the photo sees (a rare second view and ray-casting scene)
+    at_T = prepared.view_index(camera, T, margin=REFINED_VIEW_SLACK)
+    if not np.isin(at_T, seen).all():
+        seen = np.union1d(seen, prepared.view_index(camera, T))
+        scan, colors = _view(prepared, seen, T_init)
+    lap("refined_view")
+    res.view_points = len(scan)
     res.refine_loss, res.inlier_fraction = meta.get("final_loss"), meta.get("inlier_fraction")
     res.verdict, res.reasons = meta.get("verdict"), "; ".join(meta.get("reasons") or [])
     edges = (meta.get("evidence") or {}).get("edges", {})
@@ -306,6 +315,16 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
     res.steps["mesh"] = round(scan.derived.get("mesh_seconds", 0.0), 3)  # within the steps that rendered first
     res.seconds = time.perf_counter() - start
     return res
+
+
+def _view(prepared, index: np.ndarray, T_init: np.ndarray):
+    """(scan, colors): the prepared scan's points `index` and their colors for aligning."""
+    from rgbd_gt.io.scan import scan_colors
+    from rgbd_gt.render.depth import expect_poses
+
+    scan = prepared.subset(index)
+    expect_poses(scan, [T_init])  # qa renders it beside the refined pose: one ray-casting scene for both
+    return scan, scan_colors(scan, prepared.source, to_align=True)
 
 
 def initial_pose(photo: Path, image: np.ndarray, prepared, camera, board: BoardConfig, path: Path,

@@ -122,3 +122,28 @@ def test_run_on_a_real_lidar_frame_with_the_rigs_extrinsic(tmp_path):
     np.minimum.at(nearest, px[inside, 1] * 1920 + px[inside, 0], zp[inside])
     have = np.flatnonzero(z.ravel() > 0)
     assert np.mean(np.abs(nearest[have] - z.ravel()[have]) < 1e-3) > 0.99
+
+
+def test_run_depth_covers_what_the_refined_pose_sees(tmp_path):
+    """A refined pose 4 deg from its init (beyond the initial view's margin): run's depth map is
+    export-depth's at that pose, border included (refine is skipped: its pose file is given)."""
+    import cv2 as _cv2
+
+    from rgbd_gt.io import write_pose
+
+    scene = tmp_path / "scene"
+    assert run_cli("synth", scene, "--size", "small", "--seed", 2).returncode == 0
+    gt = read_pose(scene / "gt_pose.yaml")[0]
+    turn = np.eye(4)
+    turn[:3, :3] = _cv2.Rodrigues(np.radians([0.0, 4.0, 0.0]))[0]
+    write_pose(tmp_path / "out" / "photo" / "init.yaml", turn @ gt)
+    write_pose(tmp_path / "out" / "photo" / "pose.yaml", gt)
+    config = {"scan": "scene/scan.e57", "camera": "scene/camera.yaml", "photos": ["scene/photo.png"], "output": "out"}
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump(config))
+    proc = run_cli("run", tmp_path / "run.yaml")
+    assert proc.returncode == 0, proc.stderr
+    assert run_cli("export-depth", "--scan", scene / "scan.e57", "--camera", scene / "camera.yaml", "--pose",
+                   scene / "gt_pose.yaml", "-o", tmp_path / "alone.exr").returncode == 0
+    z, alone = read_depth_exr(tmp_path / "out" / "photo" / "depth.exr")[0], read_depth_exr(tmp_path / "alone.exr")[0]
+    assert (alone > 0).mean() > 0.5
+    np.testing.assert_allclose(z, alone, atol=1e-4)
