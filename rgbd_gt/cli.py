@@ -6,6 +6,7 @@ code 2; `--debug` shows the traceback instead.
 
 from __future__ import annotations
 
+import re
 import sys
 import time
 from pathlib import Path
@@ -900,6 +901,8 @@ def _finite_numbers(fn):
 
 
 for _info in app.registered_commands:
+    # the command list: the docstring's first sentence, wrapped to the terminal (not its source lines)
+    _info.short_help = re.split(r"(?<=\.)\s+(?=[A-Z])", " ".join((_info.callback.__doc__ or "").split()))[0]
     _info.callback = _finite_numbers(_info.callback)
 
 
