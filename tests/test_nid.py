@@ -290,9 +290,9 @@ def test_calibration_text_files(tmp_path):
     assert meta == {}
     assert abs(np.linalg.det(T[:3, :3]) - 1) < 1e-12
     kitti = tmp_path / "kitti.txt"
-    kitti.write_text("P2: 700 0 600 45 0 700 180 0.2 0 0 1 0.003\nTr_velo_to_cam: " + " ".join(map(str, rows.ravel())) + "\n")
+    kitti.write_text("P2: 700 0 600 0 0 700 180 0 0 0 1 0\nTr_velo_to_cam: " + " ".join(map(str, rows.ravel())) + "\n")
     assert read_camera(kitti, (1242, 375)).cx == 600 and read_camera(kitti, (1242, 375)).distortion == ()
-    np.testing.assert_allclose(read_pose(kitti)[0], T)
+    np.testing.assert_allclose(read_pose(kitti)[0], T)  # camera 2 at camera 0, no rectification: Tr itself
     (tmp_path / "nan.txt").write_text("K: nan 0 1 0 1 1 0 0 1\n")
     (tmp_path / "short.txt").write_text("T: 1 0 0\n")
     for path, needle in ((tmp_path / "nan.txt", "non-finite"), (tmp_path / "short.txt", "12")):
@@ -302,6 +302,63 @@ def test_calibration_text_files(tmp_path):
         read_camera(pjlab)
     with pytest.raises(Exception, match="outside the 960x600 photo"):  # a half-size photo
         read_camera(pjlab, (960, 600))
+
+
+# KITTI object detection, training/calib/000000.txt (the 2011_09_26 calibration), as shipped
+KITTI_OBJECT = """P0: 7.215377000000e+02 0.000000000000e+00 6.095593000000e+02 0.000000000000e+00 0.000000000000e+00 7.215377000000e+02 1.728540000000e+02 0.000000000000e+00 0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 0.000000000000e+00
+P1: 7.215377000000e+02 0.000000000000e+00 6.095593000000e+02 -3.875744000000e+02 0.000000000000e+00 7.215377000000e+02 1.728540000000e+02 0.000000000000e+00 0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 0.000000000000e+00
+P2: 7.215377000000e+02 0.000000000000e+00 6.095593000000e+02 4.485728000000e+01 0.000000000000e+00 7.215377000000e+02 1.728540000000e+02 2.163791000000e-01 0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 2.745884000000e-03
+P3: 7.215377000000e+02 0.000000000000e+00 6.095593000000e+02 -3.395242000000e+02 0.000000000000e+00 7.215377000000e+02 1.728540000000e+02 2.199936000000e+00 0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 2.729905000000e-03
+R0_rect: 9.999239000000e-01 9.837760000000e-03 -7.445048000000e-03 -9.869795000000e-03 9.999421000000e-01 -4.278459000000e-03 7.402527000000e-03 4.351614000000e-03 9.999631000000e-01
+Tr_velo_to_cam: 7.533745000000e-03 -9.999714000000e-01 -6.166020000000e-04 -4.069766000000e-03 1.480249000000e-02 7.280733000000e-04 -9.998902000000e-01 -7.631618000000e-02 9.998621000000e-01 7.523790000000e-03 1.480755000000e-02 -2.717806000000e-01
+Tr_imu_to_velo: 9.999976000000e-01 7.553071000000e-04 -2.035826000000e-03 -8.086759000000e-01 -7.854027000000e-04 9.998898000000e-01 -1.482298000000e-02 3.195559000000e-01 2.024406000000e-03 1.482454000000e-02 9.998881000000e-01 -7.997231000000e-01
+"""
+
+
+def _kitti(text: str, key: str) -> np.ndarray:
+    line = next(ln for ln in text.splitlines() if ln.startswith(key + ":"))
+    return np.array(line.split(":", 1)[1].split(), float)
+
+
+def test_kitti_calibration_files_project_as_the_devkit(tmp_path):
+    """x = P2 R0_rect Tr_velo_to_cam X (KITTI's object devkit; odometry: P2 Tr X; raw: P_rect_02
+    R_rect_00 [R | T] X): the camera and pose read from one calibration file project LiDAR
+    points onto the same pixels of image_2. Tr alone would be 0.75 deg and 6 cm off."""
+    from rgbd_gt.camera import project
+    from rgbd_gt.errors import InputError
+    from rgbd_gt.pose import transform_points
+
+    P2 = _kitti(KITTI_OBJECT, "P2").reshape(3, 4)
+    R0 = np.eye(4)
+    R0[:3, :3] = _kitti(KITTI_OBJECT, "R0_rect").reshape(3, 3)
+    Tr = np.vstack([_kitti(KITTI_OBJECT, "Tr_velo_to_cam").reshape(3, 4), [0, 0, 0, 1]])
+    X = np.random.default_rng(0).uniform([5, -10, -1.5], [40, 10, 2], (200, 3))  # ahead of the car, LiDAR frame
+    Xh = np.hstack([X, np.ones((200, 1))])
+
+    def devkit(M: np.ndarray) -> np.ndarray:
+        x = (P2 @ M @ Xh.T).T
+        return x[:, :2] / x[:, 2:]
+
+    obj = tmp_path / "000000.txt"
+    obj.write_text(KITTI_OBJECT)
+    odo = tmp_path / "calib.txt"  # odometry: Tr already maps into the rectified camera 0
+    odo.write_text("".join(ln + "\n" for ln in KITTI_OBJECT.splitlines() if ln[:2] in ("P0", "P1", "P2", "P3"))
+                   + "Tr: " + " ".join(map(str, (R0 @ Tr)[:3].ravel())) + "\n")
+    raw = tmp_path / "calib_raw.txt"  # calib_velo_to_cam.txt and calib_cam_to_cam.txt's lines in one file
+    raw.write_text("calib_time: 15-Mar-2012 11:37:16\nR: " + " ".join(map(str, Tr[:3, :3].ravel()))
+                   + "\nT: " + " ".join(map(str, Tr[:3, 3])) + "\ndelta_f: 0 0\nR_rect_00: "
+                   + " ".join(map(str, R0[:3, :3].ravel())) + "\nP_rect_02: " + " ".join(map(str, P2.ravel())) + "\n")
+    for path in (obj, odo, raw):
+        cam, T = read_camera(path, (1242, 375)), read_pose(path)[0]
+        uv, z = project(cam, transform_points(T, X))
+        # to 1e-3 px: the files' rotations, orthonormal to about 1e-7, are projected onto SO(3)
+        np.testing.assert_allclose(uv, devkit(R0 @ Tr), atol=1e-3, err_msg=path.name)
+    assert 0.7 < rotation_error_deg(T, Tr) < 0.8 and 0.05 < translation_error_m(T, Tr) < 0.07
+    (tmp_path / "singular.txt").write_text("P2: 0 0 0 0 0 0 0 0 0 0 0 0\nTr: " + " ".join(map(str, Tr[:3].ravel())) + "\n")
+    (tmp_path / "skew.txt").write_text("R0_rect: 1 0 0 0 2 0 0 0 1\nTr: " + " ".join(map(str, Tr[:3].ravel())) + "\n")
+    for name, needle in (("singular.txt", "P2: its first three columns"), ("skew.txt", "R0_rect is not rigid")):
+        with pytest.raises(InputError, match=needle):
+            read_pose(tmp_path / name)
 
 
 def test_sweep_density_cell_and_depth_edges():

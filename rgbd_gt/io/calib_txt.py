@@ -1,8 +1,12 @@
 """Calibration text files as LiDAR-camera tools write them: one `KEY: numbers` line per matrix.
 
 Read here: the camera from `K` (3x3) and `D` (OpenCV distortion; PJLab's SensorsCalibration) or
-from KITTI's `P2` / `P_rect_02` (3x4, no distortion); the pose T_cam_from_scan from `T` (PJLab)
-or `Tr_velo_to_cam` / `Tr` (KITTI), 3x4 or 4x4. Such files hold no image size: the photo gives it.
+from KITTI's `P2` / `P_rect_02` (3x4, rectified, no distortion); the pose T_cam_from_scan from
+`T` (PJLab, 3x4 or 4x4) or KITTI's `Tr_velo_to_cam` / `Tr` / `R:` + `T:` (the LiDAR into camera 0),
+composed as KITTI's devkit projects (x = P2 R0_rect Tr X): camera 0's rectifying rotation
+`R0_rect` / `R_rect_00` where the file has one, then camera 2's offset from camera 0 (P2's fourth
+column). Such files hold no image size: the photo gives it. Lines that are not needed may hold
+anything (KITTI's `calib_time: 09-Jan-2012 13:57:47`).
 """
 
 from __future__ import annotations
@@ -16,34 +20,42 @@ from rgbd_gt.errors import InputError, require_file
 
 CAMERA_KEYS = ("K", "P2", "P_rect_02")
 POSE_KEYS = ("T", "Tr_velo_to_cam", "Tr")
+RECTIFY_KEYS = ("R0_rect", "R_rect_00")
 
 
 def is_calib_txt(path: str | Path) -> bool:
     return Path(path).suffix.lower() == ".txt"
 
 
-def read_calib_txt(path: str | Path) -> dict[str, np.ndarray]:
-    """{key: values (n,) float64} of every `KEY: numbers` line; non-finite values are an error."""
+def read_calib_txt(path: str | Path) -> dict[str, tuple[int, str]]:
+    """{key: (line number, the text after the colon)} of every `KEY: ...` line."""
     path = require_file(path)
     rows = {}
     for number, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
-        if ":" not in line or line.lstrip().startswith("#"):
-            continue
-        key, values = line.split(":", 1)
-        try:
-            rows[key.strip()] = np.array(values.split(), float)
-        except ValueError:
-            raise InputError(f"line {number} ({key.strip()}): not a list of numbers", path) from None
-        if not np.isfinite(rows[key.strip()]).all():
-            raise InputError(f"line {number} ({key.strip()}): non-finite values", path)
+        if ":" in line and not line.lstrip().startswith("#"):
+            key, values = line.split(":", 1)
+            rows[key.strip()] = (number, values)
     return rows
 
 
-def _first(rows: dict, keys: tuple[str, ...], path: Path, what: str) -> tuple[str, np.ndarray]:
-    for key in keys:
-        if key in rows:
-            return key, rows[key]
-    raise InputError(f"no {what} line ({' or '.join(k + ':' for k in keys)})", path)
+def _numbers(rows: dict, key: str, sizes: tuple[int, ...], path: Path) -> np.ndarray:
+    """The finite numbers of line `key`, as many as one of `sizes`."""
+    number, text = rows[key]
+    try:
+        values = np.array(text.split(), float)
+    except ValueError:
+        raise InputError(f"line {number} ({key}): not a list of numbers", path) from None
+    if not np.isfinite(values).all():
+        raise InputError(f"line {number} ({key}): non-finite values", path)
+    if values.size not in sizes:
+        shapes = {3: "3", 9: "3x3", 12: "3x4", 16: "4x4"}
+        raise InputError(f"{key} must hold {' or '.join(f'{n} ({shapes[n]})' for n in sizes)} numbers, got {values.size}",
+                         path)
+    return values
+
+
+def _first(rows: dict, keys: tuple[str, ...]) -> str | None:
+    return next((key for key in keys if key in rows), None)
 
 
 def read_calib_camera(path: str | Path, size: tuple[int, int]) -> Camera:
@@ -52,11 +64,12 @@ def read_calib_camera(path: str | Path, size: tuple[int, int]) -> Camera:
 
     path = Path(path)
     rows = read_calib_txt(path)
-    key, values = _first(rows, CAMERA_KEYS, path, "camera matrix")
-    if values.size not in (9, 12):
-        raise InputError(f"{key} must hold 9 (3x3) or 12 (3x4) numbers, got {values.size}", path)
-    K = values.reshape(3, -1)[:, :3]
-    return camera_from_values(path, size[0], size[1], K, rows.get("D") if key == "K" else None)
+    key = _first(rows, CAMERA_KEYS)
+    if key is None:
+        raise InputError(f"no camera matrix line ({' or '.join(k + ':' for k in CAMERA_KEYS)})", path)
+    K = _numbers(rows, key, (9, 12), path).reshape(3, -1)[:, :3]
+    dist = _numbers(rows, "D", (4, 5, 8, 12, 14), path) if key == "K" and "D" in rows else None
+    return camera_from_values(path, size[0], size[1], K, dist)
 
 
 def read_calib_pose(path: str | Path) -> np.ndarray:
@@ -64,14 +77,37 @@ def read_calib_pose(path: str | Path) -> np.ndarray:
     orthonormal to about 1e-6 only: they are projected onto SO(3) (a change far below any
     calibration's accuracy); beyond 1e-3 it is not a rotation and is refused."""
     from rgbd_gt.io.pose_file import check_rigid
-    from rgbd_gt.pose import project_to_so3
 
     path = Path(path)
-    key, values = _first(read_calib_txt(path), POSE_KEYS, path, "extrinsic")
-    if values.size not in (12, 16):
-        raise InputError(f"{key} must hold 12 (3x4) or 16 (4x4) numbers, got {values.size}", path)
-    T = np.vstack([values[:12].reshape(3, 4), [0, 0, 0, 1]])
-    R = T[:3, :3]
-    if np.abs(R @ R.T - np.eye(3)).max() < 1e-3 and np.linalg.det(R) > 0:
-        T[:3, :3] = project_to_so3(R)
+    rows = read_calib_txt(path)
+    key = _first(rows, POSE_KEYS)
+    if key is None:
+        raise InputError(f"no extrinsic line ({' or '.join(k + ':' for k in POSE_KEYS)})", path)
+    if key == "T" and "R" in rows:  # KITTI raw's calib_velo_to_cam.txt: R (3x3) and T (3) apart
+        values = np.hstack([_numbers(rows, "R", (9,), path).reshape(3, 3), _numbers(rows, "T", (3,), path)[:, None]])
+    else:
+        values = _numbers(rows, key, (12, 16), path)
+    if values.size == 16 and not np.allclose(values[12:], [0, 0, 0, 1]):
+        raise InputError(f"{key}: the last row of a 4x4 extrinsic must be 0 0 0 1, got {values[12:].tolist()}", path)
+    T = _rigid(values[:12].reshape(3, 4), key, path)
+    rectify = _first(rows, RECTIFY_KEYS)
+    if rectify is not None:
+        T = _rigid(np.hstack([_numbers(rows, rectify, (9,), path).reshape(3, 3), np.zeros((3, 1))]), rectify, path) @ T
+    camera = _first(rows, CAMERA_KEYS)
+    if camera is not None and camera != "K":  # a rectified P = K [I | t]: the camera t from the reference camera
+        P = _numbers(rows, camera, (12,), path).reshape(3, 4)
+        if not abs(np.linalg.det(P[:, :3])) > 1e-12:
+            raise InputError(f"{camera}: its first three columns are not a camera matrix", path)
+        T[:3, 3] += np.linalg.solve(P[:, :3], P[:, 3])
     return check_rigid(T, path)
+
+
+def _rigid(Rt: np.ndarray, key: str, path: Path) -> np.ndarray:
+    """[R | t] (3, 4) as a 4x4 transform, R projected onto SO(3) (it must be within 1e-3 of it)."""
+    from rgbd_gt.pose import project_to_so3
+
+    R = Rt[:, :3]
+    err, det = np.abs(R @ R.T - np.eye(3)).max(), np.linalg.det(R)
+    if err > 1e-3 or det <= 0:
+        raise InputError(f"{key} is not rigid: its rotation is not orthonormal (|R Rt - I| = {err:.2e}, det {det:.3f})", path)
+    return np.vstack([np.hstack([project_to_so3(R), Rt[:, 3:]]), [0, 0, 0, 1]])
