@@ -38,8 +38,8 @@ def read_calib_txt(path: str | Path) -> dict[str, tuple[int, str]]:
     return rows
 
 
-def _numbers(rows: dict, key: str, sizes: tuple[int, ...], path: Path) -> np.ndarray:
-    """The finite numbers of line `key`, as many as one of `sizes`."""
+def _numbers(rows: dict, key: str, sizes: tuple[int, ...] | None, path: Path) -> np.ndarray:
+    """The finite numbers of line `key`, as many as one of `sizes` (3, 9, 12 or 16) unless None."""
     number, text = rows[key]
     try:
         values = np.array(text.split(), float)
@@ -47,10 +47,10 @@ def _numbers(rows: dict, key: str, sizes: tuple[int, ...], path: Path) -> np.nda
         raise InputError(f"line {number} ({key}): not a list of numbers", path) from None
     if not np.isfinite(values).all():
         raise InputError(f"line {number} ({key}): non-finite values", path)
-    if values.size not in sizes:
-        shapes = {3: "3", 9: "3x3", 12: "3x4", 16: "4x4"}
-        raise InputError(f"{key} must hold {' or '.join(f'{n} ({shapes[n]})' for n in sizes)} numbers, got {values.size}",
-                         path)
+    if sizes is not None and values.size not in sizes:
+        shapes = {9: " (3x3)", 12: " (3x4)", 16: " (4x4)"}
+        wanted = " or ".join(f"{n}{shapes.get(n, '')}" for n in sizes)
+        raise InputError(f"{key} must hold {wanted} numbers, got {values.size}", path)
     return values
 
 
@@ -68,7 +68,7 @@ def read_calib_camera(path: str | Path, size: tuple[int, int]) -> Camera:
     if key is None:
         raise InputError(f"no camera matrix line ({' or '.join(k + ':' for k in CAMERA_KEYS)})", path)
     K = _numbers(rows, key, (9, 12), path).reshape(3, -1)[:, :3]
-    dist = _numbers(rows, "D", (4, 5, 8, 12, 14), path) if key == "K" and "D" in rows else None
+    dist = _numbers(rows, "D", None, path) if key == "K" and "D" in rows else None  # its length checked there
     return camera_from_values(path, size[0], size[1], K, dist)
 
 
@@ -84,7 +84,7 @@ def read_calib_pose(path: str | Path) -> np.ndarray:
     if key is None:
         raise InputError(f"no extrinsic line ({' or '.join(k + ':' for k in POSE_KEYS)})", path)
     if key == "T" and "R" in rows:  # KITTI raw's calib_velo_to_cam.txt: R (3x3) and T (3) apart
-        values = np.hstack([_numbers(rows, "R", (9,), path).reshape(3, 3), _numbers(rows, "T", (3,), path)[:, None]])
+        values = np.hstack([_numbers(rows, "R", (9,), path).reshape(3, 3), _numbers(rows, "T", (3,), path)[:, None]]).ravel()
     else:
         values = _numbers(rows, key, (12, 16), path)
     if values.size == 16 and not np.allclose(values[12:], [0, 0, 0, 1]):
