@@ -13,6 +13,7 @@ from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.align.nid import joint_histogram, nid
 from rgbd_gt.align.nid_aligner import Frame, NidAligner, so3_exp
 from rgbd_gt.align.pyramid import photo_pyramid
+from rgbd_gt.errors import InputError
 from rgbd_gt.io import load_scan, read_camera, read_pose, save_scan
 from rgbd_gt.io.image import read_image
 from rgbd_gt.io.scan import Scan, colors_to_gray
@@ -295,9 +296,11 @@ def test_calibration_text_files(tmp_path):
     np.testing.assert_allclose(read_pose(kitti)[0], T)  # camera 2 at camera 0, no rectification: Tr itself
     (tmp_path / "nan.txt").write_text("K: nan 0 1 0 1 1 0 0 1\n")
     (tmp_path / "short.txt").write_text("T: 1 0 0\n")
-    for path, needle in ((tmp_path / "nan.txt", "non-finite"), (tmp_path / "short.txt", "12")):
-        with pytest.raises(Exception, match=needle):
-            read_camera(path, (10, 10)) if "nan" in path.name else read_pose(path)
+    (tmp_path / "d3.txt").write_text("K: 10 0 5 0 10 5 0 0 1\nD: 0.1 0.2 0.3\n")
+    for path, needle in ((tmp_path / "nan.txt", "non-finite"), (tmp_path / "short.txt", "12"),
+                         (tmp_path / "d3.txt", "4, 5, 8, 12 or 14 coefficients, got 3")):
+        with pytest.raises(InputError, match=needle):
+            read_pose(path) if "short" in path.name else read_camera(path, (10, 10))
     with pytest.raises(Exception, match="no image size"):
         read_camera(pjlab)
     with pytest.raises(Exception, match="outside the 960x600 photo"):  # a half-size photo
@@ -325,7 +328,6 @@ def test_kitti_calibration_files_project_as_the_devkit(tmp_path):
     R_rect_00 [R | T] X): the camera and pose read from one calibration file project LiDAR
     points onto the same pixels of image_2. Tr alone would be 0.75 deg and 6 cm off."""
     from rgbd_gt.camera import project
-    from rgbd_gt.errors import InputError
     from rgbd_gt.pose import transform_points
 
     P2 = _kitti(KITTI_OBJECT, "P2").reshape(3, 4)
