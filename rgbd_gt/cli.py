@@ -58,6 +58,12 @@ def _parse_floats(text: str, n: int, what: str) -> list[float]:
     return values
 
 
+def _check_ransac_px(value: float) -> None:
+    # beyond a photo's size a threshold rejects nothing: a typo, not a choice
+    if not (np.isfinite(value) and 0 < value <= 1000):
+        raise InputError(f"--ransac-px must lie between 0 and 1000 pixels, got {value}")
+
+
 def _progress(*extra_columns) -> Progress:
     """A progress bar on stderr that leaves nothing behind (and prints nothing when not a terminal)."""
     return Progress(
@@ -240,8 +246,7 @@ def init_pose(
         staged_camera = outs.file(camera_out, "--camera-out", POSE_SUFFIXES)
     report_dir = outs.folder(report, "--report") if report is not None else None
     outs.checked_folder(cache, "--cache")
-    if not (np.isfinite(ransac_px) and ransac_px > 0):
-        raise InputError(f"--ransac-px must be a positive number of pixels, got {ransac_px}")
+    _check_ransac_px(ransac_px)
     cols, rows = _board_shape(board)
     if not 0 < square <= MAX_SQUARE_M:
         raise InputError(f"--square must lie between 0 and {MAX_SQUARE_M:g} m, got {square}")
@@ -308,7 +313,7 @@ def pick(
     output: Path = typer.Option(..., "-o", "--output", help="PAIRS.csv to write (u,v,x,y,z,label; init-pose --correspondences and refine --check read it). When it exists, its pairs are loaded to go on with."),
     camera: Optional[Path] = typer.Option(None, "--camera", help="Camera file of the photo: with 6 or more pairs the page then solves the pose live (RANSAC PnP, as init-pose) and shows the scan over the photo."),
     init: Optional[Path] = typer.Option(None, "--init", help="A pose to render the scan from with the photo's camera (the view closest to the photo)."),
-    view: str = typer.Option("auto", "--view", help="The scan image to click on: grid (the structured scan's own grid), panorama (rendered from the scan origin), pose (rendered at --init; for LiDAR sweeps (no grid, points on rings of fixed elevation about the sensor) the points seen from it as dots) or auto (pose with --init, else grid, else panorama)."),
+    view: str = typer.Option("auto", "--view", help="The scan image to click on: grid (the structured scan's own grid), panorama (rendered from the scan origin), pose (rendered at --init; for LiDAR sweeps (no grid; a ring field, or points on rings of fixed elevation about the sensor) the points seen from it as dots) or auto (pose with --init, else grid, else panorama)."),
     estimate_focal: bool = typer.Option(False, "--estimate-focal", help="Estimate the focal length in the live solve (photos without calibration; --camera then gives the image size and principal point)."),
     ransac_px: float = typer.Option(4.0, "--ransac-px", help="Outlier threshold of the live solve (pixels)."),
     port: int = typer.Option(0, "--port", help="Port on 127.0.0.1 (0: any free one)."),
@@ -330,8 +335,7 @@ def pick(
     outs = Outputs([scan, image, camera, init])
     outs.file(output, "-o", (".csv",))
     outs.checked_folder(cache, "--cache")
-    if not (np.isfinite(ransac_px) and ransac_px > 0):
-        raise InputError(f"--ransac-px must be a positive number of pixels, got {ransac_px}")
+    _check_ransac_px(ransac_px)
     if estimate_focal and camera is None:
         raise InputError("--estimate-focal needs --camera (for the image size and principal point)")
     photo = read_image(image)
@@ -526,7 +530,7 @@ def export_depth(
     normals: Optional[Path] = typer.Option(None, "--normals", help="Also the camera-frame normals as an EXR (N.X, N.Y, N.Z)."),
     mask: Optional[Path] = typer.Option(None, "--mask", help="Also a validity mask PNG (255 where there is depth)."),
     max_depth: Optional[float] = typer.Option(None, "--max-depth", help="Depths beyond this (metres) are left out (0)."),
-    points: Optional[bool] = typer.Option(None, "--points/--surfaces", help="Depth of the scan's points alone, each at its own pixel (sparse: nothing between them), or of the surfaces rendered from them. Default: points for LiDAR sweeps (no grid, points on rings of fixed elevation about the sensor), whose rings are too far apart for surfaces; surfaces otherwise (a dense scan without its grid included)."),
+    points: Optional[bool] = typer.Option(None, "--points/--surfaces", help="Depth of the scan's points alone, each at its own pixel (sparse: nothing between them), or of the surfaces rendered from them. Default: points for LiDAR sweeps (no grid; a ring field, or points on rings of fixed elevation about the sensor), whose rings are too far apart for surfaces; surfaces otherwise (a dense scan without its grid included)."),
     cache: Optional[Path] = typer.Option(None, "--cache", help=CACHE_HELP),
 ) -> None:
     """Depth of the scan as the photo's camera sees it, pixel for pixel with the original photo:
@@ -671,7 +675,7 @@ def overlay(
     camera: Path = typer.Option(..., "--camera", help="Camera file of the photo."),
     pose: Path = typer.Option(..., "--pose", help="The pose to show (T_cam_from_scan), e.g. from refine."),
     output: Path = typer.Option(..., "-o", "--output", help="Checkerboard PNG at the photo's resolution: squares alternate between the photo and the scan rendered at the pose (edges must run on across square borders). The 50% blend goes beside it as OVERLAY_blend.png, and (see --points) the visible scan points as dots as OVERLAY_points.png."),
-    points: Optional[bool] = typer.Option(None, "--points/--no-points", help="Also draw the visible scan points as dots of their color or intensity over the dimmed photo (OVERLAY_points.png): the picture to read for a sparse LiDAR sweep, whose rendered surfaces are blobs between its rings. Default: for LiDAR sweeps (no grid, points on rings of fixed elevation about the sensor)."),
+    points: Optional[bool] = typer.Option(None, "--points/--no-points", help="Also draw the visible scan points as dots of their color or intensity over the dimmed photo (OVERLAY_points.png): the picture to read for a sparse LiDAR sweep, whose rendered surfaces are blobs between its rings. Default: for LiDAR sweeps (no grid; a ring field, or points on rings of fixed elevation about the sensor)."),
     max_depth: Optional[float] = typer.Option(None, "--max-depth", help="Leave out scan surfaces farther than this (metres)."),
     cache: Optional[Path] = typer.Option(None, "--cache", help=CACHE_HELP),
 ) -> None:

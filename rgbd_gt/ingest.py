@@ -158,7 +158,8 @@ def dropped_fields(paths: list[Path], scans: list[Scan]) -> list[str]:
     every input has, and colors lost to a file without them are worth a word."""
     lines = []
     for name, what, then in (("rgb", "colors", ""), ("intensity", "intensity", ""), ("normals", "normals", ""),
-                             ("row", "the scan grid", " (its surfaces are rendered as surfels)")):
+                             ("row", "the scan grid", " (its surfaces are rendered as surfels)"),
+                             ("ring", "the LiDAR rings", "")):
         lack = [p.name for p, s in zip(paths, scans) if getattr(s, name) is None]
         if 0 < len(lack) < len(scans):
             lines.append(f"{what} dropped from the merged scan{then}: {', '.join(lack)} "

@@ -15,7 +15,8 @@ def test_real_lidar_sweeps():
         pytest.skip(f"real test data not found at {folder}")
     for k, n in ((1, 101_340), (2, 98_805), (3, 85_546)):
         s = load_scan(folder / f"pjlab_{k}" / "calib.pcd")
-        assert len(s) == n and s.fields == ["xyz", "intensity"]
+        assert len(s) == n and s.fields == ["xyz", "intensity", "ring"]
+        assert s.ring.min() == 0 and s.ring.max() == 63  # a 64-laser spinning LiDAR
         assert np.isfinite(s.xyz).all() and 0 <= s.intensity.min() and s.intensity.max() <= 1
         assert 0.2 < np.median(s.intensity) < 0.6  # raw 0-255 returns, median ~50, over their 99th percentile
         assert np.abs(s.xyz).max() < 300 and np.array_equal(s.origins, [[0, 0, 0]])
@@ -90,3 +91,29 @@ def test_extra_fields_and_colors_are_read(tmp_path):
     np.testing.assert_allclose(s.xyz, xyz, atol=1e-4)
     assert s.rgb is not None and s.rgb.dtype == np.uint8 and s.intensity is not None
     assert 0 <= s.intensity.min() and s.intensity.max() <= 1 and np.median(s.intensity) > 0.3
+    np.testing.assert_array_equal(s.ring, np.asarray(pc.point.ring.numpy()).ravel())
+
+
+def test_a_sweep_in_a_vehicle_frame_is_still_a_sweep(tmp_path):
+    """A real sweep moved into a vehicle's frame (sensor 1.8 m up, 1.5 m forward, pitched 2 deg):
+    its rings no longer lie on cones about the frame's z axis, but its ring field says what it
+    is, through PLY (ingest) and the prepared cache too; without the field it reads as a scan."""
+    import cv2
+
+    from rgbd_gt.io import save_scan
+    from rgbd_gt.prepared import prepare_scan
+    from rgbd_gt.render.points import is_sweep
+
+    folder = DATA / "lidar_camera"
+    if not folder.exists():
+        pytest.skip(f"real test data not found at {folder}")
+    s = load_scan(folder / "pjlab_1" / "calib.pcd")
+    assert is_sweep(s)
+    s.xyz = s.xyz @ cv2.Rodrigues(np.radians([0.0, 2.0, 0.0]))[0].T + [1.5, 0.0, 1.8]
+    assert is_sweep(s)
+    save_scan(tmp_path / "vehicle.ply", s)
+    again = load_scan(tmp_path / "vehicle.ply")
+    np.testing.assert_array_equal(again.ring, s.ring)
+    assert is_sweep(again) and is_sweep(prepare_scan(tmp_path / "vehicle.ply", tmp_path / "cache").whole())
+    s.ring = None
+    assert not is_sweep(s)  # documented: rings about the frame's z axis, or a ring field

@@ -207,6 +207,8 @@ def read_ply(path: str | os.PathLike) -> Scan:
         col=table["col"].astype(np.int32) if grid else None,
         scan_id=_scan_ids(path, table, origins),
         origins=origins,
+        ring=np.clip(np.nan_to_num(table["ring"].astype(np.float64)), -32768, 32767).astype(np.int16)
+        if "ring" in names else None,
     )
     if all(c in names for c in ("nx", "ny", "nz")):
         from rgbd_gt.render.normals import scan_normals
@@ -239,8 +241,10 @@ def write_ply(path: str | os.PathLike, scan: Scan, ascii: bool = False, double: 
         fields.append(("scan_id", "i4"))
     if scan.normals is not None:
         fields += [("nx", "f4"), ("ny", "f4"), ("nz", "f4")]
+    if scan.ring is not None:
+        fields.append(("ring", "i2"))
     dtype = np.dtype([(n, "<" + t) for n, t in fields])
-    type_names = {"f8": "double", "f4": "float", "u1": "uchar", "i4": "int"}
+    type_names = {"f8": "double", "f4": "float", "u1": "uchar", "i4": "int", "i2": "short"}
     header = ["ply", f"format {'ascii' if ascii else 'binary_little_endian'} 1.0", "comment written by rgbd-gt"]
     header += [f"comment rgbd_gt origin {i} " + " ".join(repr(float(v)) for v in o) for i, o in enumerate(np.asarray(scan.origins, float))]
     header += [f"element vertex {len(scan)}"]
@@ -266,6 +270,8 @@ def write_ply(path: str | os.PathLike, scan: Scan, ascii: bool = False, double: 
             if scan.normals is not None:
                 for j, c in enumerate(("nx", "ny", "nz")):
                     block[c] = scan.normals[start:stop, j]
+            if scan.ring is not None:
+                block["ring"] = scan.ring[start:stop]
             if ascii:
                 fmts = ["%.17g" if t.startswith("f") else "%d" for _, t in fields]
                 np.savetxt(f, block.tolist(), fmt=fmts)

@@ -27,6 +27,8 @@ class Scan:
         origins: (S, 3) float64 sensor position of each scan in the world frame.
         normals: (N, 3) float32 unit normals facing the scanner (0 where unknown) or None
             (`render.normals.with_normals` fills them in).
+        ring: (N,) int16 the laser (ring) of a spinning LiDAR that made each return, or None: a
+            sweep's rings are known, in whatever frame its points are (`render.points.is_sweep`).
     """
 
     xyz: np.ndarray
@@ -37,11 +39,12 @@ class Scan:
     scan_id: np.ndarray | None = None
     origins: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     normals: np.ndarray | None = None
+    ring: np.ndarray | None = None
     # what renderers derive from this scan once and reuse (its grid mesh and ray-casting
     # scene): not copied by `subset` or dataclasses.replace
     derived: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
-    PER_POINT = ("xyz", "rgb", "intensity", "row", "col", "scan_id", "normals")
+    PER_POINT = ("xyz", "rgb", "intensity", "row", "col", "scan_id", "normals", "ring")
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])
@@ -95,7 +98,7 @@ def merge_scans(scans: list[Scan]) -> Scan:
     if len(scans) == 1:
         return scans[0]
     out: dict[str, np.ndarray | None] = {}
-    for name in ("xyz", "rgb", "intensity", "row", "col", "normals"):
+    for name in ("xyz", "rgb", "intensity", "row", "col", "normals", "ring"):
         parts = [getattr(s, name) for s in scans]
         out[name] = np.concatenate(parts) if all(p is not None for p in parts) else None
     ids, offset = [], 0

@@ -18,9 +18,11 @@ RING_SAMPLE = 200_000  # points enough to see rings; keeps the test cheap on sca
 
 
 def is_sweep(scan: Scan) -> bool:
-    """A spinning LiDAR's sweep: no row/column grid, and seen from its sensor (the first scan's
-    origin, else 0, 0, 0; its axis the frame's z, as in a sweep's own frame) its points lie on a
-    few cones of fixed elevation, its rings. Their gaps are degrees wide, and rendered surfaces
+    """A spinning LiDAR's sweep: no row/column grid, and either its file names each return's
+    ring (`Scan.ring`: in any frame) or, seen from its sensor (the first scan's origin, else 0,
+    0, 0; its axis the frame's z, as in a sweep's own frame: a sweep moved into a vehicle's
+    frame without its rings is not recognised), its points lie on a few cones of fixed
+    elevation, its rings. Their gaps are degrees wide, and rendered surfaces
     could only fill them with invented blobs: so the default for drawing and exporting points,
     not surfaces (`overlay`'s points picture, pick's view, `export-depth`'s sparse depth). A scan
     with a grid, or a dense one stripped of its grid (elevations continuous), renders as
@@ -31,6 +33,8 @@ def is_sweep(scan: Scan) -> bool:
     and 99th percentile, that hold 90% of them."""
     if scan.has_grid or len(scan) < 100:
         return False
+    if scan.ring is not None:
+        return True
     pick, sid = slice(None, None, max(1, len(scan) // RING_SAMPLE)), 0
     xyz = scan.xyz[pick]
     if scan.scan_id is not None:
