@@ -13,10 +13,10 @@ import numpy as np
 
 from rgbd_gt.errors import InputError
 from rgbd_gt.io.native import native_output
-from rgbd_gt.io.scan import Scan
+from rgbd_gt.io.scan import Scan, ring_ids
 
 INTENSITY_FIELDS = ("intensity", "reflectivity")
-RING_FIELDS = ("ring", "channel", "laser_id")  # Velodyne, Ouster and Hesai drivers; Ouster's `channel`
+RING_FIELDS = ("ring", "channel", "laser_id")  # the laser of each return, as LiDAR drivers name it
 
 
 def read_header(path: Path) -> dict[str, list[str]]:
@@ -154,8 +154,6 @@ def read_pcd(path: str | Path) -> Scan:
         c = cloud.point.colors.numpy()
         rgb = (np.clip(c, 0, 1) * 255).round().astype(np.uint8) if c.dtype.kind == "f" else c.astype(np.uint8)
         rgb = rgb[ok]
-    ring = next((cloud.point[name].numpy().ravel()[ok] for name in RING_FIELDS if name in cloud.point), None)
-    if ring is not None:  # only its presence is used: a sweep, whatever frame its points are in
-        ring = np.clip(np.nan_to_num(ring.astype(np.float64)), -32768, 32767).astype(np.int16)
+    ring = next((ring_ids(cloud.point[name].numpy())[ok] for name in RING_FIELDS if name in cloud.point), None)
     view = [float(v) for v in header.get("VIEWPOINT", ["0"] * 7)[:3]]
     return Scan(xyz=xyz[ok], rgb=rgb, intensity=intensity, origins=np.array([view]), ring=ring)

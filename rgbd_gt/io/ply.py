@@ -14,7 +14,7 @@ import numpy as np
 
 from rgbd_gt.errors import InputError
 from rgbd_gt.io.atomic import atomic_output
-from rgbd_gt.io.scan import Scan
+from rgbd_gt.io.scan import Scan, ring_ids
 
 PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -207,8 +207,7 @@ def read_ply(path: str | os.PathLike) -> Scan:
         col=table["col"].astype(np.int32) if grid else None,
         scan_id=_scan_ids(path, table, origins),
         origins=origins,
-        ring=np.clip(np.nan_to_num(table["ring"].astype(np.float64)), -32768, 32767).astype(np.int16)
-        if "ring" in names else None,
+        ring=ring_ids(table["ring"]) if "ring" in names else None,
     )
     if all(c in names for c in ("nx", "ny", "nz")):
         from rgbd_gt.render.normals import scan_normals

@@ -83,6 +83,11 @@ def scan_colors(scan: Scan, path: object = None, to_align: bool = False) -> np.n
     return colors
 
 
+def ring_ids(values: np.ndarray) -> np.ndarray:
+    """A file's ring field as `Scan.ring` (int16; only its presence is used, so any values do)."""
+    return np.clip(np.nan_to_num(np.asarray(values, np.float64).ravel()), -32768, 32767).astype(np.int16)
+
+
 def colors_to_gray(colors: np.ndarray) -> np.ndarray:
     """`scan_colors` output -> (N,) float32 gray in [0, 255]."""
     if colors.shape[1] == 3:
