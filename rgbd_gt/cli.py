@@ -103,7 +103,7 @@ def _fmt_bounds(b: np.ndarray) -> str:
 
 @app.command()
 def ingest(
-    scans: List[Path] = typer.Argument(..., help="Scan files (.e57, .ply or .pcd); several are merged in one world frame, keeping the fields (colors, intensity, grid, normals) that every one has."),
+    scans: List[Path] = typer.Argument(..., help="Scan files (.e57, .ply, .pcd or KITTI .bin); several are merged in one world frame, keeping the fields (colors, intensity, grid, normals) that every one has."),
     output: Path = typer.Option(..., "-o", "--output", help="Output PLY (binary little-endian)."),
     scan_index: Optional[int] = typer.Option(None, "--scan-index", help="Read only this scan (0-based) of each E57 file."),
     voxel: Optional[float] = typer.Option(None, "--voxel", help="Voxel size in metres for downsampling (averages colors and intensity)."),
@@ -308,7 +308,7 @@ def init_pose(
 
 @app.command()
 def pick(
-    scan: Path = typer.Option(..., "--scan", help="The scan (.ply, .e57 or .pcd)."),
+    scan: Path = typer.Option(..., "--scan", help="The scan (.ply, .e57, .pcd or KITTI .bin)."),
     image: Path = typer.Option(..., "--image", help="The photo."),
     output: Path = typer.Option(..., "-o", "--output", help="PAIRS.csv to write (u,v,x,y,z,label; init-pose --correspondences and refine --check read it). When it exists, its pairs are loaded to go on with."),
     camera: Optional[Path] = typer.Option(None, "--camera", help="Camera file of the photo: with 6 or more pairs the page then solves the pose live (RANSAC PnP, as init-pose) and shows the scan over the photo."),
@@ -382,7 +382,7 @@ def pick(
 
 @app.command()
 def refine(
-    scan: Optional[Path] = typer.Option(None, "--scan", help="The scan (.ply, .e57 or .pcd; colored, or with intensity only), in the scan/world frame. Required unless --pairs lists the pairs."),
+    scan: Optional[Path] = typer.Option(None, "--scan", help="The scan (.ply, .e57, .pcd or KITTI .bin; colored, or with intensity only), in the scan/world frame. Required unless --pairs lists the pairs."),
     image: Optional[Path] = typer.Option(None, "--image", help="The photo (its size must match the camera file). Required with --scan."),
     camera: Path = typer.Option(..., "--camera", help="Camera file: YAML, ROS camera_info YAML, OpenCV calibration, a calibration text file with K and D lines (PJLab, KITTI P2) or koide3's calib.json (docs/formats.md)."),
     init: Path = typer.Option(..., "--init", help="Initial pose file (T_cam_from_scan), e.g. from init-pose, or a calibration text file with a T / Tr_velo_to_cam line, or koide3's calib.json (results.T_lidar_camera)."),
@@ -521,7 +521,7 @@ def refine(
 
 @app.command("export-depth")
 def export_depth(
-    scan: Path = typer.Option(..., "--scan", help="The scan (.ply, .e57 or .pcd)."),
+    scan: Path = typer.Option(..., "--scan", help="The scan (.ply, .e57, .pcd or KITTI .bin)."),
     camera: Path = typer.Option(..., "--camera", help="Camera file of the photo (the depth map has its size and distortion)."),
     pose: Path = typer.Option(..., "--pose", help="Pose file (T_cam_from_scan), e.g. from refine."),
     output: Path = typer.Option(..., "-o", "--output", help="Depth map to write (.exr, channel Z, metres, 0 = no depth)."),
@@ -595,7 +595,7 @@ def export_depth(
 
 @app.command("qa-edges")
 def qa_edges(
-    scan: Path = typer.Option(..., "--scan", help="The scan (.ply, .e57 or .pcd)."),
+    scan: Path = typer.Option(..., "--scan", help="The scan (.ply, .e57, .pcd or KITTI .bin)."),
     image: Path = typer.Option(..., "--image", help="The photo."),
     camera: Path = typer.Option(..., "--camera", help="Camera file of the photo."),
     pose: Path = typer.Option(..., "--pose", help="The pose to check (T_cam_from_scan)."),
@@ -670,7 +670,7 @@ def beside(output: Path, kind: str) -> Path:
 
 @app.command()
 def overlay(
-    scan: Path = typer.Option(..., "--scan", help="The scan (.ply, .e57 or .pcd)."),
+    scan: Path = typer.Option(..., "--scan", help="The scan (.ply, .e57, .pcd or KITTI .bin)."),
     image: Path = typer.Option(..., "--image", help="The photo."),
     camera: Path = typer.Option(..., "--camera", help="Camera file of the photo."),
     pose: Path = typer.Option(..., "--pose", help="The pose to show (T_cam_from_scan), e.g. from refine."),

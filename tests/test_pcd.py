@@ -117,3 +117,36 @@ def test_a_sweep_in_a_vehicle_frame_is_still_a_sweep(tmp_path):
     assert is_sweep(again) and is_sweep(prepare_scan(tmp_path / "vehicle.ply", tmp_path / "cache").whole())
     s.ring = None
     assert not is_sweep(s)  # documented: rings about the frame's z axis, or a ring field
+
+
+def test_kitti_velodyne_bin(tmp_path):
+    """KITTI's headerless .bin sweeps: x y z reflectance as float32; whatever the format cannot
+    be is one clean error (a cut return, non-finite values, another layout's numbers)."""
+    from rgbd_gt.render.points import is_sweep
+
+    rng = np.random.default_rng(2)
+    folder = DATA / "lidar_camera"
+    if folder.exists():  # a real sweep in KITTI's layout
+        real = load_scan(folder / "pjlab_3" / "calib.pcd")
+        xyzi = np.hstack([real.xyz, real.intensity[:, None]]).astype("<f4")
+    else:
+        xyzi = np.hstack([rng.uniform(-50, 50, (3000, 3)), rng.uniform(0, 1, (3000, 1))]).astype("<f4")
+    xyzi.tofile(tmp_path / "000000.bin")
+    s = load_scan(tmp_path / "000000.bin")
+    np.testing.assert_array_equal(s.xyz, xyzi[:, :3].astype(np.float64))
+    np.testing.assert_array_equal(s.intensity, xyzi[:, 3])
+    assert np.array_equal(s.origins, [[0, 0, 0]]) and s.fields == ["xyz", "intensity"]
+    if folder.exists():
+        assert is_sweep(s)  # in the sensor's frame, as KITTI ships them
+    bad = {"cut.bin": xyzi.tobytes()[:-6], "nan.bin": np.vstack([xyzi, [[np.nan, 0, 0, 0.5]]]).astype("<f4").tobytes(),
+           "nuscenes.bin": np.hstack([xyzi[:400, :3], 255 * xyzi[:400, 3:], rng.integers(0, 32, (400, 1))]).astype("<f4").tobytes(),
+           "far.bin": np.array([[1e6, 0, 0, 0.5]] * 4, "<f4").tobytes()}
+    for name, data in bad.items():
+        (tmp_path / name).write_bytes(data)
+    for name, needle in (("cut.bin", "whole number of KITTI returns"), ("nan.bin", "non-finite"),
+                         ("nuscenes.bin", "not a KITTI .bin sweep"), ("far.bin", "beyond 1000 m")):
+        with pytest.raises(InputError, match=needle):
+            load_scan(tmp_path / name)
+    assert_one_line_error(run_cli("ingest", tmp_path / "cut.bin", "-o", tmp_path / "out.ply"), "cut.bin", "KITTI")
+    with pytest.raises(InputError, match="E57 files only"):
+        load_scan(tmp_path / "000000.bin", scan_index=0)

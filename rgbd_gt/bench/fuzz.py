@@ -88,6 +88,13 @@ def make_seeds(folder: Path, data: Path | None) -> dict[str, Path]:
         keep = np.arange(0, len(scan.xyz), 97)
         write_ply(ascii_ply, Scan(scan.xyz[keep], scan.rgb[keep] if scan.rgb is not None else None, origins=scan.origins), ascii=True)
     seeds["scan_ascii"] = ascii_ply
+    velodyne = folder / "sweep.bin"  # KITTI's headerless layout: x y z reflectance, float32
+    if not velodyne.is_file():
+        s = scan if scan is not None else load_scan(small)
+        keep = np.arange(0, len(s.xyz), 5)
+        gray = (s.intensity if s.intensity is not None else s.rgb.mean(axis=1) / 255.0)[keep]
+        np.hstack([s.xyz[keep], np.asarray(gray, np.float64)[:, None]]).astype("<f4").tofile(velodyne)
+    seeds["scan_bin"] = velodyne
     if not pairs.is_file():
         cam = read_camera(seeds["camera"])
         T, _ = read_pose(seeds["gt"])
@@ -201,10 +208,11 @@ def mutate(src: Path, dst: Path, rng: random.Random, yaml_keys: set[str] | None 
 
 def _mutate(how: str, data: bytes, kind: str, src: Path, dst: Path, rng: random.Random,
             yaml_keys: set[str] | None) -> tuple[str, bool]:
+    headerless = src.suffix.lower() == ".bin"  # KITTI's sweeps: any whole number of plausible returns is one
     if how == "truncate":
         cut = rng.randint(1, max(1, len(data) - 1))
         dst.write_bytes(data[:cut])
-        return f"truncated to {cut}/{len(data)} bytes", kind == "binary"
+        return f"truncated to {cut}/{len(data)} bytes", kind == "binary" and not (headerless and cut % 16 == 0)
     if how == "flip":
         buf = bytearray(data)
         n = rng.randint(1, 8)
@@ -217,12 +225,12 @@ def _mutate(how: str, data: bytes, kind: str, src: Path, dst: Path, rng: random.
         return "empty", not (kind == "yaml" and yaml_keys is CONFIG_KEYS)  # an empty config means the defaults
     if how == "garbage":
         dst.write_bytes(bytes(rng.randrange(256) for _ in range(rng.choice([7, 300, 5000]))))
-        return "random bytes", True
+        return "random bytes", True  # none of these lengths is a whole number of KITTI returns
     if how == "foreign":  # another format's bytes under this name
         other = {".png": b"\xff\xd8\xff\xe0" + bytes(200), ".jpg": b"\x89PNG\r\n\x1a\n" + bytes(200)}.get(
             src.suffix.lower(), b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nend_header\n")
         dst.write_bytes(other)
-        return "another format's bytes", True
+        return "another format's bytes", not (headerless and len(other) % 16 == 0)
     if how == "e57_xml_number":  # a value in the XML, with the page's checksum made right again
         spans = [m.span(2) for m in re.finditer(rb'<(\w+) type="Float"[^>]*>([^<\s][^<]*)<', data)
                  if m.start(2) % 1024 + (m.end(2) - m.start(2)) <= 1020]
@@ -327,6 +335,9 @@ def templates(seeds: dict[str, Path]) -> list[dict]:
                    "--before", s["init"], "-o", "{out}/qa.png"], outs=["qa.png"]),
         dict(argv=["export-depth", "--scan", s["scan_ascii"], "--camera", s["camera_xml"], "--pose", s["gt"],
                    "-o", "{out}/d.exr"], outs=["d.exr"]),
+        dict(argv=["export-depth", "--scan", s["scan_bin"], "--camera", s["camera"], "--pose", s["gt"],
+                   "-o", "{out}/d.exr"], outs=["d.exr"]),
+        dict(argv=["ingest", s["scan_bin"], "-o", "{out}/merged.ply"], outs=["merged.ply"]),
         dict(argv=["bench", "--data", "{out}/no_data", "--quick", "--out", "{out}/docs"], outs=["docs"]),
         dict(argv=["export-depth", "--scan", s["scan_small"], "--camera", s["camera"], "--pose", s["gt"],
                    "-o", "{out}/d.exr", "--png16", "{out}/d.png", "--mask", "{out}/m.png"], outs=["d.exr", "d.png", "m.png"]),

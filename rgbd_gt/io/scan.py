@@ -11,7 +11,7 @@ import numpy as np
 
 from rgbd_gt.errors import InputError, require_file
 
-SCAN_SUFFIXES = (".e57", ".ply", ".pcd")
+SCAN_SUFFIXES = (".e57", ".ply", ".pcd", ".bin")
 
 
 @dataclass
@@ -117,7 +117,7 @@ def merge_scans(scans: list[Scan]) -> Scan:
 
 def load_scan(path: str | os.PathLike, scan_index: int | None = None, progress=None,
               require_points: bool = False) -> Scan:
-    """Load an `.e57`, `.ply` or `.pcd` scan file.
+    """Load an `.e57`, `.ply`, `.pcd` or KITTI `.bin` scan file.
 
     Args:
         path: the file.
@@ -164,19 +164,21 @@ def _load(path: Path, scan_index: int | None, progress) -> Scan:
         from rgbd_gt.io.e57 import read_e57
 
         return read_e57(path, scan_index=scan_index, progress=progress)
+    if suffix not in SCAN_SUFFIXES:
+        raise InputError(f"unknown scan format '{path.suffix}' (expected one of {', '.join(SCAN_SUFFIXES)})", path)
+    if scan_index is not None:
+        raise InputError("--scan-index applies to E57 files only", path)
     if suffix == ".ply":
         from rgbd_gt.io.ply import read_ply
 
-        if scan_index is not None:
-            raise InputError("--scan-index applies to E57 files only", path)
         return read_ply(path)
     if suffix == ".pcd":
         from rgbd_gt.io.pcd import read_pcd
 
-        if scan_index is not None:
-            raise InputError("--scan-index applies to E57 files only", path)
         return read_pcd(path)
-    raise InputError(f"unknown scan format '{path.suffix}' (expected one of {', '.join(SCAN_SUFFIXES)})", path)
+    from rgbd_gt.io.velodyne_bin import read_velodyne_bin
+
+    return read_velodyne_bin(path)
 
 
 def save_scan(path: str | os.PathLike, scan: Scan) -> None:
