@@ -28,7 +28,7 @@ from rgbd_gt.io.scan import Scan
 from rgbd_gt.render.blocks import VIEW_MARGIN, Blocks, block_order, block_points, blocks_in_view, points_in_view
 
 CACHE_VERSION = 3
-ARRAYS = ("xyz", "rgb", "intensity", "row", "col", "scan_id", "normals", "ring", "cells")  # per point, block-ordered
+ARRAYS = Scan.PER_POINT + ("cells",)  # per point, block-ordered
 # "cells": `render.mesh.grid_cell_bits` (grid scans), kept in a subset's Scan.derived as "cell_bits"
 
 

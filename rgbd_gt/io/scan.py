@@ -103,7 +103,7 @@ def merge_scans(scans: list[Scan]) -> Scan:
     if len(scans) == 1:
         return scans[0]
     out: dict[str, np.ndarray | None] = {}
-    for name in ("xyz", "rgb", "intensity", "row", "col", "normals", "ring"):
+    for name in (n for n in Scan.PER_POINT if n != "scan_id"):  # scan_id is renumbered below
         parts = [getattr(s, name) for s in scans]
         out[name] = np.concatenate(parts) if all(p is not None for p in parts) else None
     ids, offset = [], 0
