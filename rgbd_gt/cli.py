@@ -864,7 +864,7 @@ def bench(
     if not data.is_dir():
         raise InputError("benchmark data folder not found", data)
     dev = str(resolve_device(device))
-    kw = dict(effects_near=1, effects_far=1, methods=["quadratic (ours)", "SIFT"]) if quick else {}
+    kw = dict(effects_near=1, effects_far=1, methods=["quadratic (ours)", "SIFT"], other_seeds=()) if quick else {}
     report = run_benchmark(data, out_dir, dev, log=lambda line: err.print(line, highlight=False), **kw)
     table = Table(title="ICL-NUIM benchmark")
     for col in ["method"] + [f"{g} {c}" for g in report["groups"] for c in ("t mm", "R deg", "ok", "s")]:

@@ -156,16 +156,39 @@ def prepare_scan(scan_path: Path, root: Path, progress: Callable[[str], None] = 
     return _open(folder, scan_path, json.loads(meta_path.read_text()))
 
 
+def storage_centre(scan: Scan) -> np.ndarray:
+    """(3,) float64: where the prepared scan's float32 coordinates are measured from: the first
+    scanner position, else the centre of the points' bounds."""
+    return scan.origins[0].copy() if len(scan.origins) else (scan.xyz.min(0) + scan.xyz.max(0)) / 2
+
+
+def as_stored(xyz: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """xyz (N, 3) float64 rounded as the prepared scan stores them (float32 metres from `centre`,
+    microns within a few hundred metres): from the file or from the cache, a command then sees
+    the same coordinates to the bit, and the aligners draw the same points (align/subset.py)."""
+    return (xyz - centre).astype(np.float32).astype(np.float64) + centre
+
+
 def scan_in_view(scan_path: Path, camera: Camera, poses: list[np.ndarray], cache: Path | None = None) -> Scan:
     """The scan's points in view of the camera at any of the poses: from the prepared scan under
     `cache` (prepared there first when it is not yet: seconds on later calls, whatever the
-    file's size), else read from the file and culled (`render.blocks.view_of`)."""
+    file's size), else read from the file, culled (`render.blocks.view_of`) and rounded as the
+    cache holds them (`as_stored`)."""
     if cache is None:
         from rgbd_gt.io.scan import load_scan
-        from rgbd_gt.render.blocks import view_of
 
-        return view_of(load_scan(scan_path, require_points=True), camera, poses)
+        return view_as_stored(load_scan(scan_path, require_points=True), camera, poses)
     return prepare_scan(scan_path, cache).views(camera, poses)
+
+
+def view_as_stored(scan: Scan, camera: Camera, poses: list[np.ndarray]) -> Scan:
+    """`render.blocks.view_of` with the coordinates rounded as the prepared scan holds them
+    (`as_stored`)."""
+    from rgbd_gt.render.blocks import view_of
+
+    view = view_of(scan, camera, poses)
+    view.xyz = as_stored(view.xyz, storage_centre(scan))
+    return view
 
 
 def whole_scan(scan_path: Path, cache: Path | None = None) -> Scan:
@@ -220,7 +243,7 @@ def _build(scan_path: Path, folder: Path, key: dict, progress: Callable[[str], N
     cells = grid_cell_bits(read) if scan.has_grid else None
     del read
     phase("normals")
-    centre = scan.origins[0].copy() if len(scan.origins) else (scan.xyz.min(0) + scan.xyz.max(0)) / 2
+    centre = storage_centre(scan)
     progress("spatial index")
     local = (scan.xyz - centre).astype(np.float32)
     scan.xyz = None  # the float64 copy is no longer needed: memory stays near the scan's own

@@ -44,6 +44,15 @@ def test_run_two_photos_then_resume(tmp_path):
         for name in ("overlay.png", "overlay_blend.png"):
             assert cv2.imread(str(tmp_path / "out" / photo / name)).shape == (480, 640, 3)
         assert not (tmp_path / "out" / photo / "overlay_points.png").exists()  # for sweeps only
+    # the refine command on the same inputs gives run's pose: the aligner is handed the same
+    # points (block order there, file order here) and draws the same subsets (align/subset.py)
+    alone = tmp_path / "alone.yaml"
+    assert run_cli("refine", "--scan", scene / "scan.e57", "--image", scene / "photo.png", "--camera", scene / "camera.yaml",
+                   "--init", tmp_path / "out" / "photo" / "init.yaml", "-o", alone, "--max-points", 40000,
+                   "--repeats", 0).returncode == 0
+    T, T_run = read_pose(alone)[0], read_pose(tmp_path / "out" / "photo" / "pose.yaml")[0]
+    assert translation_error_m(T, T_run) < 1e-6 and rotation_error_deg(T, T_run) < 1e-5, (
+        translation_error_m(T, T_run), rotation_error_deg(T, T_run))
     stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "out").rglob("*") if p.is_file() and p.name not in ("summary.csv", "run.json")}
     again = run_cli("run", tmp_path / "run.yaml")
     assert again.returncode == 0, again.stderr

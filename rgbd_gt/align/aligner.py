@@ -25,6 +25,7 @@ from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.align.pyramid import PhotoLevel
 from rgbd_gt.align.robust import student_t_loss, student_t_weights
 from rgbd_gt.align.sampling import bilinear, bilinear_with_gradient, central_gradients
+from rgbd_gt.align.subset import point_keys
 from rgbd_gt.errors import InputError
 from rgbd_gt.pose import apply_update, translated
 from rgbd_gt.render.normals import facing_camera
@@ -180,6 +181,17 @@ def _valid_at(valid: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
 
 
 POOL = 16  # x max_points: the most scan points an aligner keeps (drawn at random)
+ALIGN_MARGIN = 0.15  # of the photo's width and height on every side: a pose moves a few degrees
+
+
+def near_view(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], near: float, far: float = 0.0) -> torch.Tensor:
+    """(N,) bool: the points at pixels uv (N, 2) and depths z (N,) metres that an aligner
+    considers: within ALIGN_MARGIN of the photo of size (W, H), deeper than `near` and, when
+    far > 0, shallower than `far`."""
+    w, h = size
+    mu, mv = ALIGN_MARGIN * w, ALIGN_MARGIN * h
+    keep = (z > near) & (uv[:, 0] > -mu) & (uv[:, 1] > -mv) & (uv[:, 0] < w + mu) & (uv[:, 1] < h + mv)
+    return keep & (z < far) if far > 0 else keep
 
 
 class Aligner:
@@ -201,11 +213,6 @@ class Aligner:
         self.device = pyramid[0].image.device
         self.dtype = torch.float32
         self.model = ColorModel(cfg.color_model)
-        if len(points) > POOL * cfg.max_points:
-            # a big scan's view: a random pool, so that setting up costs what max_points needs
-            keep = np.sort(np.random.default_rng(cfg.seed).choice(len(points), POOL * cfg.max_points, replace=False))
-            points, colors = points[keep], colors[keep]
-            normals = None if normals is None else normals[keep]
         # a local frame keeps float32 exact for georeferenced coordinates
         self.centre = points.mean(axis=0)
         self.points = torch.as_tensor(points - self.centre, dtype=self.dtype, device=self.device)
@@ -213,6 +220,7 @@ class Aligner:
         c = c.to(self.dtype) / 255.0 if colors.dtype == np.uint8 else c.to(self.dtype)
         self.target = self.model.target(c.reshape(len(points), -1))
         self.normals = None if normals is None else torch.as_tensor(normals, dtype=self.dtype, device=self.device)
+        self.keys = torch.as_tensor(point_keys(points, cfg.seed), device=self.device)  # the random subsets' order
         # the camera corrections refined with the pose (cfg.refine_intrinsics: the first `free` of q)
         self.free = INTRINSICS[cfg.refine_intrinsics]
         self.q = torch.zeros(5, dtype=self.dtype, device=self.device)
@@ -227,17 +235,16 @@ class Aligner:
 
     # -- set-up of each level ----------------------------------------------------------------
     def _levels(self, T_local: np.ndarray) -> list[_LevelData]:
-        """Per level: a random subset of the points near the initial view (nested subsets,
-        `max_points` at full resolution and a quarter per coarser level) and its Z-buffer cell."""
+        """Per level: a random subset of the points near the initial view (`near_view`; nested
+        subsets, `max_points` at full resolution and a quarter per coarser level, the same in any
+        order of the points: align/subset.py) and its Z-buffer cell."""
         finest = self.pyramid[0]
         R, t = self._pose_tensors(T_local)
         uv, z = project_pinhole(self.points @ R.T + t, finest.K)
         w, h = finest.camera.size
-        m = 0.15 * w  # margin: the pose will move
-        near = (z > 1e-3) & (uv[:, 0] > -m) & (uv[:, 1] > -m) & (uv[:, 0] < w + m) & (uv[:, 1] < h + m)
-        if self.cfg.max_depth > 0:
-            near &= z < self.cfg.max_depth
-        idx = torch.nonzero(near).squeeze(1)
+        idx = torch.nonzero(near_view(uv, z, (w, h), 1e-3, self.cfg.max_depth)).squeeze(1)
+        if idx.numel() > POOL * self.cfg.max_points:  # a big scan's view: setting up costs what max_points needs
+            idx = idx[torch.topk(self.keys[idx], POOL * self.cfg.max_points, largest=False).indices.sort().values]
         need = self.cfg.min_visible
         spacing = estimate_spacing(self.points[idx]) if idx.numel() >= need else 0.0
         depth = float(z[idx].median()) if idx.numel() else 1.0
@@ -256,8 +263,7 @@ class Aligner:
                              f"(need {need}): check the pose, the camera file and the scan")
         # order the points so that every prefix favours textured ones (they carry the pose)
         score = texture_score(uv[idx], z[idx], (w, h), cell, self.target[idx])
-        gen = torch.Generator(device="cpu").manual_seed(self.cfg.seed)
-        gumbel = -torch.log(-torch.log(torch.rand(idx.numel(), generator=gen).clamp_min(1e-12))).to(self.device)
+        gumbel = (-torch.log(-torch.log(self.keys[idx]))).to(self.dtype)
         weight = score + self.cfg.texture_floor * score.mean().clamp_min(1e-6)
         idx = idx[torch.argsort(torch.log(weight) + gumbel, descending=True)]
         out = []

@@ -27,11 +27,12 @@ import numpy as np
 import torch
 
 from rgbd_gt.align import lbfgs
-from rgbd_gt.align.aligner import RefineResult, refine_each
+from rgbd_gt.align.aligner import RefineResult, near_view, refine_each
 from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.align.nid import nid_of_windows, parzen_windows
 from rgbd_gt.align.pyramid import PhotoLevel
 from rgbd_gt.align.sampling import bilinear, central_gradients
+from rgbd_gt.align.subset import point_keys
 from rgbd_gt.errors import InputError
 from rgbd_gt.pose import apply_update, random_starts, rotation_error_deg, translated
 from rgbd_gt.render.project import project_pinhole, projection_jacobian
@@ -126,6 +127,7 @@ class NidAligner:
         self.frames = frames
         self._points = [torch.as_tensor(f.points - self.centre, dtype=torch.float32, device=self.device) for f in frames]
         self._values = [torch.as_tensor(f.values, dtype=torch.float32, device=self.device).reshape(-1) for f in frames]
+        self._keys = [torch.as_tensor(point_keys(f.points, cfg.seed), device=self.device) for f in frames]
         self._normals = [None if f.normals is None else torch.as_tensor(f.normals, dtype=torch.float32, device=self.device)
                          for f in frames]
         # per frame, per level: the channels NID compares, and the sky (`_Part`) once it is found
@@ -135,11 +137,11 @@ class NidAligner:
 
     # -- the points of each level (chosen once, at the init) ---------------------------------------
     def prepared_levels(self, T_init: np.ndarray) -> list[list[torch.Tensor]]:
-        """Per level, per frame: indices of a random subset of the points in view of T_init
-        (within a 15% margin and cfg.max_depth), `max_points` at full resolution and a quarter per
-        coarser level (nested), never fewer than `min_points`. Also finds each photo's sky, with the
-        points seen at T_init (`_find_sky`), and appends it to the frame's images (one sampling
-        serves both)."""
+        """Per level, per frame: indices of a random subset of the points near the view of T_init
+        (`near_view`; the same subset in any order of the points: align/subset.py), `max_points` at
+        full resolution and a quarter per coarser level (nested), never fewer than `min_points`.
+        Also finds each photo's sky, with the points seen at T_init (`_find_sky`), and appends it
+        to the frame's images (one sampling serves both)."""
         if self._prepared is not None:
             return self._prepared
         cfg = self.cfg
@@ -148,13 +150,8 @@ class NidAligner:
         for k, (f, pts) in enumerate(zip(self.frames, self._points)):
             finest = f.pyramid[0]
             uv, z = project_pinhole(pts @ R.T + t, finest.K)
-            w, h = finest.camera.size
-            m = 0.15 * w
-            near = (z > 0.1) & (uv[:, 0] > -m) & (uv[:, 1] > -m) & (uv[:, 0] < w + m) & (uv[:, 1] < h + m)
-            if cfg.max_depth > 0:
-                near &= z < cfg.max_depth
-            idx = torch.nonzero(near).squeeze(1)
-            seen = visible_points(uv[idx], z[idx], (w, h), 1, facing=self._facing(k, idx, R, t))
+            idx = torch.nonzero(near_view(uv, z, finest.camera.size, 0.1, cfg.max_depth)).squeeze(1)
+            seen = visible_points(uv[idx], z[idx], finest.camera.size, 1, facing=self._facing(k, idx, R, t))
             if int(seen.sum()) < cfg.min_visible:
                 raise InputError(f"fewer than {cfg.min_visible} scan points in view of the initial pose: "
                                  "check the pose, the camera file and the scan")
@@ -163,8 +160,7 @@ class NidAligner:
             if sky is not None:
                 self._images[k] = [torch.cat([img, m], dim=2) for img, m in zip(self._images[k], sky)]
                 self._sky[k] = True
-            gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
-            per_frame.append(idx[torch.randperm(idx.numel(), generator=gen).to(self.device)])
+            per_frame.append(idx[torch.argsort(self._keys[k][idx])])
         self._prepared = [[idx[: max(cfg.min_points, cfg.max_points // 4**level)] for idx in per_frame]
                           for level in range(len(self.frames[0].pyramid))]
         return self._prepared

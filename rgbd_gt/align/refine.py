@@ -32,9 +32,6 @@ def resolve_device(name: str, objective: str = "photometric"):
     return torch.device(name)
 
 
-REFINE_VIEW_MARGIN = 0.5  # of the photo's extent on every side: the scan points refine keeps
-
-
 @dataclass
 class RefineInputs:
     points: np.ndarray  # (N, 3) scan frame, metres
@@ -58,10 +55,10 @@ class RefineInputs:
 
 def load_inputs(scan_path: Path, image_path: Path, camera_path: Path, init_path: Path,
                 mask_path: Path | None = None) -> RefineInputs:
-    from rgbd_gt.io import load_scan, read_camera, read_pose
+    from rgbd_gt.io import read_camera, read_pose
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import read_image, read_mask
-    from rgbd_gt.render.blocks import view_of
+    from rgbd_gt.prepared import scan_in_view
     from rgbd_gt.render.normals import with_normals
 
     photo = read_image(image_path, to_align=True)
@@ -69,10 +66,11 @@ def load_inputs(scan_path: Path, image_path: Path, camera_path: Path, init_path:
     check_image_matches(camera, photo.shape, image_path, camera_path)
     T_init, init_meta = read_pose(init_path)
     ignore = read_mask(mask_path, photo.shape[:2]) if mask_path is not None else None
-    # what the photo can see from poses well around T_init (searches included): a big scan's
-    # renders, and its normals (minutes for tens of millions of points without a grid), then
-    # cost what the photo sees
-    scan = view_of(load_scan(scan_path, require_points=True), camera, [T_init], REFINE_VIEW_MARGIN)
+    # what the photo can see from poses around T_init: a big scan's renders, and its normals
+    # (minutes for tens of millions of points without a grid), then cost what the photo sees.
+    # The view `run` takes (render.blocks.VIEW_MARGIN), as its cache holds it: both hand the
+    # aligner the same points and get the same pose.
+    scan = scan_in_view(scan_path, camera, [T_init])
     if len(scan) == 0:
         raise InputError("no scan points in view of the initial pose (nor near it): check the pose, the camera file "
                          "and the scan", init_path)

@@ -40,7 +40,6 @@ PICK_NOISE_PX = (2.0, 4.0, 8.0)  # the error of a person's click in the photo (1
 class Scene:
     name: str
     scan: Scan
-    colors: np.ndarray  # `scan_colors`
     photo: np.ndarray  # (H, W, 3) uint8, as shipped (distorted)
     camera: Camera
     T_ref: np.ndarray  # the shipped reference T_cam_from_scan
@@ -50,13 +49,12 @@ def pjlab_scene(d: Path) -> Scene:
     """One scene folder of ../shared/data/lidar_camera (calib.pcd, calib.jpg|png, calib.txt)."""
     from rgbd_gt.io import load_scan, read_camera, read_pose
     from rgbd_gt.io.image import read_image
-    from rgbd_gt.io.scan import scan_colors
     from rgbd_gt.render.normals import with_normals
 
     scan = with_normals(load_scan(d / "calib.pcd"))
     photo = read_image(next(p for p in sorted(d.glob("calib.*")) if p.suffix in (".jpg", ".png")))
     camera = read_camera(d / "calib.txt", (photo.shape[1], photo.shape[0]))
-    return Scene(d.name, scan, scan_colors(scan), photo, camera, read_pose(d / "calib.txt")[0])
+    return Scene(d.name, scan, photo, camera, read_pose(d / "calib.txt")[0])
 
 
 def pjlab_scenes(folder: Path) -> list[Scene]:
@@ -83,14 +81,25 @@ def group_inits(group: list[Scene], inits: int, sizes=SIZES) -> list[tuple[float
             for i, T0 in enumerate(init_poses(group[0].T_ref, deg, m, inits, seed=1000 * k + sum(map(ord, name))))]
 
 
+def refine_inputs(s: Scene, T_init: np.ndarray, init_meta: dict | None = None):
+    """The refine command's inputs for scene s from T_init: the points in view, as `run` and
+    `refine` take them (`view_as_stored`)."""
+    from rgbd_gt.align.refine import RefineInputs
+    from rgbd_gt.io.scan import scan_colors
+    from rgbd_gt.prepared import view_as_stored
+
+    view = view_as_stored(s.scan, s.camera, [T_init])
+    return RefineInputs(view.xyz, scan_colors(view), s.photo, s.camera, T_init, None, view, init_meta or {})
+
+
 def run_case(scenes: list[Scene], T_init: np.ndarray, cfg: RefineConfig, device: str = "cpu",
              verdict: bool = True) -> dict:
     """Refine T_init against the scenes (jointly when several; they share T_ref) and, unless
     verdict is False (the aligner alone), judge it."""
-    from rgbd_gt.align.refine import RefineInputs, make_aligner, refine_verified
+    from rgbd_gt.align.refine import make_aligner, refine_verified
     from rgbd_gt.errors import InputError
 
-    inputs = [RefineInputs(s.scan.xyz, s.colors, s.photo, s.camera, T_init, None, s.scan) for s in scenes]
+    inputs = [refine_inputs(s, T_init) for s in scenes]
     T_ref = scenes[0].T_ref
     rec = {"init_deg": rotation_error_deg(T_init, T_ref), "init_cm": translation_error_m(T_init, T_ref) * 100}
     try:
@@ -147,7 +156,7 @@ def collect_picks(scenes: list[Scene], trials: int = 20, refined: int = 8,
     """Per scene and click noise, `trials` sets of simulated picks: the pose init-pose solves from
     PICK_USED of them; for the smallest noise, the first `refined` sets are also refined (nid)
     from that pose, with its stated uncertainty and the held-out pairs as --check."""
-    from rgbd_gt.align.refine import RefineInputs, refine_verified
+    from rgbd_gt.align.refine import refine_verified
     from rgbd_gt.init.run import Picks, init_from_correspondences
 
     cfg = replace(RefineConfig(), objective="nid")
@@ -164,8 +173,7 @@ def collect_picks(scenes: list[Scene], trials: int = 20, refined: int = 8,
                 rec = {"scene": s.name, "noise_px": noise, "trial": i, "deg": rotation_error_deg(T0, s.T_ref),
                        "cm": translation_error_m(T0, s.T_ref) * 100}
                 if noise == min(PICK_NOISE_PX) and i < refined:
-                    inputs = RefineInputs(s.scan.xyz, s.colors, s.photo, s.camera, T0, None, s.scan,
-                                          {"uncertainty": init.uncertainty})
+                    inputs = refine_inputs(s, T0, {"uncertainty": init.uncertainty})
                     result, v = refine_verified(inputs, cfg, "cpu", check=(img[n:], obj[n:]))
                     T = result.T_cam_from_scan
                     rec["refined"] = {"deg": rotation_error_deg(T, s.T_ref), "cm": translation_error_m(T, s.T_ref) * 100,
@@ -263,7 +271,8 @@ def write_markdown(path: Path, records: list[dict], picks: list[dict] = ()) -> N
         "Data: the three PJLab scenes of `../shared/data/lidar_camera` (a 64-ring sweep with raw intensity and no",
         "color, a 1920x1200 photo, the shipped reference extrinsic). Per scene and init size, "
         f"{max(r['init'] for r in records) + 1} inits at that rotation (random axis) and translation",
-        "(random direction) from the reference; each refined with the verdict (docs/trust.md). "
+        "(random direction) from the reference; each refined, as the refine command does, on the sweep's points in view",
+        "of the init (5% margin) and judged by the verdict (docs/trust.md). "
         f"Success: within {SUCCESS[0]} deg and {SUCCESS[1] * 100:g} cm of the reference.",
         "`photometric` is the colored-scan aligner (the paper's, here predicting intensity from the photo's",
         "colors); `nid` minimises the normalised information distance between intensity and gray plus",
