@@ -27,7 +27,7 @@ from rgbd_gt.camera import Camera
 from rgbd_gt.io.scan import Scan
 from rgbd_gt.render.blocks import VIEW_MARGIN, Blocks, block_order, block_points, blocks_in_view, points_in_view
 
-CACHE_VERSION = 3
+CACHE_VERSION = 4
 ARRAYS = Scan.PER_POINT + ("cells",)  # per point, block-ordered
 # "cells": `render.mesh.grid_cell_bits` (grid scans), kept in a subset's Scan.derived as "cell_bits"
 
@@ -43,8 +43,8 @@ def file_key(path: Path) -> dict:
 @dataclass
 class PreparedScan:
     """A block-ordered scan: arrays (memory-mapped .npy) with xyz as float32 metres from
-    `centre` (float64, the first scanner position: float32 is then exact to microns within a
-    few hundred metres); blocks in the scan's frame; origins (S, 3) the scanner positions."""
+    `centre` (float64, `storage_centre`: float32 is then exact to microns within a few hundred
+    metres); blocks in the scan's frame; origins (S, 3) the scanner positions."""
 
     folder: Path
     source: Path
@@ -158,8 +158,12 @@ def prepare_scan(scan_path: Path, root: Path, progress: Callable[[str], None] = 
 
 def storage_centre(scan: Scan) -> np.ndarray:
     """(3,) float64: where the prepared scan's float32 coordinates are measured from: the first
-    scanner position, else the centre of the points' bounds."""
-    return scan.origins[0].copy() if len(scan.origins) else (scan.xyz.min(0) + scan.xyz.max(0)) / 2
+    scanner position when it lies within the points' bounds (a scanner is surrounded by what it
+    sees), else the median of every k-th point in file order. Not the bounds' centre, and not a
+    stated origin far outside: one stray point or a wrong header would leave float32 no precision."""
+    if len(scan.origins) and np.all((scan.origins[0] >= scan.xyz.min(0)) & (scan.origins[0] <= scan.xyz.max(0))):
+        return scan.origins[0].copy()
+    return np.median(scan.xyz[:: max(1, len(scan) // 100_000)], axis=0)
 
 
 def as_stored(xyz: np.ndarray, centre: np.ndarray) -> np.ndarray:

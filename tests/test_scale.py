@@ -102,6 +102,25 @@ def test_single_commands_read_the_prepared_scan(scenes, tmp_path):
     assert len(proc.stderr.strip().splitlines()) == 1
 
 
+def test_stored_coordinates_keep_microns_whatever_the_file_says():
+    """The cache's float32 coordinates are measured from the scanner when it stands among its
+    points, else from their median: a stray point or a wrong origin in a header far away must not
+    take the precision of the others (a fuzzed header origin of 1e20 once emptied every view)."""
+    from rgbd_gt.io.scan import Scan
+    from rgbd_gt.prepared import as_stored, storage_centre
+
+    rng = np.random.default_rng(0)
+    xyz = rng.uniform(-20, 20, (5000, 3)) + [4.5e5, 5.4e6, 300.0]  # georeferenced metres
+    stray = np.vstack([xyz, [1e12, 0.0, 0.0]])
+    for origins, centre in (([[4.5e5, 5.4e6, 301.0]], [4.5e5, 5.4e6, 301.0]),  # the scanner, among its points
+                            ([[1e20, 0.0, 0.0]], None), ([], None)):  # a wrong header, none: the median
+        scan = Scan(xyz=stray, origins=np.array(origins, float).reshape(-1, 3))
+        c = storage_centre(scan)
+        if centre is not None:
+            np.testing.assert_array_equal(c, centre)
+        assert np.abs(as_stored(xyz, c) - xyz).max() < 5e-6  # float32 of metres within 40 m of c
+
+
 def test_a_changed_scan_file_is_prepared_again(scenes, tmp_path):
     path = tmp_path / "scan.ply"
     shutil.copy(scenes / "s5" / "scan.ply", path)

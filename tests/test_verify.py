@@ -16,8 +16,12 @@ from rgbd_gt.qa.edges import chance_relative, photo_strength, structural_edges
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
+    """A scene where refine is reliable from its init's distance: from 12 starts 1 deg / 5 cm
+    around the truth, none of the 72 runs with seeds 0-5 ended off (the seed-3 scene: 5 of 72,
+    so that there the verdict's nearby starts fail a right result with some seeds, as its
+    false alarms in docs/trust.md)."""
     d = tmp_path_factory.mktemp("verify")
-    assert run_cli("synth", d, "--size", "small", "--seed", 3).returncode == 0
+    assert run_cli("synth", d, "--size", "small", "--seed", 2).returncode == 0
     return d
 
 

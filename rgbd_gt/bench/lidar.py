@@ -40,6 +40,7 @@ PICK_NOISE_PX = (2.0, 4.0, 8.0)  # the error of a person's click in the photo (1
 class Scene:
     name: str
     scan: Scan
+    colors: np.ndarray  # `scan_colors`
     photo: np.ndarray  # (H, W, 3) uint8, as shipped (distorted)
     camera: Camera
     T_ref: np.ndarray  # the shipped reference T_cam_from_scan
@@ -49,12 +50,13 @@ def pjlab_scene(d: Path) -> Scene:
     """One scene folder of ../shared/data/lidar_camera (calib.pcd, calib.jpg|png, calib.txt)."""
     from rgbd_gt.io import load_scan, read_camera, read_pose
     from rgbd_gt.io.image import read_image
+    from rgbd_gt.io.scan import scan_colors
     from rgbd_gt.render.normals import with_normals
 
     scan = with_normals(load_scan(d / "calib.pcd"))
     photo = read_image(next(p for p in sorted(d.glob("calib.*")) if p.suffix in (".jpg", ".png")))
     camera = read_camera(d / "calib.txt", (photo.shape[1], photo.shape[0]))
-    return Scene(d.name, scan, photo, camera, read_pose(d / "calib.txt")[0])
+    return Scene(d.name, scan, scan_colors(scan), photo, camera, read_pose(d / "calib.txt")[0])
 
 
 def pjlab_scenes(folder: Path) -> list[Scene]:
