@@ -179,7 +179,7 @@ def test_the_pose_does_not_depend_on_the_order_of_the_points(scene, objective):
     cfg = RefineConfig(objective=objective, max_points=20_000, levels=3)
     a, b = (run_refine(i, cfg, "cpu").T_cam_from_scan for i in (inputs, shuffled))
     # float32 sums in another order: far below what refine resolves (0.1 mm, 0.002 deg here)
-    assert translation_error_m(a, b) < 1e-6 and rotation_error_deg(a, b) < 1e-5, (translation_error_m(a, b),
+    assert translation_error_m(a, b) < 1e-5 and rotation_error_deg(a, b) < 1e-4, (translation_error_m(a, b),
                                                                                 rotation_error_deg(a, b))
     other = run_refine(inputs, dataclasses.replace(cfg, seed=1), "cpu").T_cam_from_scan
     assert translation_error_m(a, other) > 1e-6  # the seed does pick other points

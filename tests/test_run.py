@@ -51,7 +51,8 @@ def test_run_two_photos_then_resume(tmp_path):
                    "--init", tmp_path / "out" / "photo" / "init.yaml", "-o", alone, "--max-points", 40000,
                    "--repeats", 0).returncode == 0
     T, T_run = read_pose(alone)[0], read_pose(tmp_path / "out" / "photo" / "pose.yaml")[0]
-    assert translation_error_m(T, T_run) < 1e-6 and rotation_error_deg(T, T_run) < 1e-5, (
+    # 0 to 1 micron (the order of float32 sums); 0.12 mm apart when the subsets followed point order
+    assert translation_error_m(T, T_run) < 1e-5 and rotation_error_deg(T, T_run) < 1e-4, (
         translation_error_m(T, T_run), rotation_error_deg(T, T_run))
     stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "out").rglob("*") if p.is_file() and p.name not in ("summary.csv", "run.json")}
     again = run_cli("run", tmp_path / "run.yaml")
