@@ -31,4 +31,3 @@ def point_keys(points: np.ndarray, seed: int) -> np.ndarray:
         for column in bits.T:  # the 3 coordinates, not the points
             h = _splitmix(h ^ column)
     return ((h >> np.uint64(11)).astype(np.float64) + 0.5) / float(1 << 53)
-
