@@ -408,6 +408,7 @@ def refine(
     strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when the verdict is 'failed' (the pose file is still written, with the verdict)."),
     refine_intrinsics: Optional[str] = typer.Option(None, "--refine-intrinsics", help="Also refine the camera, for photos whose calibration is rough: focal, focal+principal or focal+principal+k1k2 (default none). The refined camera goes into the pose file (intrinsics) and, with --camera-out, into a camera file."),
     camera_out: Optional[Path] = typer.Option(None, "--camera-out", help="With --refine-intrinsics: write the refined camera here (YAML), for export-depth and overlay."),
+    cache: Optional[Path] = typer.Option(None, "--cache", help=CACHE_HELP + " With `run`'s cache, refine is handed exactly the points (and normals) `run` refines on."),
 ) -> None:
     """Refine a photo's pose against the scan, then judge the result. Colored scans: multimodal
     photometric alignment; intensity-only scans (LiDAR sweeps, laser scans without color): NID
@@ -437,6 +438,7 @@ def refine(
             raise InputError("--camera-out writes the camera of --refine-intrinsics: give both")
         staged_camera = outs.file(camera_out, "--camera-out", POSE_SUFFIXES)
     report_dir = outs.folder(report, "--report") if report is not None else None
+    outs.checked_folder(cache, "--cache")
     cfg = load_config(RefineConfig, config, "refine.yaml")
     flags = dict(color_model=color_model, gradient=gradient, optimizer=optimizer, levels=levels,
                  upsample=upsample, iterations=iterations, max_points=max_points, beta_max=beta_max,
@@ -452,7 +454,8 @@ def refine(
     except ValueError as exc:
         raise InputError(str(exc)) from None
     everything = ([dict(scan=scan, image=image, camera=camera)] if scan is not None else []) + listed
-    inputs = [load_inputs(p["scan"], p["image"], p["camera"], init, mask if k == 0 else None) for k, p in enumerate(everything)]
+    inputs = [load_inputs(p["scan"], p["image"], p["camera"], init, mask if k == 0 else None, cache)
+              for k, p in enumerate(everything)]
     warnings = [w for w in [camera_disagreement(inputs[0].camera, inputs[0].init_meta, camera)] if w]
     for w in warnings:
         _warn(w)

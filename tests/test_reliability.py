@@ -53,6 +53,10 @@ def test_outputs_are_checked_before_work_and_committed_together(scene, tmp_path)
     assert_one_line_error(run_cli(*qa, "-o", tmp_path / "qa.png", "--json", tmp_path / "qa.png"), "--json", "two outputs")
     assert_one_line_error(run_cli(*qa, "-o", tmp_path / "qa.xyz"), "-o", ".png")
     assert_one_line_error(run_cli(*qa, "-o", tmp_path), "is a folder")
+    # a folder the file system will not write in, though access() says it may (root, /proc)
+    assert_one_line_error(run_cli("export-depth", *base, "-o", "/proc/d.exr"), "-o", "cannot write in /proc")
+    assert_one_line_error(run_cli("export-depth", *base, "-o", tmp_path / "d.exr", "--cache", "/proc/cache"),
+                          "--cache", "cannot write in /proc")
     config = tmp_path / "refine.yaml"
     config.write_text("levels: 2\n")
     assert_one_line_error(run_cli("refine", "--scan", scene / "scan.ply", "--image", scene / "photo.png", "--camera",

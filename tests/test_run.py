@@ -54,6 +54,11 @@ def test_run_two_photos_then_resume(tmp_path):
     # 0 to 1 micron (the order of float32 sums); 0.12 mm apart when the subsets followed point order
     assert translation_error_m(T, T_run) < 1e-5 and rotation_error_deg(T, T_run) < 1e-4, (
         translation_error_m(T, T_run), rotation_error_deg(T, T_run))
+    # on run's cache, refine is handed run's very points and normals
+    assert run_cli("refine", "--scan", scene / "scan.e57", "--image", scene / "photo.png", "--camera", scene / "camera.yaml",
+                   "--init", tmp_path / "out" / "photo" / "init.yaml", "-o", alone, "--max-points", 40000,
+                   "--repeats", 0, "--cache", tmp_path / "out" / ".scan-cache").returncode == 0
+    np.testing.assert_allclose(read_pose(alone)[0], T_run, atol=1e-9)
     stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "out").rglob("*") if p.is_file() and p.name not in ("summary.csv", "run.json")}
     again = run_cli("run", tmp_path / "run.yaml")
     assert again.returncode == 0, again.stderr

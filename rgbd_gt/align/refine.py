@@ -54,7 +54,9 @@ class RefineInputs:
 
 
 def load_inputs(scan_path: Path, image_path: Path, camera_path: Path, init_path: Path,
-                mask_path: Path | None = None) -> RefineInputs:
+                mask_path: Path | None = None, cache: Path | None = None) -> RefineInputs:
+    """The refine command's inputs; the scan's points in view of the init from the prepared scan
+    under `cache` when given (`prepared.scan_in_view`), else from the file."""
     from rgbd_gt.io import read_camera, read_pose
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import read_image, read_mask
@@ -70,7 +72,7 @@ def load_inputs(scan_path: Path, image_path: Path, camera_path: Path, init_path:
     # (minutes for tens of millions of points without a grid), then cost what the photo sees.
     # The view `run` takes (render.blocks.VIEW_MARGIN), as its cache holds it: both hand the
     # aligner the same points and get the same pose.
-    scan = scan_in_view(scan_path, camera, [T_init])
+    scan = scan_in_view(scan_path, camera, [T_init], cache)
     if len(scan) == 0:
         raise InputError("no scan points in view of the initial pose (nor near it): check the pose, the camera file "
                          "and the scan", init_path)

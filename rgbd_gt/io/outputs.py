@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import tempfile
 import uuid
 from pathlib import Path
 from typing import Iterable, Sequence
@@ -59,8 +60,10 @@ class Outputs:
         if folder and path.exists() and not path.is_dir():
             raise InputError(f"{option}: is a file; give a folder", path)
         base = _existing_ancestor(path, option)
-        if not os.access(base, os.W_OK | os.X_OK):
-            raise InputError(f"{option}: cannot write in {base} (permission denied)", path)
+        try:  # a folder made and removed: access() says yes to root on read-only and virtual file systems (/proc)
+            Path(tempfile.mkdtemp(prefix=".rgbd-gt-probe-", dir=base)).rmdir()
+        except OSError as exc:
+            raise InputError(f"{option}: cannot write in {base} ({exc.strerror or exc})", path) from None
         return base
 
     def _stage(self, base: Path) -> Path:
