@@ -19,6 +19,7 @@ from rgbd_gt.io.scan import Scan
 
 RETURN_BYTES = 16
 MAX_RANGE_M = 1000.0  # automotive LiDARs reach 100-300 m
+NOT_ONE = "not a KITTI .bin sweep (x y z reflectance as float32)"
 
 
 def read_velodyne_bin(path: str | Path) -> Scan:
@@ -34,9 +35,9 @@ def read_velodyne_bin(path: str | Path) -> Scan:
     far = np.abs(data[:, :3]).max(axis=1) > MAX_RANGE_M
     if far.any():
         raise InputError(f"return {int(np.flatnonzero(far)[0])} lies {float(np.abs(data[far][0, :3]).max()):.3g} m away "
-                         f"(beyond {MAX_RANGE_M:g} m): not a KITTI .bin sweep (x y z reflectance as float32)", path)
+                         f"(beyond {MAX_RANGE_M:g} m): {NOT_ONE}", path)
     odd = (data[:, 3] < 0) | (data[:, 3] > 1)
     if odd.any():
         raise InputError(f"return {int(np.flatnonzero(odd)[0])} has reflectance {float(data[odd][0, 3]):.4g}, outside "
-                         "[0, 1]: not a KITTI .bin sweep (x y z reflectance as float32)", path)
+                         f"[0, 1]: {NOT_ONE}", path)
     return Scan(xyz=data[:, :3].astype(np.float64), intensity=np.ascontiguousarray(data[:, 3]), origins=np.zeros((1, 3)))
