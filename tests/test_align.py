@@ -168,15 +168,17 @@ def test_refine_variants_converge(scene, change):
     assert rotation_error_deg(res.T_cam_from_scan, gt) < 0.05
 
 
-@pytest.mark.parametrize("objective", ["photometric", "nid"])
-def test_the_pose_does_not_depend_on_the_order_of_the_points(scene, objective):
+@pytest.mark.parametrize("objective,max_points", [("photometric", 20_000), ("photometric", 5_000), ("nid", 20_000)])
+def test_the_pose_does_not_depend_on_the_order_of_the_points(scene, objective, max_points):
     """`run` reads a scan block by block and `refine` whole: the aligners' random subsets are
-    drawn from the points themselves (align/subset.py), so both give the same pose."""
+    drawn from the points themselves (align/subset.py), so both give the same pose. (5,000
+    points: the view's 100k exceed the pool of 16 x max_points drawn before anything else.)"""
     inputs = load_inputs(scene / "scan.ply", scene / "photo.png", scene / "camera.yaml", scene / "init_pose.yaml")
+    assert len(inputs.points) > 16 * 5_000
     order = np.random.default_rng(5).permutation(len(inputs.points))
     shuffled = dataclasses.replace(inputs, points=inputs.points[order], colors=inputs.colors[order],
                                    scan=inputs.scan.subset(order))
-    cfg = RefineConfig(objective=objective, max_points=20_000, levels=3)
+    cfg = RefineConfig(objective=objective, max_points=max_points, levels=3)
     a, b = (run_refine(i, cfg, "cpu").T_cam_from_scan for i in (inputs, shuffled))
     # float32 sums in another order: far below what refine resolves (0.1 mm, 0.002 deg here)
     assert translation_error_m(a, b) < 1e-5 and rotation_error_deg(a, b) < 1e-4, (translation_error_m(a, b),

@@ -213,6 +213,12 @@ class Aligner:
         self.device = pyramid[0].image.device
         self.dtype = torch.float32
         self.model = ColorModel(cfg.color_model)
+        keys = point_keys(points, cfg.seed)  # the random subsets' order (align/subset.py)
+        if len(points) > POOL * cfg.max_points:
+            # a big scan's view: a random pool (the lowest keys), so that setting up costs what max_points needs
+            keep = np.sort(np.argpartition(keys, POOL * cfg.max_points)[:POOL * cfg.max_points])
+            points, colors, keys = points[keep], colors[keep], keys[keep]
+            normals = None if normals is None else normals[keep]
         # a local frame keeps float32 exact for georeferenced coordinates
         self.centre = points.mean(axis=0)
         self.points = torch.as_tensor(points - self.centre, dtype=self.dtype, device=self.device)
@@ -220,7 +226,7 @@ class Aligner:
         c = c.to(self.dtype) / 255.0 if colors.dtype == np.uint8 else c.to(self.dtype)
         self.target = self.model.target(c.reshape(len(points), -1))
         self.normals = None if normals is None else torch.as_tensor(normals, dtype=self.dtype, device=self.device)
-        self.keys = torch.as_tensor(point_keys(points, cfg.seed), device=self.device)  # the random subsets' order
+        self.keys = torch.as_tensor(keys, device=self.device)
         # the camera corrections refined with the pose (cfg.refine_intrinsics: the first `free` of q)
         self.free = INTRINSICS[cfg.refine_intrinsics]
         self.q = torch.zeros(5, dtype=self.dtype, device=self.device)
@@ -243,8 +249,6 @@ class Aligner:
         uv, z = project_pinhole(self.points @ R.T + t, finest.K)
         w, h = finest.camera.size
         idx = torch.nonzero(near_view(uv, z, (w, h), 1e-3, self.cfg.max_depth)).squeeze(1)
-        if idx.numel() > POOL * self.cfg.max_points:  # a big scan's view: setting up costs what max_points needs
-            idx = idx[torch.topk(self.keys[idx], POOL * self.cfg.max_points, largest=False).indices.sort().values]
         need = self.cfg.min_visible
         spacing = estimate_spacing(self.points[idx]) if idx.numel() >= need else 0.0
         depth = float(z[idx].median()) if idx.numel() else 1.0

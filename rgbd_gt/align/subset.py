@@ -12,22 +12,32 @@ import numpy as np
 
 _MIX = (np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB))
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_SHIFTS = (np.uint64(30), np.uint64(27), np.uint64(31))
 
 
-def _splitmix(x: np.ndarray) -> np.ndarray:
-    """SplitMix64's finaliser on uint64 (wrapping arithmetic): every input bit moves every output bit."""
-    x = (x ^ (x >> np.uint64(30))) * _MIX[0]
-    x = (x ^ (x >> np.uint64(27))) * _MIX[1]
-    return x ^ (x >> np.uint64(31))
+def _splitmix(x: np.ndarray, tmp: np.ndarray) -> None:
+    """SplitMix64's finaliser on uint64, in place (wrapping arithmetic; tmp: scratch of x's shape):
+    every input bit moves every output bit."""
+    for shift, mix in ((_SHIFTS[0], _MIX[0]), (_SHIFTS[1], _MIX[1])):
+        np.right_shift(x, shift, out=tmp)
+        x ^= tmp
+        x *= mix
+    np.right_shift(x, _SHIFTS[2], out=tmp)
+    x ^= tmp
 
 
 def point_keys(points: np.ndarray, seed: int) -> np.ndarray:
     """(N, 3) coordinates -> (N,) float64 keys, uniform in (0, 1), each a function of that point's
-    coordinates (as float64) and `seed` only. Equal points get equal keys."""
-    xyz = np.ascontiguousarray(np.asarray(points, dtype=np.float64) + 0.0)  # + 0.0: -0.0 hashes as 0.0
-    bits = xyz.view(np.uint64).reshape(len(xyz), -1)
+    coordinates (as float64) and `seed` only. Equal points get equal keys. In place, without
+    temporaries per step: it runs on every point of a photo's view (0.5 s for 7 million)."""
+    bits = (np.asarray(points, dtype=np.float64) + 0.0).view(np.uint64)  # + 0.0: -0.0 hashes as 0.0
     with np.errstate(over="ignore"):
-        h = np.full(len(xyz), np.uint64(seed) * _GOLDEN + _GOLDEN, dtype=np.uint64)
-        for column in bits.T:  # the 3 coordinates, not the points
-            h = _splitmix(h ^ column)
-    return ((h >> np.uint64(11)).astype(np.float64) + 0.5) / float(1 << 53)
+        h = np.full(len(bits), np.uint64(seed) * _GOLDEN + _GOLDEN, dtype=np.uint64)
+        tmp = np.empty_like(h)
+        for j in range(bits.shape[1]):  # the 3 coordinates, not the points
+            h ^= bits[:, j]
+            _splitmix(h, tmp)
+    keys = (h >> np.uint64(11)).astype(np.float64)
+    keys += 0.5
+    keys /= float(1 << 53)
+    return keys
