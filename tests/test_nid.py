@@ -10,7 +10,7 @@ import yaml
 from conftest import DATA, assert_one_line_error, run_cli
 from rgbd_gt.align import lbfgs
 from rgbd_gt.align.config import RefineConfig
-from rgbd_gt.align.nid import joint_histogram, nid
+from rgbd_gt.align.nid import joint_histogram, nid, nid_with_gradient, parzen_windows
 from rgbd_gt.align.nid_aligner import Frame, NidAligner, so3_exp
 from rgbd_gt.align.pyramid import photo_pyramid
 from rgbd_gt.errors import InputError
@@ -41,6 +41,9 @@ def test_nid_gradient_matches_finite_differences():
     b0 = (0.3 * a + 0.5 * torch.as_tensor(rng.uniform(0, 1, 3000))).clamp(0, 1)
     b = b0.clone().requires_grad_(True)
     nid(a, b).backward()
+    value, _, closed = nid_with_gradient(parzen_windows(a, 16), b0, 16)
+    assert float(value) == float(nid(a, b0))
+    np.testing.assert_allclose(closed.numpy(), b.grad.numpy(), rtol=1e-9, atol=1e-15)
     idx = rng.choice(3000, 20, replace=False)
     h = 1e-6
     for i in idx:
@@ -101,28 +104,61 @@ def test_own_lbfgs_takes_torch_optim_lbfgs_steps():
     assert np.abs(x - 1).max() < 1e-5 and n_iter < 200  # converged to the minimum at (1, ..., 1)
 
 
-def test_pose_gradient_matches_finite_differences(intensity_scene):
+def _gradients(aligner, level, T, delta):
+    """Of sum(weights * NID) on `level` at apply_update(T, delta) (delta (6,)), unequal weights
+    per channel pair: (closed-form gradient, autograd's, a function of delta giving the value,
+    the size of each parameter that moves the level's points by one pixel)."""
+    T_local = translated(T, aligner.centre)
+    parts = aligner._parts(level, T_local)
+    zero = torch.zeros(6, dtype=torch.float64)
+    weights = torch.linspace(1.0, 2.0, len(aligner._evaluate(parts, T_local, zero).nid), dtype=torch.float64)
+    d = torch.as_tensor(delta, dtype=torch.float64).requires_grad_(True)
+    at = aligner._evaluate(parts, T_local, d, weights)
+    (at.nid * weights).sum().backward()
+
+    def value(x):
+        return float((aligner._evaluate(parts, T_local, torch.as_tensor(x, dtype=torch.float64)).nid * weights).sum())
+
+    return at.gradient.detach().numpy(), d.grad.numpy(), value, aligner._units(parts, T_local).numpy()
+
+
+@pytest.mark.parametrize("edges", [False, True])
+def test_pose_gradient_matches_autograd_and_finite_differences(intensity_scene, edges):
     d = intensity_scene
     scan, photo, camera = load_scan(d / "intensity.ply"), read_image(d / "photo.png"), read_camera(d / "camera.yaml")
     T = read_pose(d / "init_pose.yaml")[0]
-    cfg = RefineConfig(objective="nid", levels=3)
+    cfg = RefineConfig(objective="nid", levels=3, nid_edges=edges)
     al = NidAligner([Frame(scan.xyz, scan.intensity, photo_pyramid(photo, camera, 3, torch.device("cpu")))], cfg)
     al.prepared_levels(T)
-    T_local = translated(T, al.centre)
-    parts = al._parts(1, T_local)
-    d0 = torch.tensor([2e-3, -1e-3, 5e-4, 3e-3, -2e-3, 1e-3], dtype=torch.float64, requires_grad=True)
-    al._evaluate(parts, T_local, d0).loss.backward()
-    units = al._units(parts, T_local).numpy()
-    grad = d0.grad.numpy() * units  # per pixel of motion along each parameter
+    d0 = np.array([2e-3, -1e-3, 5e-4, 3e-3, -2e-3, 1e-3])
+    closed, auto, value, units = _gradients(al, 1, T, d0)
+    np.testing.assert_allclose(closed, auto, rtol=1e-5, atol=1e-6 * np.abs(auto).max())  # autograd: float32 geometry
     # central differences over 0.05 px: the bilinear interpolant is smooth only within a pixel,
     # and NID in float32 points resolves ~1e-4 of its per-pixel change
-    fd = np.zeros(6)
-    for k in range(6):
-        e = np.zeros(6)
-        e[k] = 0.05 * units[k]
-        f = lambda s: float(al._evaluate(parts, T_local, d0.detach() + torch.as_tensor(s * e)).loss)  # noqa: E731
-        fd[k] = (f(1) - f(-1)) / 0.1
+    fd = np.array([(value(d0 + 0.05 * u * e) - value(d0 - 0.05 * u * e)) / 0.1 for u, e in zip(units, np.eye(6))])
+    grad = closed * units  # per pixel of motion along each parameter
     assert np.linalg.norm(grad - fd) < 0.1 * np.linalg.norm(grad), (grad, fd)
+
+
+def test_closed_form_pose_gradient_on_real_sweeps_with_their_sky():
+    """pjlab_1 and pjlab_2 as one rig on level 2, where the sky is charged, at an update with a
+    rotation of 1 deg (whose Jacobian the closed form carries) and 10 cm."""
+    from rgbd_gt.align.refine import RefineInputs, make_aligner
+    from rgbd_gt.io.scan import scan_colors
+
+    inputs = []
+    for k in (1, 2):
+        folder = _pjlab(k)
+        photo = read_image(folder / "calib.jpg")
+        camera = read_camera(folder / "calib.txt", (photo.shape[1], photo.shape[0]))
+        scan = load_scan(folder / "calib.pcd")
+        T = read_pose(folder / "calib.txt")[0]
+        inputs.append(RefineInputs(scan.xyz, scan_colors(scan), photo, camera, T, None, scan))
+    al = make_aligner(inputs[0], RefineConfig(objective="nid"), "cpu", inputs[1:])
+    al.prepared_levels(T)
+    assert al._sky == [True, True]
+    closed, auto, _, _ = _gradients(al, 2, T, np.r_[np.radians([0.6, -0.5, 0.6]), 0.05, -0.03, 0.08])
+    np.testing.assert_allclose(closed, auto, rtol=1e-5, atol=1e-6 * np.abs(auto).max())  # autograd: float32 geometry
 
 
 def test_repeat_runs_are_refine_itself_and_the_covariance_is_a_minimum(intensity_scene):

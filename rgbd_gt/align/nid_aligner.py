@@ -6,10 +6,11 @@ projected points (align/nid.py), over one or several (scan, photo) pairs that sh
 Per pyramid level, coarse to fine: the level's points (a random subset of those in view of the
 initial pose) are Z-buffered at the level's start pose with a cell sized for their density in
 the image, and L-BFGS (strong Wolfe line search) minimises NID over the 6 pose parameters, in
-units of one level pixel of image motion; the gradient is exact (autograd through the bilinear
-interpolant and the B-spline histogram). Before the coarsest level, an optional search runs that
-level from random starts around the init: a wider basin for poor inits. The few results of
-lowest NID each go on to level 1, and the lowest NID there goes on to the finest level.
+units of one level pixel of image motion; the gradient is exact, in closed form (through the
+B-spline histogram, the bilinear interpolant and the projection). Before the coarsest level,
+an optional search runs that level from random starts around the init: a wider basin for poor
+inits. The few results of lowest NID each go on to level 1, and the lowest NID there goes on to
+the finest level.
 Points that land on the photo's sky add cfg.sky_weight times their fraction to NID (align/sky.py):
 a sweep has no returns from the sky, and NID alone drifts to poses that put points there. The
 charge applies on the levels from cfg.sky_coarse_level up: the sky is found at 1/8 scale, and its
@@ -29,9 +30,9 @@ import torch
 from rgbd_gt.align import lbfgs
 from rgbd_gt.align.aligner import RefineResult, near_view, refine_each
 from rgbd_gt.align.config import RefineConfig
-from rgbd_gt.align.nid import nid_of_windows, parzen_windows
+from rgbd_gt.align.nid import nid_of_windows, nid_with_gradient, parzen_windows
 from rgbd_gt.align.pyramid import PhotoLevel
-from rgbd_gt.align.sampling import bilinear, central_gradients
+from rgbd_gt.align.sampling import bilinear, bilinear_with_gradient, central_gradients
 from rgbd_gt.align.subset import point_keys
 from rgbd_gt.errors import InputError
 from rgbd_gt.pose import apply_update, random_starts, rotation_error_deg, translated
@@ -75,6 +76,7 @@ class _Evaluation:
     nid: torch.Tensor  # (F x C,) NID per frame and channel pair (the first plus the sky charge), float64
     counts: list[int]  # per frame and channel pair, the points that entered its histogram
     entropies: list[float]  # ... and its joint entropy H(A, B) (nats)
+    gradient: torch.Tensor | None = None  # (6,) float64 d sum(weights * nid) / d delta, when asked
 
     @property
     def loss(self) -> torch.Tensor:
@@ -90,16 +92,44 @@ class _Evaluation:
                             device=self.nid.device)
 
 
+def _hat(w: torch.Tensor) -> torch.Tensor:
+    """(3, 3) cross-product matrix of w (3,)."""
+    zero = torch.zeros((), dtype=w.dtype, device=w.device)
+    return torch.stack([zero, -w[2], w[1], w[2], zero, -w[0], -w[1], w[0], zero]).reshape(3, 3)
+
+
 def so3_exp(w: torch.Tensor) -> torch.Tensor:
     """Rotation matrix (3, 3) of the rotation vector w (3,), differentiable (also at 0)."""
     theta2 = (w * w).sum()
-    zero = torch.zeros((), dtype=w.dtype, device=w.device)
-    K = torch.stack([zero, -w[2], w[1], w[2], zero, -w[0], -w[1], w[0], zero]).reshape(3, 3)
+    K = _hat(w)
     small = theta2 < 1e-12
     theta = torch.sqrt(torch.where(small, torch.ones_like(theta2), theta2))
     a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
     b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta**2)
     return torch.eye(3, dtype=w.dtype, device=w.device) + a * K + b * (K @ K)
+
+
+def so3_left_jacobian(w: torch.Tensor) -> torch.Tensor:
+    """(3, 3) J with so3_exp(w + e) = so3_exp(J e) so3_exp(w) to first order in e (3,)."""
+    theta2 = (w * w).sum()
+    K = _hat(w)
+    small = theta2 < 1e-8
+    theta = torch.sqrt(torch.where(small, torch.ones_like(theta2), theta2))
+    a = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta**2)
+    b = torch.where(small, 1 / 6 - theta2 / 120, (theta - torch.sin(theta)) / theta**3)
+    return torch.eye(3, dtype=w.dtype, device=w.device) + a * K + b * (K @ K)
+
+
+def _pose_gradient(d_u: torch.Tensor, d_v: torch.Tensor, p: torch.Tensor, q: torch.Tensor, K: torch.Tensor,
+                   w: torch.Tensor) -> torch.Tensor:
+    """(6,) d loss / d delta of points p = so3_exp(w) q + delta[3:] (n, 3, camera frame), given
+    d loss / d (u, v) of their pinhole projections (n,) each."""
+    iz = 1.0 / p[:, 2]
+    g_x, g_y = d_u * K[0, 0] * iz, d_v * K[1, 1] * iz
+    d_p = torch.stack([g_x, g_y, -(g_x * p[:, 0] + g_y * p[:, 1]) * iz], 1)
+    # dp = (J dw) x q, so d loss / dw = J^T sum(q x d_p)
+    d_w = so3_left_jacobian(w.double()).T @ torch.linalg.cross(q, d_p).sum(0)
+    return torch.cat([d_w, d_p.sum(0)])
 
 
 def _channels(image: torch.Tensor, edges: bool) -> torch.Tensor:
@@ -212,14 +242,21 @@ class NidAligner:
         return parts
 
     # -- the objective -----------------------------------------------------------------------------
-    def _evaluate(self, parts: list[_Part], T_local: np.ndarray, delta: torch.Tensor) -> _Evaluation:
-        """Mean NID over the frames at apply_update(T_local, delta) (delta (6,) differentiable),
-        on the points that land on usable pixels."""
+    def _evaluate(self, parts: list[_Part], T_local: np.ndarray, delta: torch.Tensor,
+                  weights: torch.Tensor | None = None) -> _Evaluation:
+        """NID per frame and channel pair at apply_update(T_local, delta) (delta (6,) float64), on
+        the points that land on usable pixels. With weights (F x C,), also the gradient of
+        sum(weights * NID) with respect to delta, in closed form (`nid_with_gradient` and the
+        derivative of the bilinear interpolant, as strategy A); delta may also be differentiated
+        by autograd (tests compare the two)."""
         R0, t0 = self._pose(T_local)
         R = so3_exp(delta[:3]).to(R0.dtype)
+        R1, t1 = R @ R0, R @ t0
         nids, counts, entropies = [], [], []
+        gradient = None if weights is None else torch.zeros(6, dtype=torch.float64, device=self.device)
         for part in parts:
-            p = (part.points @ R0.T + t0) @ R.T + delta[3:].to(R0.dtype)
+            q = part.points @ R1.T + t1
+            p = q + delta[3:].to(R0.dtype)
             uv, z = project_pinhole(p, part.photo.K)
             w, h = part.photo.camera.size
             ok = (z > 0.1) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)
@@ -227,18 +264,32 @@ class NidAligner:
                 u0 = uv[:, 0].detach().clamp(0, w - 1).long()
                 v0 = uv[:, 1].detach().clamp(0, h - 1).long()
                 ok &= part.photo.valid[v0, u0]
-            if int(ok.sum()) < 50:
+            n = int(ok.sum())
+            if n < 50:
                 raise InputError("the pose left the scan: fewer than 50 points in view")
-            sampled = bilinear(part.image, uv[ok]).double()
+            if weights is None:
+                sampled = bilinear(part.image, uv[ok]).double()
+            else:
+                sampled, s_u, s_v = (x.double() for x in bilinear_with_gradient(part.image, uv[ok]))
+                d_sampled = torch.zeros_like(sampled)  # d loss / d sampled channel
             windows = part.windows[ok]
             for c in range(windows.shape[1]):
-                value, h_ab = nid_of_windows(windows[:, c], parzen_windows(sampled[:, c], self.cfg.nid_bins))
+                if weights is None:
+                    value, h_ab = nid_of_windows(windows[:, c], parzen_windows(sampled[:, c], self.cfg.nid_bins))
+                else:
+                    value, h_ab, d_value = nid_with_gradient(windows[:, c], sampled[:, c], self.cfg.nid_bins)
+                    d_sampled[:, c] = weights[len(nids)] * d_value
                 if c == 0 and part.sky:
                     value = value + self.cfg.sky_weight * sampled[:, -1].mean()
+                    if weights is not None:
+                        d_sampled[:, -1] = weights[len(nids)] * self.cfg.sky_weight / n
                 nids.append(value)
-                counts.append(int(ok.sum()))
+                counts.append(n)
                 entropies.append(float(h_ab.detach()))
-        return _Evaluation(torch.stack(nids), counts, entropies)
+            if weights is not None:
+                gradient += _pose_gradient((d_sampled * s_u).sum(1), (d_sampled * s_v).sum(1), p[ok].double(),
+                                           q[ok].double(), part.photo.K, delta[:3])
+        return _Evaluation(torch.stack(nids), counts, entropies, gradient)
 
     def _units(self, parts: list[_Part], T_local: np.ndarray) -> torch.Tensor:
         """(6,) size of each pose parameter that moves the level's points by 1 pixel (RMS)."""
@@ -264,10 +315,11 @@ class NidAligner:
             return cap * torch.tanh(units * x / cap)
 
         def objective(x_np: np.ndarray) -> tuple[float, np.ndarray]:
-            x = torch.tensor(x_np, device=self.device, requires_grad=True)
-            loss = (self._evaluate(parts, T_local, update(x)).nid * weights).sum()
-            loss.backward()
-            return float(loss.detach()), x.grad.cpu().numpy()
+            x = torch.tensor(x_np, device=self.device)
+            with torch.no_grad():
+                at = self._evaluate(parts, T_local, update(x), weights)
+            d_update = units * (1 - torch.tanh(units * x / cap) ** 2)
+            return float((at.nid * weights).sum()), (at.gradient * d_update).cpu().numpy()
 
         x, n_iter = lbfgs.minimize(objective, np.zeros(6), iterations)
         T = apply_update(T_local, update(torch.tensor(x, device=self.device)).cpu().numpy())

@@ -19,6 +19,7 @@ from typing import Callable
 import numpy as np
 
 from rgbd_gt.align.config import RefineConfig
+from rgbd_gt.bench.run import machine
 from rgbd_gt.camera import Camera
 from rgbd_gt.io.scan import Scan
 from rgbd_gt.pose import apply_update, camera_centre, rotation_error_deg, translation_error_m
@@ -127,13 +128,13 @@ def collect(data: Path, inits: int = 10, log: Callable[[str], None] = print,
     groups = [(objective, [s]) for objective in objectives for s in scenes]
     if all(n in by_name for n in JOINT) and "nid" in objectives:
         groups.append(("nid", [by_name[n] for n in JOINT]))
-    records = []
+    records, where = [], machine()
     for objective, group in groups:
         cfg = replace(RefineConfig(), **OBJECTIVES[objective])
         name = " + ".join(s.name for s in group)
         for deg, m, i, T0 in group_inits(group, inits):
             rec = {"objective": objective, "scenes": name, "size": f"{deg:g} deg / {m * 100:g} cm", "init": i,
-                   **run_case(group, T0, cfg)}
+                   "machine": where, **run_case(group, T0, cfg)}
             records.append(rec)
             log(f"{objective:11s} {name:18s} {rec['size']:12s} #{i}: "
                 + (rec["error"] if "error" in rec else f"{rec['deg']:.3f} deg {rec['cm']:.1f} cm {rec['verdict']} {rec['seconds']:.1f} s"))
@@ -281,6 +282,8 @@ def write_markdown(path: Path, records: list[dict], picks: list[dict] = ()) -> N
         "the charge for points on the photo's sky on the coarse levels (docs/lidar-method.md); `nid, no sky` is the same without",
         "that charge; `nid + edges` adds the NID of the points' depth discontinuities against the photo's",
         "gradient magnitude. The last rows solve scenes 1 and 2 jointly (nid): one pose, two frames.",
+        "",
+        "Machine: " + "; ".join(sorted({r.get("machine", "not recorded") for r in records})) + ".",
         "",
         "| objective | scene | init | success | median error | worst error | spread (precision) | aligner s (median / max) | worse than init | verdicts ok / suspect / failed | worse but ok | not failed: of the successes / of the rest |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
