@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rgbd_gt.bench.run import machine
 from rgbd_gt.bench.scale import dome_scene
 
 RELOAD = r"""
@@ -144,6 +145,7 @@ def main() -> None:
         ray_s = {cpus: ray_run(config, out, cpus) for cpus in (1, 2)}
         lines += ["", f"The same on a Ray cluster started on loopback (`--ray`, one task per photo): 1 CPU {ray_s[1]:.0f} s, "
                   f"2 CPUs {ray_s[2]:.0f} s: speed-up {ray_s[1] / ray_s[2]:.2f}x."]
+    lines += ["", f"Machine: {machine()}."]
     text = "\n".join(lines)
     print(text)
     (args.dir / "results.md").write_text(text + "\n")

@@ -180,11 +180,31 @@ def test_the_pose_does_not_depend_on_the_order_of_the_points(scene, objective, m
                                    scan=inputs.scan.subset(order))
     cfg = RefineConfig(objective=objective, max_points=max_points, levels=3)
     a, b = (run_refine(i, cfg, "cpu").T_cam_from_scan for i in (inputs, shuffled))
-    # float32 sums in another order: far below what refine resolves (0.1 mm, 0.002 deg here)
-    assert translation_error_m(a, b) < 1e-5 and rotation_error_deg(a, b) < 1e-4, (translation_error_m(a, b),
+    # float32 sums in another order (up to 10 microns, 0.0002 deg with the 5,000-point subsets):
+    # far below what refine resolves (0.1 mm, 0.002 deg here; subsets by an index permutation: 0.12 mm)
+    assert translation_error_m(a, b) < 3e-5 and rotation_error_deg(a, b) < 5e-4, (translation_error_m(a, b),
                                                                                 rotation_error_deg(a, b))
     other = run_refine(inputs, dataclasses.replace(cfg, seed=1), "cpu").T_cam_from_scan
     assert translation_error_m(a, other) > 1e-6  # the seed does pick other points
+
+
+def test_a_big_views_pool_leaves_the_subsets_random(scene):
+    """Beyond 16 x max_points the aligner keeps a random pool of the view. The keys that order
+    the pool's points into the levels' subsets must still be uniform: the pool drawn as the
+    lowest keys of the same stream squeezed them into (0, 0.04) here, and the subsets then
+    followed texture alone (the verdict's repeats ended 7-14 px apart on a 7-million-point view)."""
+    from rgbd_gt.align.aligner import Aligner
+    from rgbd_gt.align.pyramid import photo_pyramid
+
+    inputs = load_inputs(scene / "scan.ply", scene / "photo.png", scene / "camera.yaml", scene / "init_pose.yaml")
+    cfg = RefineConfig(max_points=400, levels=3)
+    assert len(inputs.points) > 16 * 400 * 10
+    aligner = Aligner(inputs.points, inputs.colors, photo_pyramid(inputs.photo, inputs.camera, 3, torch.device("cpu")),
+                      cfg, inputs.normals)
+    keys = np.sort(aligner.keys.numpy())
+    assert len(keys) == 16 * 400
+    uniform = (np.arange(len(keys)) + 0.5) / len(keys)
+    assert np.abs(keys - uniform).max() < 0.03  # Kolmogorov-Smirnov: 0.017 at the 1% level for 6,400 keys
 
 
 def test_adam_moves_towards_the_truth(scene):

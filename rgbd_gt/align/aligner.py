@@ -213,12 +213,16 @@ class Aligner:
         self.device = pyramid[0].image.device
         self.dtype = torch.float32
         self.model = ColorModel(cfg.color_model)
-        keys = point_keys(points, cfg.seed)  # the random subsets' order (align/subset.py)
         if len(points) > POOL * cfg.max_points:
-            # a big scan's view: a random pool (the lowest keys), so that setting up costs what max_points needs
-            keep = np.sort(np.argpartition(keys, POOL * cfg.max_points)[:POOL * cfg.max_points])
-            points, colors, keys = points[keep], colors[keep], keys[keep]
+            # a big scan's view: a random pool, so that setting up costs what max_points needs. Its
+            # keys are a stream of their own: the pool's lowest keys, reused below, would rank its
+            # points with noise squeezed into (0, 0.18) and the subsets follow texture alone
+            # (docs/scale.md: repeats 7-14 px apart on a 7-million-point view)
+            pool = POOL * cfg.max_points
+            keep = np.sort(np.argpartition(point_keys(points, cfg.seed + 1), pool)[:pool])
+            points, colors = points[keep], colors[keep]
             normals = None if normals is None else normals[keep]
+        keys = point_keys(points, cfg.seed)  # the random subsets' order (align/subset.py)
         # a local frame keeps float32 exact for georeferenced coordinates
         self.centre = points.mean(axis=0)
         self.points = torch.as_tensor(points - self.centre, dtype=self.dtype, device=self.device)
