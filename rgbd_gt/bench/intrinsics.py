@@ -83,6 +83,9 @@ def main() -> None:
                          f"{np.median(np.abs([r['k1_err'] for r in sel])):.4f} | {np.median([r['seconds'] for r in sel]):.2f} |")
     lines += ["", "The principal point and k1, k2 trade against the pose: refine no more of the camera than the",
               "calibration leaves open (`focal` for a camera whose lens is calibrated but whose zoom or focus is not).", ""]
+    # the sections written by hand (each a "## " heading after the table) stay
+    kept = args.out.read_text() if args.out.exists() else ""
+    kept = kept[kept.find("\n## "):] if "\n## " in kept else ""
     with atomic_output(args.out) as tmp_out:
-        tmp_out.write_text("\n".join(lines))
+        tmp_out.write_text("\n".join(lines) + kept)
     print("\n".join(lines))
