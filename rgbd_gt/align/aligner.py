@@ -215,14 +215,13 @@ class Aligner:
         self.model = ColorModel(cfg.color_model)
         if len(points) > POOL * cfg.max_points:
             # a big scan's view: a random pool, so that setting up costs what max_points needs. Its
-            # keys are a stream of their own: the pool's lowest keys, reused below, would rank its
+            # keys are a stream of their own: its lowest keys, reused as `self.keys`, would rank its
             # points with noise squeezed into (0, 0.18) and the subsets follow texture alone
             # (docs/scale.md: repeats 7-14 px apart on a 7-million-point view)
             pool = POOL * cfg.max_points
             keep = np.sort(np.argpartition(point_keys(points, cfg.seed + 1), pool)[:pool])
             points, colors = points[keep], colors[keep]
             normals = None if normals is None else normals[keep]
-        keys = point_keys(points, cfg.seed)  # the random subsets' order (align/subset.py)
         # a local frame keeps float32 exact for georeferenced coordinates
         self.centre = points.mean(axis=0)
         self.points = torch.as_tensor(points - self.centre, dtype=self.dtype, device=self.device)
@@ -230,7 +229,7 @@ class Aligner:
         c = c.to(self.dtype) / 255.0 if colors.dtype == np.uint8 else c.to(self.dtype)
         self.target = self.model.target(c.reshape(len(points), -1))
         self.normals = None if normals is None else torch.as_tensor(normals, dtype=self.dtype, device=self.device)
-        self.keys = torch.as_tensor(keys, device=self.device)
+        self.keys = torch.as_tensor(point_keys(points, cfg.seed), device=self.device)  # the subsets' order (align/subset.py)
         # the camera corrections refined with the pose (cfg.refine_intrinsics: the first `free` of q)
         self.free = INTRINSICS[cfg.refine_intrinsics]
         self.q = torch.zeros(5, dtype=self.dtype, device=self.device)
