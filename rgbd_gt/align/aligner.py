@@ -129,6 +129,42 @@ def texture_score(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cell
     return torch.where(vis, g.reshape(-1)[key], torch.zeros_like(gray))
 
 
+def pixel_sums(uv: torch.Tensor, target: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """(H, W, m + 1): per pixel of an image of size (W, H), the sum of the targets (N, m) of the
+    points at uv (N, 2) whose nearest pixel it is, and their count."""
+    w, h = size
+    m = target.shape[1]
+    ok = (uv[:, 0] > -0.5) & (uv[:, 1] > -0.5) & (uv[:, 0] < w - 0.5) & (uv[:, 1] < h - 0.5)
+    key = (uv[ok, 1] + 0.5).long() * w + (uv[ok, 0] + 0.5).long()
+    sums = torch.zeros(h * w, m + 1, dtype=target.dtype, device=target.device)
+    return sums.index_add_(0, key, torch.cat([target[ok], torch.ones_like(target[ok, :1])], 1)).reshape(h, w, m + 1)
+
+
+def halved(sums: torch.Tensor) -> torch.Tensor:
+    """`pixel_sums` (H, W, m + 1) on the next pyramid level (H // 2, W // 2): 2x2 sums, as the
+    pyramid's box averaging (align/pyramid.py)."""
+    return 4 * torch.nn.functional.avg_pool2d(sums.permute(2, 0, 1)[None], 2)[0].permute(1, 2, 0)
+
+
+def to_level(uv: torch.Tensor, K: np.ndarray, camera) -> torch.Tensor:
+    """Pixels uv (N, 2) of a pinhole camera K (3, 3) -> of the pinhole `camera` with the same
+    rays (another pyramid level): an affine map."""
+    sx, sy = camera.fx / K[0, 0], camera.fy / K[1, 1]
+    return uv * uv.new_tensor([sx, sy]) + uv.new_tensor([camera.cx - K[0, 2] * sx, camera.cy - K[1, 2] * sy])
+
+
+def blurred_targets(sums: torch.Tensor, uv: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """The targets (n, m) of points at uv (n, 2) of a coarse pyramid level, blurred as the level
+    blurs the photo: the mean target of the seen points in each level pixel (`pixel_sums`: the
+    level's box average), sampled bilinearly (the aligner's interpolant). Without it a coarse
+    level compares a blurred photo with sharp scan colors: the black and white points of a
+    checkerboard that the level averages to gray pull towards the board shifted by a square
+    (docs/intrinsics.md). Points with no seen point near keep their own target."""
+    m = target.shape[1]
+    s = bilinear(sums, uv)
+    return torch.where(s[:, m:] > 1e-3, s[:, :m] / s[:, m:].clamp_min(1e-3), target)
+
+
 def _normal_equations(du: torch.Tensor, dv: torch.Tensor, a: torch.Tensor, b: torch.Tensor, r: torch.Tensor,
                       w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The Gauss-Newton system J^T W J (B, 6, 6) and J^T W r (B, 6), float64, of B poses' residuals
@@ -272,14 +308,24 @@ class Aligner:
         score = texture_score(uv[idx], z[idx], (w, h), cell, self.target[idx])
         gumbel = (-torch.log(-torch.log(self.keys[idx]))).to(self.dtype)
         weight = score + self.cfg.texture_floor * score.mean().clamp_min(1e-6)
-        idx = idx[torch.argsort(torch.log(weight) + gumbel, descending=True)]
+        order = torch.argsort(torch.log(weight) + gumbel, descending=True)
+        idx, seen = idx[order], seen[order]
         out = []
+        uv_near, target_near, K0 = uv[idx], self.target[idx], finest.camera.K
+        sums = None
         for level, photo in enumerate(self.pyramid):
             n = min(idx.numel(), max(self.cfg.min_points, self.cfg.max_points // 4**level))
             sub = idx[:n]
             cell = cell_size_for(spacing * math.sqrt(idx.numel() / n), photo.camera.fx, depth)
             grads = central_gradients(photo.image) if self.cfg.gradient == "central" else None
-            out.append(_LevelData(photo, grads, self.points[sub], self.target[sub], min(cell, 16 * photo.zoom),
+            target = target_near[:n]
+            if level:
+                size = photo.camera.size
+                sums = halved(sums) if sums is not None and min(sums.shape[:2]) >= 2 else None
+                if sums is None or sums.shape[:2] != size[::-1]:
+                    sums = pixel_sums(to_level(uv_near[seen], K0, photo.camera), target_near[seen], size)
+                target = blurred_targets(sums, to_level(uv_near[:n], K0, photo.camera), target)
+            out.append(_LevelData(photo, grads, self.points[sub], target, min(cell, 16 * photo.zoom),
                                   None if self.normals is None else self.normals[sub]))
         return out
 
