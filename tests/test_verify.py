@@ -159,3 +159,26 @@ def test_nid_repeats_are_judged_by_their_own_threshold():
     assert decide({**ev, "objective": "nid", "repeatability": rep}, cfg) == ("suspect", [f"nearby starts disagree by {rep['spread_px']:.2f} px"])
     far = {**rep, "spread_px": cfg.spread_failed_px_nid + 1}
     assert decide({**ev, "objective": "nid", "repeatability": far}, cfg)[0] == "failed"
+
+
+def test_repeats_that_agree_on_a_strip_only_leave_the_result_suspect():
+    """A scan in the photo's corner: a turn about the ray through it (a pose the scan cannot pin
+    down) barely moves its points but moves the rest of the photo by pixels; decide() makes such
+    repeats `suspect`, not `ok`."""
+    from rgbd_gt.align.config import VerifyConfig
+    from rgbd_gt.align.verify import _View, decide
+
+    cam = Camera(640, 480, 500.0, 500.0, 319.5, 239.5)
+    rng = np.random.default_rng(0)
+    corner = np.c_[rng.uniform(-1.9, -1.6, 200), rng.uniform(-1.4, -1.1, 200), rng.uniform(2.8, 3.2, 200)]  # top left
+    view, T = _View(corner, cam), np.eye(4)
+    axis = corner.mean(axis=0) / np.linalg.norm(corner.mean(axis=0))
+    T2 = rigid(cv2.Rodrigues(np.radians(0.5) * axis)[0], np.zeros(3))
+    on_points, across = view.motion_px(T2, T), view.across_photo(T).motion_px(T2, T)
+    assert on_points < 0.5 and across > 2.0, (on_points, across)
+    cfg = VerifyConfig()
+    ev = {"uncertainty": {"image_px": 0.01, "translation_mm": 0.1}, "convergence": {"levels": [{"stop": "converged"}]}}
+    rep = {"spread_px": on_points, "spread_photo_px": across, "spread_mm": 15.0}
+    verdict, reasons = decide({**ev, "repeatability": rep}, cfg)
+    assert verdict == "suspect" and "not across the photo" in reasons[0], reasons
+    assert decide({**ev, "repeatability": {**rep, "spread_photo_px": on_points}}, cfg) == ("ok", [])

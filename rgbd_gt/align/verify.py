@@ -67,6 +67,17 @@ class _View:
     def median_depth(self, T: np.ndarray) -> float:
         return float(np.median(transform_points(T, self.points)[:, 2]))
 
+    def across_photo(self, T: np.ndarray, grid: int = 16) -> "_View":
+        """A grid x grid of points over the whole photo at the points' median depth, seen from T:
+        how far a pose difference moves the photo where the scan has no points (a scan that
+        covers a corner of it fixes the pose there only)."""
+        w, h = self.camera.size
+        u, v = np.meshgrid(np.linspace(0, w - 1, grid), np.linspace(0, h - 1, grid))
+        z = self.median_depth(T)
+        cam = np.stack([(u.ravel() - self.camera.cx) / self.camera.fx * z, (v.ravel() - self.camera.cy) / self.camera.fy * z,
+                        np.full(u.size, z)], 1)
+        return _View(transform_points(np.linalg.inv(T), cam), self.camera)
+
 
 def uncertainty(result: RefineResult, M: np.ndarray) -> dict:
     """The worst-determined direction's 1-sigma of the result's covariance (the aligner's; a lower
@@ -101,7 +112,8 @@ def repeatability(aligner: Aligner, result: RefineResult, T_init: np.ndarray, vi
     (`Aligner.refine_many`) on the coarse levels down to cfg.repeat_finest, with at most
     cfg.repeat_iterations a level (for nid with cfg.repeat_nid_whole, the whole way as refine runs:
     its wide search, all levels, its own iterations; the result itself stands for the init's run);
-    the largest distance (px, mm, deg) of the starts' results from the init's. (The runs may stop
+    the largest distance of the starts' results from the init's: in pixels of the visible points
+    and of a grid over the whole photo (`_View.across_photo`), in mm and deg. (The runs may stop
     at a coarser level than the result, so they are compared among themselves, on the same levels.)"""
     finest = min(cfg.repeat_finest, len(result.levels) - 1)
     rot, trans = start_size(T_init, result.T_cam_from_scan, init_sigma, view, cfg.start_floor_px)
@@ -113,12 +125,15 @@ def repeatability(aligner: Aligner, result: RefineResult, T_init: np.ndarray, vi
     reference, others = ends[0], ends[1:]
     lost = sum(T is None for T in ends)
     if reference is None or lost:  # a run that lost the scan certainly did not reproduce the result
-        worst = {"px": float("inf"), "mm": float("inf"), "deg": float("inf")}
+        worst = {"px": float("inf"), "photo_px": float("inf"), "mm": float("inf"), "deg": float("inf")}
     else:
+        photo = view.across_photo(reference)
         worst = {"px": max(view.motion_px(T, reference) for T in others),
+                 "photo_px": max(photo.motion_px(T, reference) for T in others),
                  "mm": max(translation_error_m(T, reference) for T in others) * 1e3,
                  "deg": max(rotation_error_deg(T, reference) for T in others)}
-    return {"spread_px": worst["px"], "spread_mm": worst["mm"], "spread_deg": worst["deg"], "starts": cfg.repeats,
+    return {"spread_px": worst["px"], "spread_photo_px": worst["photo_px"], "spread_mm": worst["mm"], "spread_deg": worst["deg"],
+            "starts": cfg.repeats,
             "lost_the_scan": lost, "start_rotation_deg": float(np.degrees(rot)), "start_translation_mm": trans * 1e3}
 
 
@@ -163,6 +178,9 @@ def decide(ev: dict, cfg: VerifyConfig) -> tuple[str, list[str]]:
             failed.append(f"nearby starts end elsewhere ({rep['spread_px']:.1f} px, {rep['spread_mm']:.0f} mm apart)")
         elif rep["spread_px"] > cfg.spread_ok_px:
             suspect.append(f"nearby starts disagree by {rep['spread_px']:.2f} px")
+        elif rep.get("spread_photo_px", 0.0) > cfg.spread_ok_px:
+            suspect.append(f"nearby starts agree on the scan's points but not across the photo "
+                           f"({rep['spread_photo_px']:.2f} px): the scan fixes the pose where it is only")
     sh = ev.get("sharpness")
     if sh is not None:
         if sh["median_rise"] < cfg.sharpness_failed:

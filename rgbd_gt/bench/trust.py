@@ -358,6 +358,7 @@ def EVIDENCE_ROWS(cfg: VerifyConfig):  # noqa: N802 - a table, not a function to
     return [
         ("edge ratio (1 = chance)", lambda e: e["edges"]["edge_ratio"], f"< {cfg.edge_ratio_ok} / < {cfg.edge_ratio_failed}"),
         ("repeat spread (px)", lambda e: e.get("repeatability", {}).get("spread_px"), f"> {cfg.spread_ok_px} / > {cfg.spread_failed_px}"),
+        ("repeat spread across the photo (px)", lambda e: e.get("repeatability", {}).get("spread_photo_px"), f"> {cfg.spread_ok_px} / -"),
         ("sharpness: smallest rise", lambda e: e.get("sharpness", {}).get("min_rise"), f"< {cfg.sharpness_ok} / -"),
         ("sharpness: median rise", lambda e: e.get("sharpness", {}).get("median_rise"), f"- / < {cfg.sharpness_failed}"),
         ("1-sigma image motion (px)", lambda e: e["uncertainty"]["image_px"], f"> {cfg.sigma_ok_px} / > {cfg.sigma_failed_px}"),
