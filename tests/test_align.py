@@ -124,30 +124,36 @@ def test_clipped_photo_colors_are_left_out_of_the_color_fit():
 
 
 def test_coarse_levels_blur_the_scan_colors_as_the_pyramid_blurs_the_photo():
-    """Points on every pixel centre of an image: their targets on pyramid level 2 (sums on level
-    1, halved) at that level's pixel centres are the level's own pixels (4x4 box averages)."""
+    """Points on every pixel centre of an image: their targets on pyramid level 2 at that level's
+    pixel centres are the level's own pixels (4x4 box averages), and between them its bilinear
+    interpolant, as the photo's samples are."""
     import cv2
 
-    from rgbd_gt.align.aligner import blurred_targets, halved, pixel_sums, to_level
+    from rgbd_gt.align.aligner import blurred_targets, pixel_sums, to_level
+    from rgbd_gt.align.sampling import bilinear_sparse
     from rgbd_gt.camera import rescale
 
     rng = np.random.default_rng(3)
     image = rng.random((48, 64, 3))
-    cams = [Camera(64, 48, 50.0, 50.0, 31.5, 23.5)]
-    for _ in range(2):
-        cams.append(rescale(cams[-1], cams[-1].width // 2, cams[-1].height // 2))
+    cam = Camera(64, 48, 50.0, 50.0, 31.5, 23.5)
+    level2 = rescale(rescale(cam, 32, 24), 16, 12)
     v, u = np.mgrid[0:48, 0:64]
     uv = torch.as_tensor(np.stack([u.ravel(), v.ravel()], 1), dtype=torch.float64)
-    target = torch.as_tensor(image.reshape(-1, 3))
-    sums = halved(pixel_sums(to_level(uv, cams[0].K, cams[1]), target, cams[1].size))
+    cells = pixel_sums(to_level(uv, cam.K, level2), torch.as_tensor(image.reshape(-1, 3)), level2.size)
+    assert cells[0].numel() == 16 * 12 and torch.all(cells[1][:, 3] == 16)
+    expected = torch.as_tensor(cv2.resize(cv2.resize(image, (32, 24), interpolation=cv2.INTER_AREA), (16, 12),
+                                          interpolation=cv2.INTER_AREA))
     v2, u2 = np.mgrid[0:12, 0:16]
     centres = torch.as_tensor(np.stack([u2.ravel(), v2.ravel()], 1), dtype=torch.float64)
-    level2 = cv2.resize(cv2.resize(image, (32, 24), interpolation=cv2.INTER_AREA), (16, 12), interpolation=cv2.INTER_AREA)
-    got = blurred_targets(sums, centres, torch.zeros(len(centres), 3))
-    torch.testing.assert_close(got, torch.as_tensor(level2.reshape(-1, 3)), atol=1e-12, rtol=0)
-    # between pixel centres the target is the bilinear interpolant of the level, as the photo's samples are
-    mid = centres[:5] + 0.5
-    torch.testing.assert_close(blurred_targets(sums, mid, torch.zeros(5, 3)), bilinear(torch.as_tensor(level2), mid))
+    got = blurred_targets(cells, level2.size, centres, torch.zeros(len(centres), 3))
+    torch.testing.assert_close(got, expected.reshape(-1, 3), atol=1e-12, rtol=0)
+    between = centres[:40] + torch.tensor([0.3, 0.6], dtype=torch.float64)
+    torch.testing.assert_close(blurred_targets(cells, level2.size, between, torch.zeros(40, 3)), bilinear(expected, between))
+    # the sparse sampler equals the dense one where half the pixels are empty
+    dense = torch.as_tensor(image) * torch.as_tensor(rng.random((48, 64, 1)) < 0.5)
+    keys = torch.nonzero(dense.reshape(-1, 3).abs().sum(1)).squeeze(1)
+    at = torch.as_tensor(rng.uniform([0, 0], [63, 47], (300, 2)))
+    torch.testing.assert_close(bilinear_sparse(keys, dense.reshape(-1, 3)[keys], (48, 64), at), bilinear(dense, at))
 
 
 @pytest.fixture(scope="module")

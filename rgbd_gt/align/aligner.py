@@ -24,7 +24,7 @@ from rgbd_gt.align.color_models import ColorModel, fit_many_with_inliers, fit_wi
 from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.align.pyramid import PhotoLevel
 from rgbd_gt.align.robust import student_t_loss, student_t_weights
-from rgbd_gt.align.sampling import bilinear, bilinear_with_gradient, central_gradients
+from rgbd_gt.align.sampling import bilinear, bilinear_sparse, bilinear_with_gradient, central_gradients
 from rgbd_gt.align.subset import point_keys
 from rgbd_gt.errors import InputError
 from rgbd_gt.pose import apply_update, translated
@@ -129,21 +129,26 @@ def texture_score(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cell
     return torch.where(vis, g.reshape(-1)[key], torch.zeros_like(gray))
 
 
-def pixel_sums(uv: torch.Tensor, target: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
-    """(H, W, m + 1): per pixel of an image of size (W, H), the sum of the targets (N, m) of the
-    points at uv (N, 2) whose nearest pixel it is, and their count."""
+def pixel_sums(uv: torch.Tensor, target: torch.Tensor, size: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """The pixels of an image of size (W, H) that points at uv (N, 2) fall nearest to: their flat
+    indices (K,) sorted, and per pixel the sum of those points' targets (N, m) and their count
+    (K, m + 1). Only the occupied pixels: a 24-megapixel photo's levels cost what the scan has."""
     w, h = size
-    m = target.shape[1]
     ok = (uv[:, 0] > -0.5) & (uv[:, 1] > -0.5) & (uv[:, 0] < w - 0.5) & (uv[:, 1] < h - 0.5)
-    key = (uv[ok, 1] + 0.5).long() * w + (uv[ok, 0] + 0.5).long()
-    sums = torch.zeros(h * w, m + 1, dtype=target.dtype, device=target.device)
-    return sums.index_add_(0, key, torch.cat([target[ok], torch.ones_like(target[ok, :1])], 1)).reshape(h, w, m + 1)
+    keys, inverse = torch.unique((uv[ok, 1] + 0.5).long() * w + (uv[ok, 0] + 0.5).long(), return_inverse=True)
+    sums = torch.zeros(keys.numel(), target.shape[1] + 1, dtype=target.dtype, device=target.device)
+    return keys, sums.index_add_(0, inverse, torch.cat([target[ok], torch.ones_like(target[ok, :1])], 1))
 
 
-def halved(sums: torch.Tensor) -> torch.Tensor:
-    """`pixel_sums` (H, W, m + 1) on the next pyramid level (H // 2, W // 2): 2x2 sums, as the
-    pyramid's box averaging (align/pyramid.py)."""
-    return 4 * torch.nn.functional.avg_pool2d(sums.permute(2, 0, 1)[None], 2)[0].permute(1, 2, 0)
+def halved(cells: tuple[torch.Tensor, torch.Tensor], size: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """`pixel_sums` of an image of size (W, H) on the next pyramid level (W // 2, H // 2): each
+    level pixel sums its 2x2 pixels, as the pyramid's box averaging does (align/pyramid.py)."""
+    keys, sums = cells
+    w = size[0]
+    y, x = keys // w // 2, keys % w // 2
+    ok = (x < w // 2) & (y < size[1] // 2)
+    new, inverse = torch.unique(y[ok] * (w // 2) + x[ok], return_inverse=True)
+    return new, torch.zeros(new.numel(), sums.shape[1], dtype=sums.dtype, device=sums.device).index_add_(0, inverse, sums[ok])
 
 
 def to_level(uv: torch.Tensor, K: np.ndarray, camera) -> torch.Tensor:
@@ -153,15 +158,16 @@ def to_level(uv: torch.Tensor, K: np.ndarray, camera) -> torch.Tensor:
     return uv * uv.new_tensor([sx, sy]) + uv.new_tensor([camera.cx - K[0, 2] * sx, camera.cy - K[1, 2] * sy])
 
 
-def blurred_targets(sums: torch.Tensor, uv: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """The targets (n, m) of points at uv (n, 2) of a coarse pyramid level, blurred as the level
-    blurs the photo: the mean target of the seen points in each level pixel (`pixel_sums`: the
-    level's box average), sampled bilinearly (the aligner's interpolant). Without it a coarse
-    level compares a blurred photo with sharp scan colors: the black and white points of a
-    checkerboard that the level averages to gray pull towards the board shifted by a square
+def blurred_targets(cells: tuple[torch.Tensor, torch.Tensor], size: tuple[int, int], uv: torch.Tensor,
+                    target: torch.Tensor) -> torch.Tensor:
+    """The targets (n, m) of points at uv (n, 2) of a coarse pyramid level of size (W, H), blurred
+    as the level blurs the photo: the mean target of the seen points in each level pixel (cells:
+    `pixel_sums`, the level's box average), sampled bilinearly (the aligner's interpolant). Without
+    it a coarse level compares a blurred photo with sharp scan colors: the black and white points
+    of a checkerboard that the level averages to gray pull towards the board shifted by a square
     (docs/intrinsics.md). Points with no seen point near keep their own target."""
     m = target.shape[1]
-    s = bilinear(sums, uv)
+    s = bilinear_sparse(*cells, size[::-1], uv)
     return torch.where(s[:, m:] > 1e-3, s[:, :m] / s[:, m:].clamp_min(1e-3), target)
 
 
@@ -312,7 +318,6 @@ class Aligner:
         idx, seen = idx[order], seen[order]
         out = []
         uv_near, target_near, K0 = uv[idx], self.target[idx], finest.camera.K
-        sums = None
         for level, photo in enumerate(self.pyramid):
             n = min(idx.numel(), max(self.cfg.min_points, self.cfg.max_points // 4**level))
             sub = idx[:n]
@@ -321,10 +326,9 @@ class Aligner:
             target = target_near[:n]
             if level:
                 size = photo.camera.size
-                sums = halved(sums) if sums is not None and min(sums.shape[:2]) >= 2 else None
-                if sums is None or sums.shape[:2] != size[::-1]:
-                    sums = pixel_sums(to_level(uv_near[seen], K0, photo.camera), target_near[seen], size)
-                target = blurred_targets(sums, to_level(uv_near[:n], K0, photo.camera), target)
+                cells = pixel_sums(to_level(uv_near[seen], K0, photo.camera), target_near[seen], size) if level == 1 \
+                    else halved(cells, self.pyramid[level - 1].camera.size)
+                target = blurred_targets(cells, size, to_level(uv_near[:n], K0, photo.camera), target)
             out.append(_LevelData(photo, grads, self.points[sub], target, min(cell, 16 * photo.zoom),
                                   None if self.normals is None else self.normals[sub]))
         return out

@@ -55,6 +55,21 @@ def bilinear(image: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     return _blend(flat[i00], flat[i10], flat[i01], flat[i11], a, b)
 
 
+def bilinear_sparse(keys: torch.Tensor, values: torch.Tensor, shape: tuple[int, int], uv: torch.Tensor) -> torch.Tensor:
+    """`bilinear` on an image of shape (H, W) that is zero but at the flat pixel indices `keys`
+    (K,) sorted, which hold values (K, C): (N, C) at uv (N, 2), at a cost that grows with K and N,
+    not with the image's size."""
+    if keys.numel() == 0:
+        return torch.zeros(len(uv), values.shape[1], dtype=values.dtype, device=values.device)
+    corners = _corners(shape, uv)
+
+    def at(flat: torch.Tensor) -> torch.Tensor:
+        pos = torch.searchsorted(keys, flat).clamp(max=keys.numel() - 1)
+        return torch.where((keys[pos] == flat)[:, None], values[pos], torch.zeros_like(values[pos]))
+
+    return _blend(*(at(i) for i in corners[:4]), *corners[4:])
+
+
 def bilinear_with_gradient(image: torch.Tensor, uv: torch.Tensor, gradient: str = "direct",
                            grads: tuple[torch.Tensor, torch.Tensor] | None = None):
     """Sample image (H, W, C) at uv (N, 2).
