@@ -129,26 +129,23 @@ def test_coarse_levels_blur_the_scan_colors_as_the_pyramid_blurs_the_photo():
     interpolant, as the photo's samples are."""
     import cv2
 
-    from rgbd_gt.align.aligner import blurred_targets, pixel_sums, to_level
+    from rgbd_gt.align.aligner import blurred_targets, pixel_sums
     from rgbd_gt.align.sampling import bilinear_sparse
-    from rgbd_gt.camera import rescale
 
     rng = np.random.default_rng(3)
     image = rng.random((48, 64, 3))
-    cam = Camera(64, 48, 50.0, 50.0, 31.5, 23.5)
-    level2 = rescale(rescale(cam, 32, 24), 16, 12)
     v, u = np.mgrid[0:48, 0:64]
     uv = torch.as_tensor(np.stack([u.ravel(), v.ravel()], 1), dtype=torch.float64)
-    cells = pixel_sums(to_level(uv, cam.K, level2), torch.as_tensor(image.reshape(-1, 3)), level2.size)
+    cells = pixel_sums(uv * 0.25 - 0.375, torch.as_tensor(image.reshape(-1, 3)), (16, 12))  # level 2's pixels
     assert cells[0].numel() == 16 * 12 and torch.all(cells[1][:, 3] == 16)
     expected = torch.as_tensor(cv2.resize(cv2.resize(image, (32, 24), interpolation=cv2.INTER_AREA), (16, 12),
                                           interpolation=cv2.INTER_AREA))
     v2, u2 = np.mgrid[0:12, 0:16]
     centres = torch.as_tensor(np.stack([u2.ravel(), v2.ravel()], 1), dtype=torch.float64)
-    got = blurred_targets(cells, level2.size, centres, torch.zeros(len(centres), 3))
+    got = blurred_targets(cells, (16, 12), centres, torch.zeros(len(centres), 3))
     torch.testing.assert_close(got, expected.reshape(-1, 3), atol=1e-12, rtol=0)
     between = centres[:40] + torch.tensor([0.3, 0.6], dtype=torch.float64)
-    torch.testing.assert_close(blurred_targets(cells, level2.size, between, torch.zeros(40, 3)), bilinear(expected, between))
+    torch.testing.assert_close(blurred_targets(cells, (16, 12), between, torch.zeros(40, 3)), bilinear(expected, between))
     # the sparse sampler equals the dense one where half the pixels are empty
     dense = torch.as_tensor(image) * torch.as_tensor(rng.random((48, 64, 1)) < 0.5)
     keys = torch.nonzero(dense.reshape(-1, 3).abs().sum(1)).squeeze(1)

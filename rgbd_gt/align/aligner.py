@@ -151,13 +151,6 @@ def halved(cells: tuple[torch.Tensor, torch.Tensor], size: tuple[int, int]) -> t
     return new, torch.zeros(new.numel(), sums.shape[1], dtype=sums.dtype, device=sums.device).index_add_(0, inverse, sums[ok])
 
 
-def to_level(uv: torch.Tensor, K: np.ndarray, camera) -> torch.Tensor:
-    """Pixels uv (N, 2) of a pinhole camera K (3, 3) -> of the pinhole `camera` with the same
-    rays (another pyramid level): an affine map."""
-    sx, sy = camera.fx / K[0, 0], camera.fy / K[1, 1]
-    return uv * uv.new_tensor([sx, sy]) + uv.new_tensor([camera.cx - K[0, 2] * sx, camera.cy - K[1, 2] * sy])
-
-
 def blurred_targets(cells: tuple[torch.Tensor, torch.Tensor], size: tuple[int, int], uv: torch.Tensor,
                     target: torch.Tensor) -> torch.Tensor:
     """The targets (n, m) of points at uv (n, 2) of a coarse pyramid level of size (W, H), blurred
@@ -291,7 +284,8 @@ class Aligner:
         order of the points: align/subset.py) and its Z-buffer cell."""
         finest = self.pyramid[0]
         R, t = self._pose_tensors(T_local)
-        uv, z = project_pinhole(self.points @ R.T + t, finest.K)
+        p = self.points @ R.T + t
+        uv, z = project_pinhole(p, finest.K)
         w, h = finest.camera.size
         idx = torch.nonzero(near_view(uv, z, (w, h), 1e-3, self.cfg.max_depth)).squeeze(1)
         need = self.cfg.min_visible
@@ -299,7 +293,7 @@ class Aligner:
         depth = float(z[idx].median()) if idx.numel() else 1.0
         # cells that close the gaps between the points: through them, what a surface hides would count as seen
         cell = cell_size_for(spacing, finest.camera.fx, depth)
-        facing = None if self.normals is None else facing_camera(self.points[idx] @ R.T + t, self.normals[idx] @ R.T)
+        facing = None if self.normals is None else facing_camera(p[idx], self.normals[idx] @ R.T)
         seen = visible_points(uv[idx], z[idx], (w, h), cell, facing=facing)
         visible = int(seen.sum())
         if visible >= need:
@@ -317,7 +311,7 @@ class Aligner:
         order = torch.argsort(torch.log(weight) + gumbel, descending=True)
         idx, seen = idx[order], seen[order]
         out = []
-        uv_near, target_near, K0 = uv[idx], self.target[idx], finest.camera.K
+        p_near, target_near = p[idx], self.target[idx]
         for level, photo in enumerate(self.pyramid):
             n = min(idx.numel(), max(self.cfg.min_points, self.cfg.max_points // 4**level))
             sub = idx[:n]
@@ -326,9 +320,9 @@ class Aligner:
             target = target_near[:n]
             if level:
                 size = photo.camera.size
-                cells = pixel_sums(to_level(uv_near[seen], K0, photo.camera), target_near[seen], size) if level == 1 \
+                cells = pixel_sums(project_pinhole(p_near[seen], photo.K)[0], target_near[seen], size) if level == 1 \
                     else halved(cells, self.pyramid[level - 1].camera.size)
-                target = blurred_targets(cells, size, to_level(uv_near[:n], K0, photo.camera), target)
+                target = blurred_targets(cells, size, project_pinhole(p_near[:n], photo.K)[0], target)
             out.append(_LevelData(photo, grads, self.points[sub], target, min(cell, 16 * photo.zoom),
                                   None if self.normals is None else self.normals[sub]))
         return out

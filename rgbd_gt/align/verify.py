@@ -23,7 +23,7 @@ import numpy as np
 
 from rgbd_gt.align.aligner import Aligner, RefineResult
 from rgbd_gt.align.config import VerifyConfig
-from rgbd_gt.camera import Camera, project, without_distortion
+from rgbd_gt.camera import Camera, backproject, project, without_distortion
 from rgbd_gt.pose import random_starts, rotation_error_deg, transform_points, translation_error_m, worst_sigmas
 
 VERDICTS = ("ok", "suspect", "failed")
@@ -73,9 +73,7 @@ class _View:
         covers a corner of it fixes the pose there only)."""
         w, h = self.camera.size
         u, v = np.meshgrid(np.linspace(0, w - 1, grid), np.linspace(0, h - 1, grid))
-        z = self.median_depth(T)
-        cam = np.stack([(u.ravel() - self.camera.cx) / self.camera.fx * z, (v.ravel() - self.camera.cy) / self.camera.fy * z,
-                        np.full(u.size, z)], 1)
+        cam = backproject(self.camera, np.stack([u.ravel(), v.ravel()], 1), np.full(u.size, self.median_depth(T)))
         return _View(transform_points(np.linalg.inv(T), cam), self.camera)
 
 
