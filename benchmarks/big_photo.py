@@ -9,23 +9,12 @@ overlay <= 5 s and 1 GB each, export-depth <= 10 s and 1.5 GB). Writes docs/big_
 from __future__ import annotations
 
 import argparse
-import os
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
-
-def run(args: list[str]) -> tuple[float, float]:
-    """(wall seconds, peak resident memory in GB) of `rgbd-gt args` in a fresh process."""
-    start = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-m", "rgbd_gt", *args], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    _, status, usage = os.wait4(proc.pid, 0)
-    wall = time.perf_counter() - start
-    if os.waitstatus_to_exitcode(status) != 0:
-        raise SystemExit(f"rgbd-gt {' '.join(args)} failed: {proc.stderr.read().decode()}")
-    return wall, usage.ru_maxrss / 2**20  # KB -> GB
+from rgbd_gt.bench.peak import run_measured as run
 
 
 def main() -> None:

@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import resource
 import shutil
 import subprocess
 import sys
@@ -21,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rgbd_gt.bench.peak import run_measured
 from rgbd_gt.bench.run import machine
 from rgbd_gt.bench.scale import dome_scene
 
@@ -35,14 +35,8 @@ print(time.perf_counter() - t)
 
 
 def run(config: Path, *extra: str) -> tuple[float, float]:
-    """(wall seconds, peak resident GB) of one `rgbd-gt run` in a child process."""
-    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    t = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "rgbd_gt", "run", str(config), *extra], check=True,
-                   stdout=subprocess.DEVNULL)
-    wall = time.perf_counter() - t
-    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    return wall, max(peak, before) / 1e6
+    """(wall seconds, peak resident GB of the command's own process) of one `rgbd-gt run`."""
+    return run_measured(["run", str(config), *extra])
 
 
 def ray_run(config: Path, out: Path, cpus: int) -> float:

@@ -249,7 +249,8 @@ def _build(scan_path: Path, folder: Path, key: dict, progress: Callable[[str], N
     phase("normals")
     centre = storage_centre(scan)
     progress("spatial index")
-    local = (scan.xyz - centre).astype(np.float32)
+    local = np.empty(scan.xyz.shape, np.float32)  # = (xyz - centre).astype(float32), without a float64 temporary
+    np.subtract(scan.xyz, centre, out=local, casting="same_kind")
     scan.xyz = None  # the float64 copy is no longer needed: memory stays near the scan's own
     order, blocks = block_order(local)
     phase("index")

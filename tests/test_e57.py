@@ -106,10 +106,17 @@ def test_invalid_points_are_dropped(tmp_path):
 
     xyz = np.arange(30, dtype=float).reshape(10, 3)
     state = np.array([0, 2, 0, 1, 0, 0, 2, 0, 0, 0], np.int8)
+    inten = np.linspace(0, 1, 10)
+    row, col = np.arange(10) // 5, np.arange(10) % 5
     with pye57.E57(str(tmp_path / "inv.e57"), mode="w") as e:
-        e.write_scan_raw({"cartesianX": xyz[:, 0], "cartesianY": xyz[:, 1], "cartesianZ": xyz[:, 2], "cartesianInvalidState": state})
+        e.write_scan_raw({"cartesianX": xyz[:, 0], "cartesianY": xyz[:, 1], "cartesianZ": xyz[:, 2], "cartesianInvalidState": state,
+                          "intensity": inten, "rowIndex": row, "columnIndex": col})
     scan = load_scan(tmp_path / "inv.e57")
-    np.testing.assert_allclose(scan.xyz, xyz[state == 0])
+    keep = state == 0
+    np.testing.assert_allclose(scan.xyz, xyz[keep])  # the arrays shrunk in place keep their first rows
+    np.testing.assert_allclose(scan.intensity, inten[keep], atol=1e-6)
+    assert scan.row.tolist() == row[keep].tolist() and scan.col.tolist() == col[keep].tolist()
+    assert len(scan.scan_id) == keep.sum()
 
 
 def test_image_listing_covers_every_representation(e57_dir):

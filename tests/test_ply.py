@@ -1,9 +1,13 @@
+import re
+import warnings
+
 import numpy as np
 import pytest
 
 from rgbd_gt.errors import InputError
 from rgbd_gt.io import Scan, load_scan, save_scan
 from rgbd_gt.io.ply import read_ply, write_ply
+from rgbd_gt.io.scan import check_values
 
 
 def _scan(n=500, offset=0.0, seed=0):
@@ -94,3 +98,30 @@ def test_corrupt_files_raise_input_error(tmp_path, content, needle):
     with pytest.raises(InputError, match=needle) as info:
         load_scan(tmp_path / "bad.ply")
     assert "bad.ply" in str(info.value)
+
+
+@pytest.mark.parametrize("field, value, needle", [
+    ("xyz", np.nan, "invalid coordinate"), ("xyz", -np.inf, "invalid coordinate"),
+    ("xyz", 2e7, "invalid coordinate"), ("intensity", np.inf, "invalid intensity (inf)"),
+    ("intensity", np.nan, "invalid intensity")])
+def test_bad_values_are_named_by_point(tmp_path, field, value, needle):
+    s = _scan()
+    values = getattr(s, field)
+    values.reshape(len(s), -1)[37, -1] = value
+    write_ply(tmp_path / "a.ply", s, double=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # named, without numpy's noise on the way
+        with pytest.raises(InputError, match=f"point 37 has an {re.escape(needle)}"):
+            load_scan(tmp_path / "a.ply")
+    values.reshape(len(s), -1)[37, -1] = 1e6 if field == "xyz" else 0.5  # in range: read as it is
+    write_ply(tmp_path / "b.ply", s, double=True)
+    assert np.array_equal(getattr(load_scan(tmp_path / "b.ply"), field), values)
+
+
+def test_non_finite_normals_are_named():
+    s = _scan()
+    s.normals = np.tile(np.float32([0, 0, 1]), (len(s), 1))
+    check_values(s, "scan")
+    s.normals[12, 1] = np.nan
+    with pytest.raises(InputError, match="point 12 has an invalid normal"):
+        check_values(s, "scan")

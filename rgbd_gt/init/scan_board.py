@@ -225,12 +225,11 @@ def rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
 def scan_step(scan) -> float:
     """The angular spacing (radians) of a scan's points seen from its first scanner position: its
     grid's, or the median point spacing over the median range (`io.Scan` with origins)."""
-    from rgbd_gt.render.mesh import grid_image, row_step
+    from rgbd_gt.render.mesh import row_step, scan_grids
 
     origin = scan.origins[0]
     if scan.has_grid:
-        first = None if scan.scan_id is None else np.flatnonzero(scan.scan_id == scan.scan_id.min())
-        return row_step(scan.xyz, grid_image(scan.row, scan.col, first), origin)
+        return row_step(scan.xyz, *next(scan_grids(scan)))
     from rgbd_gt.scan_ops import median_spacing
 
     return angular_step(scan.xyz, origin, median_spacing(scan))

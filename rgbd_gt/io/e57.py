@@ -296,16 +296,13 @@ def _read_points(imf, layouts: list[_ScanLayout], progress) -> Scan:
             part -= lo
             part *= 1.0 / (hi - lo) if hi > lo else 0.0
             np.clip(part, 0.0, 1.0, out=part)
+        part = None  # no view of `inten` may be left when it is resized below
 
-    def trim(a):
-        if a is None or k == total:
-            return a
-        return a[:k].copy()
-
-    return Scan(
-        xyz=trim(xyz), rgb=trim(rgb), intensity=trim(inten), row=trim(row), col=trim(col),
-        scan_id=trim(scan_id), origins=origins,
-    )
+    if k < total:  # invalid points left out: shrink in place, as a copy would double a big scan's peak
+        for a in (xyz, rgb, inten, row, col, scan_id):
+            if a is not None:
+                a.resize((k,) + a.shape[1:], refcheck=False)  # no views of these arrays exist
+    return Scan(xyz=xyz, rgb=rgb, intensity=inten, row=row, col=col, scan_id=scan_id, origins=origins)
 
 
 @dataclass

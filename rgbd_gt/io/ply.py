@@ -148,8 +148,10 @@ def _intensity(table: np.ndarray) -> np.ndarray | None:
             if v.dtype.kind in "ui":
                 return (v / np.iinfo(v.dtype).max).astype(np.float32)
             v = v.astype(np.float32)
-            if v.size and (v.min() < 0 or v.max() > 1):  # no declared limits in PLY: the data's range
-                lo, hi = float(v.min()), float(v.max())
+            lo, hi = (float(v.min()), float(v.max())) if v.size else (0.0, 1.0)
+            # no declared limits in PLY: the data's range (a non-finite value is left for
+            # `check_values` to name)
+            if np.isfinite(lo) and np.isfinite(hi) and (lo < 0 or hi > 1):
                 v = (v - lo) / (hi - lo) if hi > lo else np.zeros_like(v)
             return v
     return None

@@ -30,7 +30,7 @@ def grid_cells(scan: Scan, max_stretch: float = 8.0) -> list[tuple[np.ndarray, n
     if bits is None:
         return [(grid, keep1, keep2) for grid, _, keep1, keep2 in _bands(scan, max_stretch)]
     out = []
-    for grid, _ in _scan_grids(scan):
+    for grid, _ in scan_grids(scan):
         have = grid >= 0
         b = bits[np.maximum(grid, 0)]
         sides = have[:-1, 1:] & have[1:, :-1]  # b and c, in both triangles
@@ -88,16 +88,18 @@ def grid_normals(scan: Scan, max_stretch: float = 8.0) -> np.ndarray:
         have = grid >= 0
         out[grid[have]] += acc[have]
     scan.derived["cell_bits"] = bits
-    length = np.linalg.norm(out, axis=1, keepdims=True)
-    return np.where(length > 0, out / np.maximum(length, 1e-30), 0).astype(np.float32)
+    # in place: on a 40-million-point scan each (N, 3) temporary is half a gigabyte, and this
+    # is the peak of a scan's preparation (a point in no triangle stays 0)
+    out /= np.sqrt(np.maximum(np.einsum("ij,ij->i", out, out), np.float32(1e-30)))[:, None]
+    return out
 
 
-def _bands(scan: Scan, max_stretch: float, cells: int = 1 << 22):
+def _bands(scan: Scan, max_stretch: float, cells: int = 1 << 20):
     """Per scan of `scan`, per band of about `cells` grid cells: (grid band (r, c) of point indices
     (-1: none), its points (r, c, 3) float32 relative to the scanner, keep1 and keep2 (r-1, c-1):
     the cells' triangles (a, b, c) and (c, b, d) that `grid_triangles` keeps). Bands share their
     boundary row."""
-    for grid, origin in _scan_grids(scan):
+    for grid, origin in scan_grids(scan):
         limit = max_stretch * row_step(scan.xyz, grid, origin)
         rows, cols = grid.shape
         step = max(1, cells // cols)
@@ -106,7 +108,7 @@ def _bands(scan: Scan, max_stretch: float, cells: int = 1 << 22):
             yield (band, *_band(scan.xyz, band, origin, limit))
 
 
-def _scan_grids(scan: Scan):
+def scan_grids(scan: Scan):
     """Per scan of `scan`: (its grid (rows, cols) of point indices, `grid_image`; its scanner
     position (3,))."""
     if len(scan) == 0:
@@ -125,7 +127,7 @@ def grid_image(row: np.ndarray, col: np.ndarray, index: np.ndarray | None = None
     r, c = (row, col) if index is None else (row[index], col[index])
     r0, c0 = int(r.min()), int(c.min())
     grid = np.full((int(r.max()) - r0 + 1, int(c.max()) - c0 + 1), -1, np.int32)
-    grid[r - r0, c - c0] = np.arange(len(r), dtype=np.int32) if index is None else index
+    grid[r - r0 if r0 else r, c - c0 if c0 else c] = np.arange(len(r), dtype=np.int32) if index is None else index
     return grid
 
 

@@ -50,17 +50,17 @@ def scan_normals(scan: Scan) -> np.ndarray | None:
     the scan's own (a PLY's nx ny nz) when it has them, else from its grid triangles, else from
     its k nearest neighbours. None when the scan records no scanner position and no normals:
     which side was seen is then unknown."""
-    origin = scan_origin_per_point(scan)
     if scan.normals is not None:
         n = np.asarray(scan.normals, np.float32)
-    elif origin is None:
+    elif len(scan.origins) == 0:
         return None
-    elif scan.has_grid:
+    elif scan.has_grid:  # oriented as they are summed: no per-point origins (1 GB at 40 M points)
         from rgbd_gt.render.mesh import grid_normals
 
         return grid_normals(scan)
     else:
         n = knn_normals(scan.xyz)
+    origin = scan_origin_per_point(scan)
     if origin is not None:
         n = np.where((np.einsum("ij,ij->i", n, origin - scan.xyz) < 0)[:, None], -n, n).astype(np.float32)
     return n
