@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -105,13 +106,33 @@ def run_local(tasks: list[PhotoTask], workers: int, on_result: Callable[[PhotoRe
     from concurrent.futures import ProcessPoolExecutor
 
     threads = max(1, (os.cpu_count() or 1) // workers)  # the cores shared out: no oversubscription
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+    with _thread_pools_of(threads), ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
         futures = [pool.submit(photo_task, PhotoTask(**{**t.__dict__, "threads": threads})) for t in tasks]
         results = []
         for f in futures:
             results.append(f.result())
             on_result(results[-1])
     return results
+
+
+@contextmanager
+def _thread_pools_of(threads: int):
+    """Processes started inside size their OpenMP and BLAS pools to `threads` (unless the user
+    set them), as Ray does for its tasks: these pools are made when a library loads, so only the
+    environment reaches them. With two workers on 2 cores, each with pools of 2 threads whose
+    idle threads spin, ten photos took 126 s instead of 96 s."""
+    names = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+    saved = {k: os.environ.get(k) for k in names}
+    for k in names:
+        os.environ.setdefault(k, str(threads))
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
 
 
 def connect_ray(address: str):

@@ -1,6 +1,9 @@
 """rgbd-gt run: the whole workflow on a synthetic scene with two photos, resumable."""
 
 import csv
+import os
+import subprocess
+import sys
 
 import cv2
 import numpy as np
@@ -162,3 +165,18 @@ def test_run_depth_covers_what_the_refined_pose_sees(tmp_path):
     z, alone = read_depth_exr(tmp_path / "out" / "photo" / "depth.exr")[0], read_depth_exr(tmp_path / "alone.exr")[0]
     assert (alone > 0).mean() > 0.5
     np.testing.assert_allclose(z, alone, atol=1e-4)
+
+
+def test_local_workers_size_their_thread_pools(monkeypatch):
+    """Local workers start with OpenMP and BLAS pools of their share of the cores (a user's own
+    setting wins), and the run's own environment is left as it was."""
+    from rgbd_gt.engine import _thread_pools_of
+
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    monkeypatch.setenv("MKL_NUM_THREADS", "3")
+    child = [sys.executable, "-c", "import os; print(os.environ.get('OMP_NUM_THREADS'), os.environ.get('OPENBLAS_NUM_THREADS'), "
+             "os.environ.get('MKL_NUM_THREADS'))"]
+    with _thread_pools_of(1):
+        assert subprocess.run(child, capture_output=True, text=True).stdout.split() == ["1", "1", "3"]
+    assert "OMP_NUM_THREADS" not in os.environ and os.environ["MKL_NUM_THREADS"] == "3"
