@@ -120,7 +120,7 @@ def _thread_pools_of(threads: int):
     """Processes started inside size their OpenMP and BLAS pools to `threads` (unless the user
     set them), as Ray does for its tasks: these pools are made when a library loads, so only the
     environment reaches them. With two workers on 2 cores, each with pools of 2 threads whose
-    idle threads spin, ten photos took 126 s instead of 96 s."""
+    idle threads spin, ten photos took 126 s instead of 94 s."""
     names = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
     saved = {k: os.environ.get(k) for k in names}
     for k in names:
