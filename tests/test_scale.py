@@ -202,3 +202,27 @@ def test_site_runs_the_same_locally_in_workers_and_on_ray(scenes, tmp_path):
     assert resumed["photo_1.png"] == "init refine depth qa overlay"
     # both scans have a photo.png: the lines under the table name the scan too
     assert "room_a/photo.png: skipped" in again.stdout and "room_b/photo.png: skipped" in again.stdout
+
+
+def test_a_view_without_the_cache_has_the_cached_normals_and_mesh(tmp_path):
+    """A real grid scan (pumpA): the view that commands take from the file (no --cache) carries
+    the normals and grid triangles of the whole scan, as the prepared scan's view does; made on
+    the view alone they differed at depth edges (the stretch test's limit followed the view's grid)."""
+    from conftest import _need
+    from rgbd_gt.camera import Camera
+    from rgbd_gt.prepared import scan_in_view
+
+    path = _need("e57") / "pumpA.e57"
+    origin = load_scan(path).origins[0]
+    z = np.array([0.0, -1.0, 0.0])  # looking along -y, level: most of the scan's points
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    R = np.stack([x, np.cross(z, x), z])
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, -R @ origin
+    camera = Camera(640, 480, 400, 400, 320, 240)
+    plain, cached = scan_in_view(path, camera, [T]), scan_in_view(path, camera, [T], tmp_path / "cache")
+    assert len(plain) == len(cached) > 50_000
+    a, b = np.lexsort((plain.col, plain.row)), np.lexsort((cached.col, cached.row))
+    np.testing.assert_array_equal(plain.xyz[a], cached.xyz[b])
+    np.testing.assert_allclose(plain.normals[a], cached.normals[b], atol=1e-6)
+    np.testing.assert_array_equal(plain.derived["cell_bits"][a], cached.derived["cell_bits"][b])
