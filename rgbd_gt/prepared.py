@@ -187,20 +187,30 @@ def scan_in_view(scan_path: Path, camera: Camera, poses: list[np.ndarray], cache
 
 def view_as_stored(scan: Scan, camera: Camera, poses: list[np.ndarray]) -> Scan:
     """`render.blocks.view_of` with the coordinates rounded as the prepared scan holds them
-    (`as_stored`). A grid scan's normals and grid mesh are made first on the whole scan, as the
-    prepared scan makes them: their stretch test's limit follows the scan's angular step, which a
-    view's own grid gives a few percent off (pumpA: 4%), and a view alone kept other triangles at
-    depth edges (normals of 1% of the points in a view more than 5 deg apart)."""
+    (`as_stored`). A grid scan's normals and grid mesh are made first on the whole scan
+    (`whole_scan_geometry`), as the prepared scan makes them."""
     from rgbd_gt.render.blocks import view_of
-    from rgbd_gt.render.mesh import grid_cell_bits
-    from rgbd_gt.render.normals import with_normals
 
     if scan.has_grid:
-        read, scan = scan, with_normals(scan)
-        scan.derived["cell_bits"] = grid_cell_bits(read)  # a by-product of the normals' pass on `read`
+        scan = whole_scan_geometry(scan)
     view = view_of(scan, camera, poses)
     view.xyz = as_stored(view.xyz, storage_centre(scan))
     return view
+
+
+def whole_scan_geometry(read: Scan) -> Scan:
+    """The scan with its normals (`with_normals`) and, for a grid scan, its grid mesh in
+    derived["cell_bits"] (`grid_cell_bits`), both made on these points: a view takes them along.
+    Made on a view alone they differ at depth edges: the stretch test's limit follows the angular
+    step, which a view's own grid gives a few percent off (pumpA: 4%; normals of 1% of the points
+    in a view more than 5 deg apart, 167 pixels of its depth map up to 5 m apart)."""
+    from rgbd_gt.render.mesh import grid_cell_bits
+    from rgbd_gt.render.normals import with_normals
+
+    scan = with_normals(read)
+    if scan.has_grid:  # a by-product of the normals' pass when they came from the grid (on `read`)
+        scan.derived["cell_bits"] = grid_cell_bits(read)
+    return scan
 
 
 def whole_scan(scan_path: Path, cache: Path | None = None) -> Scan:
@@ -234,8 +244,6 @@ def _build(scan_path: Path, folder: Path, key: dict, progress: Callable[[str], N
 
     from rgbd_gt.init.scan_board import scan_step
     from rgbd_gt.io.scan import load_scan
-    from rgbd_gt.render.mesh import grid_cell_bits
-    from rgbd_gt.render.normals import with_normals
 
     seconds: dict[str, float] = {}
     clock = [time.perf_counter()]
@@ -249,11 +257,10 @@ def _build(scan_path: Path, folder: Path, key: dict, progress: Callable[[str], N
     read = load_scan(scan_path, require_points=True)
     phase("read")
     progress("normals")
-    scan = with_normals(read)
-    step = scan_step(scan) if len(scan.origins) else None
-    # the grid mesh: a by-product of the normals' pass when they came from the grid (on `read`)
-    cells = grid_cell_bits(read) if scan.has_grid else None
+    scan = whole_scan_geometry(read)
     del read
+    step = scan_step(scan) if len(scan.origins) else None
+    cells = scan.derived.pop("cell_bits", None)
     phase("normals")
     centre = storage_centre(scan)
     progress("spatial index")
