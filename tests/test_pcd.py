@@ -69,6 +69,14 @@ def test_broken_pcd_files(tmp_path):
         load_scan(tmp_path / "width.pcd")
     (tmp_path / "nan.pcd").write_text(ascii_header + "1 2 3\nnan nan nan\n")  # PCL's 'no return'
     assert len(load_scan(tmp_path / "nan.pcd")) == 1
+    with_i = ascii_header.replace("x y z", "x y z intensity").replace("4 4 4", "4 4 4 4").replace("F F F", "F F F F")
+    with_i = with_i.replace("COUNT 1 1 1", "COUNT 1 1 1 1")
+    (tmp_path / "no_return.pcd").write_text(with_i + "1 2 3 40\nnan nan nan nan\n")
+    assert load_scan(tmp_path / "no_return.pcd").intensity.tolist() == [1.0]
+    for value in ("nan", "inf"):  # a return with a broken intensity is named, not read as 0 or 1
+        (tmp_path / f"i_{value}.pcd").write_text(with_i + f"1 2 3 40\n4 5 6 {value}\n")
+        with pytest.raises(InputError, match=f"point 1 has an invalid intensity \\(\\[?{value}"):
+            load_scan(tmp_path / f"i_{value}.pcd")
     assert_one_line_error(run_cli("ingest", tmp_path / "short.pcd", "-o", tmp_path / "out.ply"), "short.pcd")
     assert not (tmp_path / "out.ply").exists()
 

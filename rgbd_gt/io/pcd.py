@@ -109,13 +109,16 @@ def _check_ascii(path: Path, data_offset: int, values: int, chunk: int = 1 << 26
 
 def normalise_intensity(raw: np.ndarray) -> np.ndarray:
     """Intensity in [0, 1]: kept when it already is, else divided by its 99th percentile and
-    clipped (raw returns are 0-255 or 0-65535 with a few very bright retro-reflectors)."""
+    clipped (raw returns are 0-255 or 0-65535 with a few very bright retro-reflectors).
+    raw: (N,) any numeric type; returns (N,) float32, NaN and inf where raw has them."""
     raw = np.asarray(raw, np.float32).ravel()
-    finite = raw[np.isfinite(raw)]
-    if finite.size == 0 or finite.max() <= 1.0:
-        return np.clip(np.nan_to_num(raw), 0, 1)
-    scale = max(float(np.percentile(finite, 99)), 1e-6)
-    return np.clip(np.nan_to_num(raw) / scale, 0, 1).astype(np.float32)
+    finite = np.isfinite(raw)
+    if not finite.any():
+        return raw
+    kept = raw[finite]
+    scale = 1.0 if kept.max() <= 1.0 else max(float(np.percentile(kept, 99)), 1e-6)
+    # a non-finite value is left as it is for `check_values` to name, as the PLY reader does
+    return np.where(finite, np.clip(raw / np.float32(scale), 0, 1), raw).astype(np.float32)
 
 
 def read_pcd(path: str | Path) -> Scan:
