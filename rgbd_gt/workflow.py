@@ -184,16 +184,12 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[list[ScanJob], Path]:
 
 
 def job_camera(job: ScanJob):
-    """The camera of a scan's photos; a calibration text or JSON file (no image size) takes its
-    size from the first photo (every photo is checked against the camera when it runs)."""
+    """The camera of a scan's photos; a camera file without an image size (calibration text,
+    JSON) takes it from the first photo (every photo is checked against the camera when it runs)."""
     from rgbd_gt.io import read_camera
-    from rgbd_gt.io.camera_file import needs_photo_size
     from rgbd_gt.io.image import read_image
 
-    if needs_photo_size(job.camera):
-        h, w = read_image(job.photos[0]).shape[:2]
-        return read_camera(job.camera, (w, h))
-    return read_camera(job.camera)
+    return read_camera(job.camera, lambda: read_image(job.photos[0]).shape[1::-1])
 
 
 def board_spec(b: BoardConfig):

@@ -102,6 +102,62 @@ def test_koide3_calib_json(tmp_path):
         read_camera(path)
 
 
+def test_livox_camera_calib_files(tmp_path):
+    """livox_camera_calib's files, written as it writes them, for a real rig (pjlab_3's K, D and
+    reference T where the data are present): calib.yaml's camera (no image size), extrinsic.txt
+    (4 rows of 4, commas) and the config's initial ExtrinsicMat (OpenCV YAML); all read as
+    calib.txt reads the same values."""
+    from conftest import DATA, run_cli
+    from rgbd_gt.io import read_pose
+    from rgbd_gt.io.depth_file import read_depth_exr
+
+    scene = DATA / "lidar_camera" / "pjlab_3"
+    size = (1920, 1200)
+    cam, T = CAM, np.eye(4)
+    if scene.exists():
+        cam, T = read_camera(scene / "calib.txt", size), read_pose(scene / "calib.txt")[0]
+    else:
+        size = (CAM.width, CAM.height)
+        T[:3, :3], T[:3, 3] = [[0, -1, 0], [0, 0, -1], [1, 0, 0]], [0.05, -0.1, 0.02]
+    K = [cam.fx, 0.0, cam.cx, 0.0, cam.fy, cam.cy, 0.0, 0.0, 1.0]
+    (tmp_path / "calib.yaml").write_text(
+        'common:\n    image_file: "0.png"\n    pcd_file: "0.pcd"\n    result_file: "extrinsic.txt"\n'
+        f"camera:\n    camera_matrix: [{', '.join(map(str, K))}]\n"
+        f"    dist_coeffs: [{', '.join(map(str, cam.distortion))}]\n"
+        "calib:\n    calib_config_file: config_outdoor.yaml\n    use_rough_calib: true\n")
+    assert read_camera(tmp_path / "calib.yaml", size) == cam
+    assert read_camera(tmp_path / "calib.yaml", lambda: size) == cam  # the photo read only when needed
+    with pytest.raises(InputError, match="no image size"):
+        read_camera(tmp_path / "calib.yaml")
+    (tmp_path / "extrinsic.txt").write_text("".join(",".join(f"{v:g}" for v in row) + "\n" for row in T))
+    np.testing.assert_allclose(read_pose(tmp_path / "extrinsic.txt")[0], T, atol=1e-5)  # printed with 6 digits
+    (tmp_path / "saved.txt").write_text("# numpy.savetxt\n" + "".join(" ".join(f"{v:.18e}" for v in row) + "\n" for row in T[:3]))
+    np.testing.assert_allclose(read_pose(tmp_path / "saved.txt")[0], T, atol=1e-12)
+    data = ",\n         ".join(", ".join(f"{v:.9f}" for v in row) for row in T)
+    (tmp_path / "config_outdoor.yaml").write_text(
+        '%YAML:1.0\n\nPointCloudTopic: "/livox/lidar"\nData.custom_msg: 0\n\nExtrinsicMat: !!opencv-matrix\n'
+        f"  rows: 4\n  cols: 4\n  dt: d\n  data: [{data}]\nCanny.gray_threshold: 10\n")
+    np.testing.assert_allclose(read_pose(tmp_path / "config_outdoor.yaml")[0], T, atol=1e-8)
+    for name, text, needle in (("rows.txt", "1,0,0\n0,1,0\n0,0,1\n", r"rows of 4 numbers, got rows of \[3, 3, 3\]"),
+                               ("nan.txt", "1 0 0 0\n0 1 0 0\n0 0 1 nan\n", "non-finite"),
+                               ("empty.txt", "\n", "empty"),
+                               ("skew.txt", "1 0.5 0 0\n0 1 0 0\n0 0 1 0\n", "the matrix is not rigid"),
+                               ("words.txt", "hello world\n", "not a plain 3x4 or 4x4 matrix"),
+                               ("cv.yaml", "%YAML:1.0\nCanny.gray_threshold: 10\n", "no 'ExtrinsicMat'")):
+        (tmp_path / name).write_text(text)
+        with pytest.raises(InputError, match=needle):
+            read_pose(tmp_path / name)
+    if scene.exists():  # the files drive a command on the real sweep as calib.txt does
+        depths = []
+        for camera, pose in ((scene / "calib.txt", scene / "calib.txt"), (tmp_path / "calib.yaml", tmp_path / "saved.txt")):
+            out = tmp_path / f"depth_{len(depths)}.exr"
+            proc = run_cli("export-depth", "--scan", scene / "calib.pcd", "--camera", camera, "--image", scene / "calib.png",
+                           "--pose", pose, "-o", out)
+            assert proc.returncode == 0, proc.stderr
+            depths.append(read_depth_exr(out)[0])
+        assert (depths[0] > 0).sum() > 5000 and np.array_equal(depths[0], depths[1])
+
+
 @pytest.mark.parametrize(
     "text,needle",
     [

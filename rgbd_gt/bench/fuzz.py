@@ -148,6 +148,17 @@ def make_seeds(folder: Path, data: Path | None) -> dict[str, Path]:
                 "jpg": data / "lidar_camera/pjlab_1/calib.jpg", "e57_real": data / "e57/bunnyInt32.e57",
                 "e57_images": data / "e57/tiny_pc_and_images.e57", "board_jpg": data / "checkerboard/left01.jpg"}
         seeds.update({k: p for k, p in real.items() if p.is_file()})
+    if "calib_txt" in seeds:  # the same rig as livox_camera_calib writes it
+        from rgbd_gt.io import read_pose
+
+        cam, T = read_camera(seeds["calib_txt"], (1920, 1200)), read_pose(seeds["calib_txt"])[0]
+        livox = folder / "livox.yaml"
+        livox.write_text(f"camera:\n    camera_matrix: {cam.K.ravel().tolist()}\n    dist_coeffs: {list(cam.distortion)}\n")
+        matrix = folder / "extrinsic.txt"
+        matrix.write_text("".join(",".join(f"{v:g}" for v in row) + "\n" for row in T))
+        opencv = folder / "extrinsic.yaml"
+        opencv.write_text(f"%YAML:1.0\nExtrinsicMat: !!opencv-matrix\n  rows: 4\n  cols: 4\n  dt: d\n  data: {T.ravel().tolist()}\n")
+        seeds.update(livox_yaml=livox, extrinsic_txt=matrix, extrinsic_cv=opencv)
     return seeds
 
 
@@ -170,8 +181,8 @@ YAML_ODD = [None, "five", [1, 2], {"a": 1}, True, float("nan"), float("inf"), -1
 
 def kind_of(path: Path) -> str:
     suffix = path.suffix.lower()
-    if suffix in (".yaml", ".yml"):
-        return "yaml"
+    if suffix in (".yaml", ".yml"):  # OpenCV's YAML is not YAML 1.1: its numbers are mutated as text's
+        return "text" if path.read_bytes()[:9] == b"%YAML:1.0" else "yaml"
     if suffix in (".csv", ".txt"):
         return "text"
     if suffix == ".ply" and path.read_bytes()[:64].find(b"format ascii") >= 0:
@@ -255,7 +266,8 @@ def _mutate(how: str, data: bytes, kind: str, src: Path, dst: Path, rng: random.
         return f"line {k + 1} removed ({key or 'blank'})", required  # a missing field
     if how in ("number", "header_number"):
         end = _header_end(data) if how == "header_number" else len(data)
-        spans = [m.span() for m in NUMBER.finditer(data[:end])]
+        start = len(b"%YAML:1.0") if data.startswith(b"%YAML:1.0") else 0  # OpenCV's version line is no value
+        spans = [m.span() for m in NUMBER.finditer(data[:end], start)]
         if not spans:
             dst.write_bytes(data)
             return "unchanged (no number)", False
@@ -360,6 +372,10 @@ def templates(seeds: dict[str, Path]) -> list[dict]:
             dict(argv=["ingest", s["pcd"], "-o", "{out}/merged.ply", "--voxel", "0.2"], outs=["merged.ply"]),
             dict(argv=["qa-edges", "--scan", s["pcd"], "--image", s["jpg"], "--camera", s["calib_txt"], "--pose", s["calib_txt"],
                        "-o", "{out}/qa.png"], outs=["qa.png"]),
+            dict(argv=["export-depth", "--scan", s["pcd"], "--image", s["jpg"], "--camera", s["livox_yaml"],
+                       "--pose", s["extrinsic_txt"], "-o", "{out}/d.exr"], outs=["d.exr"]),
+            dict(argv=["overlay", "--scan", s["pcd"], "--image", s["jpg"], "--camera", s["livox_yaml"],
+                       "--pose", s["extrinsic_cv"], "-o", "{out}/ov.png"], outs=["ov.png", "ov_blend.png", "ov_points.png"]),
             dict(argv=["ingest", s["e57_real"], "-o", "{out}/merged.ply"], outs=["merged.ply"]),
             dict(argv=["ingest", s["e57_images"], "-o", "{out}/merged.ply", "--extract-images", "{out}/imgs"],
                  outs=["merged.ply", "imgs"]),

@@ -7,10 +7,13 @@ composed as KITTI's devkit projects (x = P2 R0_rect Tr X): camera 0's rectifying
 `R0_rect` / `R_rect_00` where the file has one, then camera 2's offset from camera 0 (P2's fourth
 column). Such files hold no image size: the photo gives it. Lines that are not needed may hold
 anything (KITTI's `calib_time: 09-Jan-2012 13:57:47`).
+A text file that is only a matrix, 3 or 4 rows of 4 numbers split by commas or spaces
+(livox_camera_calib's `extrinsic.txt`, numpy's `savetxt`), is read as the pose T_cam_from_scan.
 """
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -82,14 +85,16 @@ def read_calib_pose(path: str | Path) -> np.ndarray:
     rows = read_calib_txt(path)
     key = _first(rows, POSE_KEYS)
     if key is None:
-        raise InputError(f"no extrinsic line ({' or '.join(k + ':' for k in POSE_KEYS)})", path)
-    if key == "T" and "R" in rows:  # KITTI raw's calib_velo_to_cam.txt: R (3x3) and T (3) apart
+        values = _plain_matrix(path) if not rows else None
+        if values is None:
+            raise InputError(f"no extrinsic line ({' or '.join(k + ':' for k in POSE_KEYS)}) and not a plain 3x4 or "
+                             "4x4 matrix", path)
+        key = "the matrix"
+    elif key == "T" and "R" in rows:  # KITTI raw's calib_velo_to_cam.txt: R (3x3) and T (3) apart
         values = np.hstack([_numbers(rows, "R", (9,), path).reshape(3, 3), _numbers(rows, "T", (3,), path)[:, None]]).ravel()
     else:
         values = _numbers(rows, key, (12, 16), path)
-    if values.size == 16 and not np.allclose(values[12:], [0, 0, 0, 1]):
-        raise InputError(f"{key}: the last row of a 4x4 extrinsic must be 0 0 0 1, got {values[12:].tolist()}", path)
-    T = _rigid(values[:12].reshape(3, 4), key, path)
+    T = extrinsic(values, key, path)
     rectify = _first(rows, RECTIFY_KEYS)
     if rectify is not None:
         T = _rigid(np.hstack([_numbers(rows, rectify, (9,), path).reshape(3, 3), np.zeros((3, 1))]), rectify, path) @ T
@@ -100,6 +105,33 @@ def read_calib_pose(path: str | Path) -> np.ndarray:
             raise InputError(f"{camera}: its first three columns are not a camera matrix", path)
         T[:3, 3] += np.linalg.solve(P[:, :3], P[:, 3])
     return check_rigid(T, path)
+
+
+def extrinsic(values: np.ndarray, key: str, path: Path) -> np.ndarray:
+    """(4, 4) from the 12 or 16 numbers (rows) of a 3x4 or 4x4 extrinsic printed by a tool, its
+    rotation projected onto SO(3) (`_rigid`)."""
+    if values.size == 16 and not np.allclose(values[12:], [0, 0, 0, 1]):
+        raise InputError(f"{key}: the last row of a 4x4 extrinsic must be 0 0 0 1, got {values[12:].tolist()}", path)
+    return _rigid(values[:12].reshape(3, 4), key, path)
+
+
+def _plain_matrix(path: Path) -> np.ndarray | None:
+    """(12,) or (16,) float64, rows first: a file of only numeric rows (commas or spaces between, `#` comments
+    and blank lines skipped); None when some row is not numbers. Rows of another shape, or
+    non-finite numbers, are an InputError."""
+    lines = [ln for ln in path.read_text(errors="replace").splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    try:
+        table = [[float(x) for x in re.split(r"[,\s]+", ln.strip().strip(","))] for ln in lines]
+    except ValueError:
+        return None
+    if not table:
+        raise InputError("the file is empty: no extrinsic", path)
+    if len(table) not in (3, 4) or any(len(r) != 4 for r in table):
+        raise InputError(f"a matrix file must hold 3 or 4 rows of 4 numbers, got rows of {[len(r) for r in table]}", path)
+    values = np.array(table).ravel()
+    if not np.isfinite(values).all():
+        raise InputError("the matrix holds non-finite values", path)
+    return values
 
 
 def _rigid(Rt: np.ndarray, key: str, path: Path) -> np.ndarray:

@@ -1,11 +1,12 @@
 """Camera files: the project's YAML, ROS camera_info YAML, OpenCV calibration files
 (cv2.FileStorage), and the calibration files of LiDAR-camera tools (`io.calib_txt`,
-`io.calib_json`), which hold no image size."""
+`io.calib_json`, livox_camera_calib's calib.yaml), which hold no image size."""
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import yaml
@@ -49,34 +50,39 @@ def camera_from_values(path: Path, width, height, K: np.ndarray, dist) -> Camera
     return cam
 
 
-def _read_opencv(path: Path) -> Camera:
+def opencv_nodes(path: Path, names: tuple[str, ...]) -> dict[str, np.ndarray | float | None]:
+    """The named nodes of an OpenCV FileStorage file (YAML or XML): a matrix as an array, a
+    number as a float, None where absent; OpenCV's errors as one InputError."""
     import cv2
+
+    def value(node):
+        if node.empty():
+            return None
+        return node.mat() if node.isMap() else node.real()
 
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
         try:
-            K = fs.getNode("camera_matrix").mat()
-            dist = fs.getNode("distortion_coefficients").mat()
-            w, h = fs.getNode("image_width"), fs.getNode("image_height")
-            w, h = (None if n.empty() else n.real() for n in (w, h))
+            return {name: value(fs.getNode(name)) for name in names}
         finally:
             fs.release()
-    except (cv2.error, SystemError) as exc:  # a truncated file ends in SystemError inside the binding
+    except cv2.error as exc:
         lines = str(exc).strip().splitlines() or ["unreadable"]
         raise InputError(f"not a readable OpenCV calibration file ({lines[-1]})", path) from None
-    if K is None or K.shape != (3, 3):
+    except SystemError:  # a truncated file ends in SystemError inside the binding, which says only that
+        raise InputError("not a readable OpenCV calibration file (truncated or corrupt)", path) from None
+
+
+def _read_opencv(path: Path) -> Camera:
+    nodes = opencv_nodes(path, ("camera_matrix", "distortion_coefficients", "image_width", "image_height"))
+    K, dist, w, h = nodes.values()
+    if isinstance(dist, float):
+        dist = None
+    if not isinstance(K, np.ndarray) or K.shape != (3, 3):
         raise InputError("OpenCV calibration file has no 3x3 'camera_matrix'", path)
     if w is None or h is None:
         raise InputError("OpenCV calibration file has no 'image_width'/'image_height'", path)
     return camera_from_values(path, w, h, K, dist)
-
-
-def needs_photo_size(path: str | os.PathLike) -> bool:
-    """Whether a camera file holds no image size (a calibration text or JSON file)."""
-    from rgbd_gt.io.calib_json import is_calib_json
-    from rgbd_gt.io.calib_txt import is_calib_txt
-
-    return is_calib_txt(path) or is_calib_json(path)
 
 
 def _read_ros(path: Path, data: dict) -> Camera:
@@ -96,28 +102,44 @@ def _read_ros(path: Path, data: dict) -> Camera:
                               matrix("distortion_coefficients"))
 
 
-def read_camera(path: str | os.PathLike, size: tuple[int, int] | None = None) -> Camera:
+def _read_livox(path: Path, camera: dict, size: tuple[int, int]) -> Camera:
+    """livox_camera_calib's calib.yaml: camera.camera_matrix (9 numbers, rows) and
+    camera.dist_coeffs (OpenCV's); no image size."""
+    try:
+        K = np.array(camera["camera_matrix"], float).reshape(3, 3)
+    except (TypeError, ValueError):
+        raise InputError("camera.camera_matrix must be 9 numbers (3x3, rows)", path) from None
+    return camera_from_values(path, size[0], size[1], K, camera.get("dist_coeffs"))
+
+
+def read_camera(path: str | os.PathLike,
+                size: tuple[int, int] | Callable[[], tuple[int, int]] | None = None) -> Camera:
     """Read a camera file: the project's YAML (width, height, fx, fy, cx, cy[, distortion]),
     ROS camera_info YAML (image_width, image_height, camera_matrix.data, distortion_coefficients.data),
     an OpenCV calibration file (camera_matrix, distortion_coefficients, image_width, image_height),
-    a calibration text file (`io.calib_txt`: K and D lines) or koide3's calib.json
-    (`io.calib_json`); the last two need `size` (width, height) from the photo.
+    or one without an image size: a calibration text file (`io.calib_txt`: K and D lines),
+    koide3's calib.json (`io.calib_json`) or livox_camera_calib's calib.yaml (camera.camera_matrix,
+    camera.dist_coeffs). size: the photo's (width, height), or a function that gives it, for the
+    files without one.
     """
     from rgbd_gt.io.calib_json import is_calib_json, read_json_camera
-    from rgbd_gt.io.calib_txt import read_calib_camera
+    from rgbd_gt.io.calib_txt import is_calib_txt, read_calib_camera
 
-    path = require_file(path)
-    if needs_photo_size(path):
+    def sized(read: Callable[[tuple[int, int]], Camera]) -> Camera:
         if size is None:
-            raise InputError("a calibration text or JSON file has no image size: give the photo too (export-depth: "
-                             "--image) or write a camera YAML", path)
-        cam = (read_json_camera if is_calib_json(path) else read_calib_camera)(path, size)
+            raise InputError("this camera file has no image size: give the photo too (export-depth: --image) or "
+                             "write a camera YAML", path)
+        cam = read(size() if callable(size) else size)
         # the photo's size is taken on trust here: a principal point outside it gives a resized
         # or another camera's photo away
         if not (0 < cam.cx < cam.width and 0 < cam.cy < cam.height):
             raise InputError(f"the principal point ({cam.cx:g}, {cam.cy:g}) lies outside the {cam.width}x{cam.height} "
                              "photo: is this file for that photo (a resized photo needs K scaled)?", path)
         return cam
+
+    path = require_file(path)
+    if is_calib_txt(path) or is_calib_json(path):
+        return sized(lambda wh: (read_json_camera if is_calib_json(path) else read_calib_camera)(path, wh))
     text = path.read_text(errors="replace")
     if text.lstrip().startswith("%YAML:1.0") or "opencv-matrix" in text or path.suffix.lower() == ".xml":
         return _read_opencv(path)
@@ -129,6 +151,8 @@ def read_camera(path: str | os.PathLike, size: tuple[int, int] | None = None) ->
         raise InputError("camera file must be a YAML mapping", path)
     if "camera_matrix" in data and "image_width" in data:
         return _read_ros(path, data)
+    if isinstance(data.get("camera"), dict) and "camera_matrix" in data["camera"]:
+        return sized(lambda wh: _read_livox(path, data["camera"], wh))
     missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy") if k not in data]
     if missing:
         raise InputError(f"camera file lacks {', '.join(missing)}", path)

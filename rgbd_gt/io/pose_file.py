@@ -4,6 +4,7 @@ points in metres into the OpenCV camera frame. Other keys are metadata and are k
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import numpy as np
 import yaml
@@ -40,8 +41,9 @@ def check_rigid(T: np.ndarray, path: object = None, tol: float = 1e-6) -> np.nda
 
 def read_pose(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
     """Read a pose file. Returns (T_cam_from_scan (4, 4) float64, the other keys as a dict).
-    A calibration text file (`io.calib_txt`: a T or Tr_velo_to_cam line) or a calib.json
-    (`io.calib_json`: results.T_lidar_camera) is read as a pose too."""
+    A calibration text file (`io.calib_txt`: a T or Tr_velo_to_cam line, or only a matrix), a
+    calib.json (`io.calib_json`: results.T_lidar_camera) or an OpenCV FileStorage file with an
+    `ExtrinsicMat` (livox_camera_calib's config) is read as a pose too."""
     from rgbd_gt.io.calib_json import is_calib_json, read_json_pose
     from rgbd_gt.io.calib_txt import is_calib_txt, read_calib_pose
 
@@ -50,14 +52,32 @@ def read_pose(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
         return read_calib_pose(path), {}
     if is_calib_json(path):
         return read_json_pose(path), {}
+    text = path.read_text(errors="replace")
+    if text.lstrip().startswith("%YAML:1.0") or "opencv-matrix" in text:
+        return _read_opencv_pose(path), {}
     try:
-        data = yaml.safe_load(path.read_text(errors="replace"))
+        data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise InputError(f"invalid YAML ({str(exc).splitlines()[0]})", path) from None
     if not isinstance(data, dict) or POSE_KEY not in data:
         raise InputError(f"pose file has no '{POSE_KEY}' key", path)
     T = check_rigid(data.pop(POSE_KEY), path)
     return T, data
+
+
+def _read_opencv_pose(path: Path) -> np.ndarray:
+    """T_cam_from_scan of an OpenCV FileStorage file: its `ExtrinsicMat` (4x4, LiDAR to camera;
+    livox_camera_calib's config) or `T_cam_from_scan` node."""
+    from rgbd_gt.io.calib_txt import extrinsic
+    from rgbd_gt.io.camera_file import opencv_nodes
+
+    found = {k: m for k, m in opencv_nodes(path, ("ExtrinsicMat", POSE_KEY)).items() if isinstance(m, np.ndarray)}
+    if not found:
+        raise InputError(f"OpenCV file has no 'ExtrinsicMat' or '{POSE_KEY}' matrix", path)
+    key, m = next(iter(found.items()))
+    if m.shape not in ((3, 4), (4, 4)) or not np.isfinite(m).all():
+        raise InputError(f"{key} must be a 3x4 or 4x4 matrix of finite numbers, got shape {m.shape}", path)
+    return check_rigid(extrinsic(m.astype(float).ravel(), key, path), path)
 
 
 def _plain(value):
