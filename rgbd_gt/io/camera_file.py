@@ -52,13 +52,13 @@ def camera_from_values(path: Path, width, height, K: np.ndarray, dist) -> Camera
 
 def opencv_nodes(path: Path, names: tuple[str, ...]) -> dict[str, np.ndarray | float | None]:
     """The named nodes of an OpenCV FileStorage file (YAML or XML): a matrix as an array, a
-    number as a float, None where absent; OpenCV's errors as one InputError."""
+    number as a float, None where absent or of another kind; OpenCV's errors as one InputError."""
     import cv2
 
     def value(node):
-        if node.empty():
-            return None
-        return node.mat() if node.isMap() else node.real()
+        if node.isMap():  # an !!opencv-matrix
+            return node.mat()
+        return node.real() if node.isReal() or node.isInt() else None
 
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
@@ -76,8 +76,6 @@ def opencv_nodes(path: Path, names: tuple[str, ...]) -> dict[str, np.ndarray | f
 def _read_opencv(path: Path) -> Camera:
     nodes = opencv_nodes(path, ("camera_matrix", "distortion_coefficients", "image_width", "image_height"))
     K, dist, w, h = nodes.values()
-    if isinstance(dist, float):
-        dist = None
     if not isinstance(K, np.ndarray) or K.shape != (3, 3):
         raise InputError("OpenCV calibration file has no 3x3 'camera_matrix'", path)
     if w is None or h is None:
