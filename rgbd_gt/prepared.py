@@ -24,6 +24,7 @@ from typing import Callable
 import numpy as np
 
 from rgbd_gt.camera import Camera
+from rgbd_gt.errors import require_file
 from rgbd_gt.io.scan import Scan
 from rgbd_gt.render.blocks import VIEW_MARGIN, Blocks, block_order, block_points, blocks_in_view, points_in_view
 
@@ -132,7 +133,7 @@ def cache_folder(root: Path, scan_path: Path, key: dict) -> Path:
 def prepare_scan(scan_path: Path, root: Path, progress: Callable[[str], None] = lambda msg: None) -> PreparedScan:
     """The prepared scan of `scan_path`, from the cache under `root` when its key matches, else
     built there (and the folders of earlier versions of this file removed)."""
-    scan_path = Path(scan_path)
+    scan_path = require_file(scan_path)
     progress("hashing the scan file")
     key = file_key(scan_path)
     folder = cache_folder(root, scan_path, key)

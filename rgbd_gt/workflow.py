@@ -160,11 +160,17 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[list[ScanJob], Path]:
             raise InputError(f"init: no pose file {found}", config_path)
         return found
 
+    def scan_of(path: str) -> Path:
+        found = norm(base / path)
+        if not found.is_file():  # checked before any scan is prepared
+            raise InputError(f"scan: no scan file {found}", config_path)
+        return found
+
     output = norm(base / cfg.output)
     if not cfg.scans:
         if not cfg.scan or not cfg.camera or not cfg.photos:
             raise InputError("the config needs scan, camera and photos (or scans: a list of them)", config_path)
-        scan = norm(base / cfg.scan)
+        scan = scan_of(cfg.scan)
         return [ScanJob(scan.stem, scan, norm(base / cfg.camera), photos_of(cfg.photos), output, cfg.board,
                         init_of(cfg.init))], output
     jobs = []
@@ -172,7 +178,7 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[list[ScanJob], Path]:
         camera = s.camera or cfg.camera
         if not s.scan or not camera or not s.photos:
             raise InputError(f"scans[{k}] needs scan, photos and a camera (its own or the config's)", config_path)
-        scan = norm(base / s.scan)
+        scan = scan_of(s.scan)
         name = s.name or scan.stem
         jobs.append(ScanJob(name, scan, norm(base / camera), photos_of(s.photos), output / name, s.board or cfg.board,
                             init_of(s.init or cfg.init)))

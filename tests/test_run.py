@@ -73,6 +73,9 @@ def test_run_two_photos_then_resume(tmp_path):
 def test_run_bad_config(tmp_path):
     (tmp_path / "bad.yaml").write_text("scan: x.ply\nphotos: [a.png]\ncamera: c.yaml\nwhatever: 1\n")
     assert_one_line_error(run_cli("run", tmp_path / "bad.yaml"), "bad.yaml", "whatever")
+    (tmp_path / "noscan.yaml").write_text("scan: x.ply\ncamera: c.yaml\nphotos: [a.png]\n")
+    assert_one_line_error(run_cli("run", tmp_path / "noscan.yaml"), "noscan.yaml", "scan: no scan file", "x.ply")
+    (tmp_path / "x.ply").write_bytes(b"")  # read only when its scan is prepared
     (tmp_path / "nophotos.yaml").write_text("scan: x.ply\ncamera: c.yaml\nphotos: [none*.png]\n")
     assert_one_line_error(run_cli("run", tmp_path / "nophotos.yaml"), "no photo matches")
     (tmp_path / "a.png").write_bytes(b"")
