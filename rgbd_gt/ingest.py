@@ -127,6 +127,8 @@ def ingest(
 
     progress: optional callable(path, done_points, total_points) while reading.
     """
+    if scan_index is not None and not any(p.suffix.lower() == ".e57" for p in paths):  # it would do nothing
+        raise InputError("--scan-index applies to E57 files only, and no input is one")
     scans, inputs, images = [], [], []
     for path in paths:
         cb = (lambda done, total, p=path: progress(p, done, total)) if progress else None

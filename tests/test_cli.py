@@ -73,6 +73,9 @@ def test_ingest_bad_inputs(e57_dir, tmp_path):
     (tmp_path / "none.pcd").write_text("FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 0\nHEIGHT 1\n"
                                        "POINTS 0\nDATA ascii\n")
     assert_one_line_error(run_cli("ingest", tmp_path / "none.pcd", "-o", tmp_path / "o.ply"), "none.pcd", "no points")
+    # an option that would do nothing is a mistake, said (beside an E57 it selects that file's scan)
+    assert_one_line_error(run_cli("ingest", tmp_path / "none.pcd", "-o", tmp_path / "o.ply", "--scan-index", 1),
+                          "--scan-index applies to E57 files only")
     # one empty file among others is refused too (merged, it would have dropped their colors)
     proc = run_cli("ingest", e57_dir / "bunnyDouble.e57", tmp_path / "none.pcd", "-o", tmp_path / "o.ply")
     assert_one_line_error(proc, "none.pcd", "no points")
