@@ -8,7 +8,7 @@ import glob
 import json
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -166,12 +166,20 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[list[ScanJob], Path]:
             raise InputError(f"scan: no scan file {found}", config_path)
         return found
 
+    def board_of(board: BoardConfig) -> BoardConfig:
+        if board.points is None:
+            return board
+        found = norm(base / board.points)
+        if not found.is_file():
+            raise InputError(f"board.points: no corners file {found}", config_path)
+        return replace(board, points=str(found))
+
     output = norm(base / cfg.output)
     if not cfg.scans:
         if not cfg.scan or not cfg.camera or not cfg.photos:
             raise InputError("the config needs scan, camera and photos (or scans: a list of them)", config_path)
         scan = scan_of(cfg.scan)
-        return [ScanJob(scan.stem, scan, norm(base / cfg.camera), photos_of(cfg.photos), output, cfg.board,
+        return [ScanJob(scan.stem, scan, norm(base / cfg.camera), photos_of(cfg.photos), output, board_of(cfg.board),
                         init_of(cfg.init))], output
     jobs = []
     for k, s in enumerate(cfg.scans):
@@ -180,7 +188,7 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[list[ScanJob], Path]:
             raise InputError(f"scans[{k}] needs scan, photos and a camera (its own or the config's)", config_path)
         scan = scan_of(s.scan)
         name = s.name or scan.stem
-        jobs.append(ScanJob(name, scan, norm(base / camera), photos_of(s.photos), output / name, s.board or cfg.board,
+        jobs.append(ScanJob(name, scan, norm(base / camera), photos_of(s.photos), output / name, board_of(s.board or cfg.board),
                             init_of(s.init or cfg.init)))
     names = [j.name for j in jobs]
     if len(set(names)) < len(names):

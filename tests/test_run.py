@@ -81,6 +81,15 @@ def test_run_bad_config(tmp_path):
     (tmp_path / "a.png").write_bytes(b"")
     (tmp_path / "noinit.yaml").write_text("scan: x.ply\ncamera: c.yaml\nphotos: [a.png]\ninit: rig.yaml\n")
     assert_one_line_error(run_cli("run", tmp_path / "noinit.yaml"), "noinit.yaml", "init: no pose file", "rig.yaml")
+    (tmp_path / "nocorners.yaml").write_text("scan: x.ply\ncamera: c.yaml\nphotos: [a.png]\nboard:\n  points: corners.csv\n")
+    assert_one_line_error(run_cli("run", tmp_path / "nocorners.yaml"), "board.points: no corners file", "corners.csv")
+    # the corners, as every path of a config, are found beside the config, wherever the run starts
+    from rgbd_gt.config import load_config
+    from rgbd_gt.workflow import RunConfig, resolve
+
+    (tmp_path / "corners.csv").write_text("x,y,z\n")
+    jobs, _ = resolve(tmp_path / "nocorners.yaml", load_config(RunConfig, tmp_path / "nocorners.yaml"))
+    assert jobs[0].board.points == str(tmp_path / "corners.csv")
 
 
 def test_run_refines_one_camera_for_all_photos(tmp_path):
