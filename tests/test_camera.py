@@ -127,6 +127,11 @@ def test_livox_camera_calib_files(tmp_path):
         "calib:\n    calib_config_file: config_outdoor.yaml\n    use_rough_calib: true\n")
     assert read_camera(tmp_path / "calib.yaml", size) == cam
     assert read_camera(tmp_path / "calib.yaml", lambda: size) == cam  # the photo read only when needed
+    (tmp_path / "camera.yaml").write_text(  # its older camera file: OpenCV YAML with a size
+        f"%YAML:1.0\nCameraMat: !!opencv-matrix\n  rows: 3\n  cols: 3\n  dt: d\n  data: {K}\n"
+        f"DistCoeffs: !!opencv-matrix\n  rows: {len(cam.distortion)}\n  cols: 1\n  dt: d\n  data: {list(cam.distortion)}\n"
+        f"Camera.width: {size[0]}\nCamera.height: {size[1]}\n")
+    assert read_camera(tmp_path / "camera.yaml") == cam
     with pytest.raises(InputError, match="no image size"):
         read_camera(tmp_path / "calib.yaml")
     (tmp_path / "extrinsic.txt").write_text("".join(",".join(f"{v:g}" for v in row) + "\n" for row in T))

@@ -73,13 +73,18 @@ def opencv_nodes(path: Path, names: tuple[str, ...]) -> dict[str, np.ndarray | f
         raise InputError("not a readable OpenCV calibration file (truncated or corrupt)", path) from None
 
 
+# OpenCV's calibration sample's node names, then livox_camera_calib's camera.yaml's (ORB-SLAM's style)
+OPENCV_NAMES = (("camera_matrix", "CameraMat"), ("distortion_coefficients", "DistCoeffs"),
+                ("image_width", "Camera.width"), ("image_height", "Camera.height"))
+
+
 def _read_opencv(path: Path) -> Camera:
-    nodes = opencv_nodes(path, ("camera_matrix", "distortion_coefficients", "image_width", "image_height"))
-    K, dist, w, h = nodes.values()
+    nodes = opencv_nodes(path, tuple(name for names in OPENCV_NAMES for name in names))
+    K, dist, w, h = (next((nodes[n] for n in names if nodes[n] is not None), None) for names in OPENCV_NAMES)
     if not isinstance(K, np.ndarray) or K.shape != (3, 3):
-        raise InputError("OpenCV calibration file has no 3x3 'camera_matrix'", path)
+        raise InputError("OpenCV calibration file has no 3x3 'camera_matrix' (or 'CameraMat')", path)
     if w is None or h is None:
-        raise InputError("OpenCV calibration file has no 'image_width'/'image_height'", path)
+        raise InputError("OpenCV calibration file has no 'image_width'/'image_height' (or 'Camera.width'/'Camera.height')", path)
     return camera_from_values(path, w, h, K, dist)
 
 
