@@ -152,33 +152,24 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[list[ScanJob], Path]:
             found += [norm(Path(h)) for h in hits]
         return found
 
-    def init_of(path: str | None) -> Path | None:
-        if path is None:
-            return None
+    def existing(path: str, key: str, kind: str) -> Path:
+        """The config's file `path`, checked before any scan is prepared."""
         found = norm(base / path)
         if not found.is_file():
-            raise InputError(f"init: no pose file {found}", config_path)
+            raise InputError(f"{key}: no {kind} file {found}", config_path)
         return found
 
-    def scan_of(path: str) -> Path:
-        found = norm(base / path)
-        if not found.is_file():  # checked before any scan is prepared
-            raise InputError(f"scan: no scan file {found}", config_path)
-        return found
+    def init_of(path: str | None) -> Path | None:
+        return None if path is None else existing(path, "init", "pose")
 
     def board_of(board: BoardConfig) -> BoardConfig:
-        if board.points is None:
-            return board
-        found = norm(base / board.points)
-        if not found.is_file():
-            raise InputError(f"board.points: no corners file {found}", config_path)
-        return replace(board, points=str(found))
+        return board if board.points is None else replace(board, points=str(existing(board.points, "board.points", "corners")))
 
     output = norm(base / cfg.output)
     if not cfg.scans:
         if not cfg.scan or not cfg.camera or not cfg.photos:
             raise InputError("the config needs scan, camera and photos (or scans: a list of them)", config_path)
-        scan = scan_of(cfg.scan)
+        scan = existing(cfg.scan, "scan", "scan")
         return [ScanJob(scan.stem, scan, norm(base / cfg.camera), photos_of(cfg.photos), output, board_of(cfg.board),
                         init_of(cfg.init))], output
     jobs = []
@@ -186,7 +177,7 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[list[ScanJob], Path]:
         camera = s.camera or cfg.camera
         if not s.scan or not camera or not s.photos:
             raise InputError(f"scans[{k}] needs scan, photos and a camera (its own or the config's)", config_path)
-        scan = scan_of(s.scan)
+        scan = existing(s.scan, "scan", "scan")
         name = s.name or scan.stem
         jobs.append(ScanJob(name, scan, norm(base / camera), photos_of(s.photos), output / name, board_of(s.board or cfg.board),
                             init_of(s.init or cfg.init)))

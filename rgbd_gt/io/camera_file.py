@@ -50,6 +50,11 @@ def camera_from_values(path: Path, width, height, K: np.ndarray, dist) -> Camera
     return cam
 
 
+def is_opencv_file(path: Path, text: str) -> bool:
+    """Whether a file (its text given) is OpenCV FileStorage YAML or XML, not plain YAML."""
+    return text.lstrip().startswith("%YAML:1.0") or "opencv-matrix" in text or path.suffix.lower() == ".xml"
+
+
 def opencv_nodes(path: Path, names: tuple[str, ...]) -> dict[str, np.ndarray | float | None]:
     """The named nodes of an OpenCV FileStorage file (YAML or XML): a matrix as an array, a
     number as a float, None where absent or of another kind; OpenCV's errors as one InputError."""
@@ -141,10 +146,12 @@ def read_camera(path: str | os.PathLike,
         return cam
 
     path = require_file(path)
-    if is_calib_txt(path) or is_calib_json(path):
-        return sized(lambda wh: (read_json_camera if is_calib_json(path) else read_calib_camera)(path, wh))
+    if is_calib_json(path):
+        return sized(lambda wh: read_json_camera(path, wh))
+    if is_calib_txt(path):
+        return sized(lambda wh: read_calib_camera(path, wh))
     text = path.read_text(errors="replace")
-    if text.lstrip().startswith("%YAML:1.0") or "opencv-matrix" in text or path.suffix.lower() == ".xml":
+    if is_opencv_file(path, text):
         return _read_opencv(path)
     try:
         data = yaml.safe_load(text)

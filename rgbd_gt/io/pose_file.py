@@ -46,6 +46,7 @@ def read_pose(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
     `ExtrinsicMat` (livox_camera_calib's config) is read as a pose too."""
     from rgbd_gt.io.calib_json import is_calib_json, read_json_pose
     from rgbd_gt.io.calib_txt import is_calib_txt, read_calib_pose
+    from rgbd_gt.io.camera_file import is_opencv_file
 
     path = require_file(path)
     if is_calib_txt(path):
@@ -53,7 +54,7 @@ def read_pose(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
     if is_calib_json(path):
         return read_json_pose(path), {}
     text = path.read_text(errors="replace")
-    if text.lstrip().startswith("%YAML:1.0") or "opencv-matrix" in text:
+    if is_opencv_file(path, text):
         return _read_opencv_pose(path), {}
     try:
         data = yaml.safe_load(text)
