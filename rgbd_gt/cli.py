@@ -797,8 +797,7 @@ def run_workflow(
                 from rgbd_gt.prepared import open_prepared
 
                 p.job.out.mkdir(parents=True, exist_ok=True)
-                camera = shared_camera(p.job.photos, open_prepared(p.folder, p.job.scan), camera, p.job.board, cfg,
-                                       p.job.out, step, p.job.init)
+                camera = shared_camera(p.job, open_prepared(p.folder, p.job.scan), camera, cfg, step)
                 out.print(f"camera refined over the photos ({cfg.refine.refine_intrinsics}): fx {camera.fx:.2f} px, "
                           f"cx {camera.cx:.1f}, cy {camera.cy:.1f}; wrote {p.job.out / 'camera.yaml'}")
                 run_cfg = dataclasses.replace(cfg, refine=dataclasses.replace(cfg.refine, refine_intrinsics="none"))
@@ -827,7 +826,7 @@ def run_workflow(
         return "-" if v is None else format(v, fmt)
 
     columns = {"scan": lambda r: r.scan, "photo": lambda r: r.photo,
-               "status": lambda r: r.status if not r.error else f"failed: {r.error}",
+               "status": lambda r: r.status,
                "verdict": lambda r: _verdict_text(r.verdict), "init rms px": lambda r: f(r.init_rms_px, ".3f"),
                "edges / chance": lambda r: f(r.edge_ratio, ".2f"),
                "Canny px before -> after": lambda r: f"{f(r.edge_before_px, '.2f')} -> {f(r.edge_after_px, '.2f')}",
@@ -839,7 +838,9 @@ def run_workflow(
     for r in results:
         table.add_row(*(columns[c](r) for c in shown))
     out.print(table)
-    for r in results:
+    for r in results:  # below the table, where a cell would wrap a long line into a column
+        if r.error:
+            out.print(f"{name(r)}: failed: {r.error}", markup=False, highlight=False, soft_wrap=True)
         if r.reasons:
             out.print(f"{name(r)}: {r.verdict}: {r.reasons}", markup=False, highlight=False)
         if r.skipped:

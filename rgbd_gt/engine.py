@@ -81,8 +81,7 @@ def photo_task(task: PhotoTask, progress: Callable[[str], None] = lambda step: N
         torch.set_num_threads(task.threads)
     try:
         prepared = open_prepared(task.prepared, task.job.scan)
-        result = run_photo(task.photo, prepared, task.camera, task.job.board, task.cfg, task.job.out, progress,
-                           task.export_failed, task.job.init)
+        result = run_photo(task.photo, prepared, task.camera, task.job, task.cfg, progress, task.export_failed)
     except InputError as exc:
         result = PhotoResult(task.photo.name, status="failed", error=str(exc))
     result.scan = task.job.name

@@ -203,12 +203,11 @@ def board_spec(b: BoardConfig):
     return BoardSpec(b.cols, b.rows, b.square, b.charuco, b.marker)
 
 
-def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig, out: Path,
-              progress: Callable[[str], None] = lambda step: None, export_failed: bool = False,
-              init: Path | None = None) -> PhotoResult:
-    """The steps for one photo into out/<photo stem>/, on the points of the prepared scan
-    (`prepared.PreparedScan`) its view can reach; the initial pose from `init` (a pose file) when
-    given, else from the board. The depth map is written only for a pose whose verdict is ok or
+def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
+              progress: Callable[[str], None] = lambda step: None, export_failed: bool = False) -> PhotoResult:
+    """The steps for one photo of `job` into job.out/<photo stem>/, on the points of the prepared
+    scan (`prepared.PreparedScan`) its view can reach; the initial pose from job.init (a pose file)
+    when given, else from the board. The depth map is written only for a pose whose verdict is ok or
     suspect, unless export_failed."""
     from rgbd_gt.align.refine import RefineInputs, refine_meta, refine_verified
     from rgbd_gt.io import read_pose, write_pose
@@ -230,17 +229,17 @@ def run_photo(photo: Path, prepared, camera, board: BoardConfig, cfg: RunConfig,
         res.steps[step] = round(now - clock[0], 3)
         clock[0] = now
 
-    d = out / photo.stem
+    d = job.out / photo.stem
     d.mkdir(parents=True, exist_ok=True)
     files = {"init": d / "init.yaml", "refine": d / "pose.yaml", "depth": d / "depth.exr", "qa": d / "qa.json",
              "overlay": d / "overlay.png"}
     image = read_image(photo, to_align=True)
-    check_image_matches(camera, image.shape, photo, "the camera file")
+    check_image_matches(camera, image.shape, photo, job.camera)
 
     progress("init-pose")
     if files["init"].exists():
         res.skipped.append("init")
-    T_init, init_meta = initial_pose(photo, image, prepared, camera, board, files["init"], init)
+    T_init, init_meta = initial_pose(photo, image, prepared, camera, job, files["init"])
     res.init_rms_px = init_meta.get("reprojection_rms_px")
     lap("init")
     seen = prepared.view_index(camera, T_init)
@@ -328,20 +327,19 @@ def _view(prepared, index: np.ndarray, T_init: np.ndarray):
     return scan, scan_colors(scan, prepared.source, to_align=True)
 
 
-def initial_pose(photo: Path, image: np.ndarray, prepared, camera, board: BoardConfig, path: Path,
-                 init: Path | None = None) -> tuple[np.ndarray, dict]:
-    """The photo's initial pose file `path`: read when it exists, else written from `init` (a
-    pose file shared by the photos) or made from the board (found once per scan, `scan_board`)."""
+def initial_pose(photo: Path, image: np.ndarray, prepared, camera, job: ScanJob, path: Path) -> tuple[np.ndarray, dict]:
+    """The photo's initial pose file `path`: read when it exists, else written from job.init (a
+    pose file shared by the photos) or made from job.board (found once per scan, `scan_board`)."""
     from rgbd_gt.init.run import detect_photo_board, init_from_board
     from rgbd_gt.io import read_pose, write_pose
 
-    if not path.exists() and init is not None:
-        T, meta = read_pose(init)
-        write_pose(path, T, **{**meta, "method": f"the config's init ({init})"})
+    if not path.exists() and job.init is not None:
+        T, meta = read_pose(job.init)
+        write_pose(path, T, **{**meta, "method": f"the config's init ({job.init})"})
     elif not path.exists():
-        spec = board_spec(board)
+        spec = board_spec(job.board)
         found = detect_photo_board(image, spec, photo)
-        r = init_from_board(scan_board(prepared, board), image, camera, spec, found)
+        r = init_from_board(scan_board(prepared, job.board), image, camera, spec, found)
         write_pose(path, r.T_cam_from_scan, **r.pose_meta())
     return read_pose(path)
 
@@ -359,13 +357,12 @@ def scan_board(prepared, board: BoardConfig):
     return prepared.board(spec, prepared.source)
 
 
-def shared_camera(photos: list[Path], prepared, camera, board: BoardConfig, cfg: RunConfig, out: Path,
-                  progress: Callable[[str], None] = lambda step: None, init: Path | None = None):
-    """With cfg.refine.refine_intrinsics, the one camera of all the photos: per photo its initial
+def shared_camera(job: ScanJob, prepared, camera, cfg: RunConfig, progress: Callable[[str], None] = lambda step: None):
+    """With cfg.refine.refine_intrinsics, the one camera of all of job's photos: per photo its initial
     pose (kept for the run) and the camera corrections refined with its pose, then their
     inverse-variance weighted mean. Each photo's variance already includes what its pose leaves
     open, so to first order this is the joint solve of all poses and one camera. Written to
-    out/camera.yaml with the per-photo estimates in out/intrinsics.json; reused when there.
+    job.out/camera.yaml with the per-photo estimates in intrinsics.json beside it; reused when there.
     Returns the camera."""
     from rgbd_gt.align.refine import RefineInputs, make_aligner
     from rgbd_gt.camera import corrected
@@ -375,16 +372,17 @@ def shared_camera(photos: list[Path], prepared, camera, board: BoardConfig, cfg:
     from rgbd_gt.io.image import read_image
     from rgbd_gt.io.scan import scan_colors
 
+    out = job.out
     if (out / "camera.yaml").exists():
         return read_camera(out / "camera.yaml")
     estimates = []
-    for photo in photos:
+    for photo in job.photos:
         progress(f"{photo.name}: camera")
         try:
             image = read_image(photo, to_align=True)
-            check_image_matches(camera, image.shape, photo, "the camera file")
+            check_image_matches(camera, image.shape, photo, job.camera)
             (out / photo.stem).mkdir(parents=True, exist_ok=True)
-            T_init, init_meta = initial_pose(photo, image, prepared, camera, board, out / photo.stem / "init.yaml", init)
+            T_init, init_meta = initial_pose(photo, image, prepared, camera, job, out / photo.stem / "init.yaml")
             scan = prepared.view(camera, T_init)
             inputs = RefineInputs(scan.xyz, scan_colors(scan, prepared.source, to_align=True), image, camera, T_init, None, scan, init_meta)
             r = make_aligner(inputs, cfg.refine, cfg.device).refine(T_init)

@@ -20,6 +20,7 @@ def test_run_two_photos_then_resume(tmp_path):
     assert run_cli("synth", scene, "--size", "small", "--seed", 2, "--photos", 2).returncode == 0
     noise = np.random.default_rng(0).integers(0, 256, (480, 640, 3), dtype=np.uint8)
     cv2.imwrite(str(scene / "photo_blank.png"), noise)  # a photo without the board
+    cv2.imwrite(str(scene / "photo_small.png"), noise[:240, :320])  # not the camera's size
     config = {"scan": "scene/scan.e57", "camera": "scene/camera.yaml", "photos": ["scene/photo*.png"],
               "output": "out", "refine": {"max_points": 40000}}
     (tmp_path / "run.yaml").write_text(yaml.safe_dump(config))
@@ -28,8 +29,11 @@ def test_run_two_photos_then_resume(tmp_path):
     assert "photo_blank.png: failed" in proc.stderr  # reported, and the others went on
     rows = {r["photo"]: r for r in csv.DictReader(open(tmp_path / "out" / "summary.csv"))}
     assert rows["photo_blank.png"]["status"] == "failed" and "checkerboard" in rows["photo_blank.png"]["error"]
-    assert rows["# verdicts"]["verdict"] == "2 ok, 0 suspect, 1 failed"  # the blank photo failed before refine
-    assert "verdicts: 2 ok, 0 suspect, 1 failed" in proc.stdout
+    assert rows["# verdicts"]["verdict"] == "2 ok, 0 suspect, 2 failed"  # those two failed before refine
+    assert "verdicts: 2 ok, 0 suspect, 2 failed" in proc.stdout
+    small = f"{scene / 'photo_small.png'}: image is 320x240 but camera file {scene / 'camera.yaml'} is for 640x480"
+    assert rows["photo_small.png"]["error"] == small
+    assert f"photo_small.png: failed: {small}\n" in proc.stdout  # under the table, one line
     assert "…" not in proc.stdout  # the table wraps its cells at 80 columns (a log), it does not cut them
     for photo, truth in (("photo", "gt_pose.yaml"), ("photo_1", "gt_pose_1.yaml")):
         r = rows[f"{photo}.png"]

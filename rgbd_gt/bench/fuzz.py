@@ -135,6 +135,18 @@ def make_seeds(folder: Path, data: Path | None) -> dict[str, Path]:
                        "device: cpu\nrefine:\n  levels: 2\n  iterations: 3\n  max_points: 3000\n  min_points: 500\n"
                        "  upsample: 1\n  verify:\n    repeats: 0\n")
     seeds["run_cfg"] = run_cfg
+    if data is not None and (data / "lidar_camera/pjlab_1/calib.pcd").is_file():
+        pjlab = data / "lidar_camera/pjlab_1"  # a site: a scan with its board, a LiDAR frame with the rig's extrinsic
+        site = folder / "site.yaml"
+        site.write_text(yaml.safe_dump({
+            "output": "site_out", "device": "cpu", "camera": str(seeds["camera"]),
+            "board": {"cols": 9, "rows": 6, "square": 0.05, "points": str(seeds["board"])},
+            "refine": {"levels": 2, "iterations": 3, "max_points": 3000, "min_points": 500, "upsample": 1,
+                       "search_starts": 1, "verify": {"repeats": 0}},
+            "scans": [{"scan": str(small), "photos": [str(seeds["photo"])], "name": "room"},
+                      {"scan": str(pjlab / "calib.pcd"), "camera": str(pjlab / "calib.txt"), "init": str(pjlab / "calib.txt"),
+                       "photos": [str(pjlab / "calib.jpg")], "name": "street"}]}, sort_keys=False))
+        seeds["site_cfg"] = site
     synth_cfg = Path(__file__).resolve().parents[2] / "configs" / "synth.yaml"
     if synth_cfg.is_file():
         seeds["synth_cfg"] = synth_cfg
@@ -323,7 +335,7 @@ CAMERA_KEYS = {"fx", "fy", "cx", "cy", "width", "height", "distortion"}
 POSE_KEYS = {"T_cam_from_scan"}
 CONFIG_KEYS = {"levels", "iterations", "max_points", "min_points", "upsample", "verify", "scan", "camera", "photos", "output",
                "board", "refine", "device", "sizes", "board_cols", "board_rows", "square_m", "hfov_deg", "range_noise_m",
-               "texel_m"}
+               "texel_m", "scans"}
 
 
 def templates(seeds: dict[str, Path]) -> list[dict]:
@@ -359,8 +371,10 @@ def templates(seeds: dict[str, Path]) -> list[dict]:
                    "-o", "{out}/ov.png"], outs=["ov.png", "ov_blend.png"]),
         dict(argv=["pick", "--scan", s["scan_small"], "--image", s["photo"], "--camera", s["camera"], "--no-browser",
                    "-o", "{out}/picks.csv"], outs=["picks.csv"], serves=True),
-        dict(argv=["run", s["run_cfg"]], outs=["run_out"], slow=True),
+        dict(argv=["run", s["run_cfg"]], outs=["run_out"], slow=True, own_config=True),
     ]
+    if "site_cfg" in s:
+        t.append(dict(argv=["run", s["site_cfg"]], outs=["site_out"], slow=True, own_config=True))
     if "synth_cfg" in s:
         t.append(dict(argv=["synth", "{out}/scene", "--size", "small", "--config", s["synth_cfg"]], outs=["scene"], slow=True))
     if "rig" in s:
@@ -399,6 +413,10 @@ def make_trial(k: int, tpls: list[dict], seeds: dict[str, Path], root: Path, rng
     folder = root / f"t{k:04d}"
     folder.mkdir(parents=True)
     argv = [a.replace("{out}", str(folder)) for a in tpl["argv"]]
+    if tpl.get("own_config"):  # run writes beside its config: with one shared copy, every later trial would resume the first
+        config = folder / Path(argv[tpl["slots"][0]]).name
+        shutil.copyfile(argv[tpl["slots"][0]], config)
+        argv[tpl["slots"][0]] = str(config)
     outs = [folder / o for o in tpl["outs"]]
     inputs = [Path(argv[i]) for i in tpl["slots"]]
     timeout = 120.0 if tpl.get("slow") else 60.0
@@ -424,7 +442,7 @@ def make_trial(k: int, tpls: list[dict], seeds: dict[str, Path], root: Path, rng
                               "--board-points", "--report", "--extract-images", "--json", "--png16", "--mask")]
         extra = rng.choice(["--levels", "--iterations", "--voxel", "--crop", "--max-depth", "--beta-max", "--square",
                             "--ransac-px", "--max-points", "--repeats", "--scan-index", "--board", "--device",
-                            "--search-starts", "--upsample", "--port", "--seed", "--photos", "--size", "--marker"])
+                            "--search-starts", "--upsample", "--port", "--seed", "--photos", "--size", "--marker", "--workers"])
         how = rng.choice(["value", "value", "add", "unknown", "drop", "command"])
         kind = "unknown command" if how == "command" else f"argument: {how}"
         if how == "value" and opts:
@@ -592,8 +610,9 @@ def run_trial(trial: Trial, folder: Path, memory_gb: float = 6.0) -> Result:
 
 
 def fuzz(trials: int, seed: int, root: Path, data: Path | None, log: Callable[[str], None] = lambda s: None,
-         only: Callable[[dict], bool] | None = None) -> list[Result]:
-    """`trials` seeded trials under `root` (its trials folder emptied first)."""
+         commands: list[str] | None = None) -> list[Result]:
+    """`trials` seeded trials under `root` (its trials folder emptied first); `commands`: of these
+    commands only (default: every one)."""
     import rgbd_gt.cli  # noqa: F401  (imported once here, shared by every forked trial)
     import cv2  # noqa: F401
     import torch  # noqa: F401
@@ -613,7 +632,9 @@ def fuzz(trials: int, seed: int, root: Path, data: Path | None, log: Callable[[s
     if os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1]) != 0:
         raise RuntimeError("making the fuzz seeds failed")
     seeds = make_seeds(root / "seeds", data)  # made: this only names them
-    tpls = [t for t in templates(seeds) if only is None or only(t)]
+    tpls = [t for t in templates(seeds) if not commands or t["argv"][0] in commands]
+    if not tpls:
+        raise ValueError(f"no trials of {commands}")
     rng = random.Random(seed)
     results = []
     for k in range(trials):
@@ -686,11 +707,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--data", type=Path, default=Path("../shared/data"))
     ap.add_argument("--json", type=Path, help="write each trial's outcome here")
     ap.add_argument("--report", type=Path, help="write the Markdown report here (docs/reliability.md)")
+    ap.add_argument("--command", action="append", help="fuzz this command only (repeatable; default: every one)")
     ap.add_argument("--quiet", action="store_true")
     args = ap.parse_args(argv)
     start = time.perf_counter()
     results = fuzz(args.trials, args.seed, args.root, args.data if args.data.is_dir() else None,
-                   log=(lambda s: None) if args.quiet else (lambda s: print(s, flush=True)))
+                   log=(lambda s: None) if args.quiet else (lambda s: print(s, flush=True)), commands=args.command)
     seconds = time.perf_counter() - start
     if args.json:
         args.json.write_text(json.dumps([{"name": r.trial.name, "argv": r.trial.argv, "code": r.code, "invalid": r.trial.invalid, "kind": r.trial.kind,
