@@ -12,9 +12,7 @@ import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
-import yaml
-
-from rgbd_gt.errors import InputError
+from rgbd_gt.errors import InputError, read_yaml
 
 T = TypeVar("T")
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
@@ -25,13 +23,14 @@ def from_dict(cls: type[T], data: dict[str, Any], where: str = "") -> T:
 
     Missing keys keep the dataclass defaults; unknown keys raise InputError naming `where`.
     """
+    at = f"{where}: " if where else ""  # the file's top level: the caller names the file
     if not isinstance(data, dict):
-        raise InputError(f"{where or cls.__name__}: expected a mapping, got {type(data).__name__}")
+        raise InputError(f"{at}expected a mapping of keys to values, got {_name(data)}")
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - names)
     if unknown:
-        raise InputError(f"{where or cls.__name__}: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(names))})")
+        raise InputError(f"{at}unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(names))})")
     values = {}
     for key, value in data.items():
         hint = hints[key]
@@ -98,10 +97,7 @@ def load_config(cls: type[T], path: str | os.PathLike | None, default_name: str 
     path = Path(path)
     if not path.is_file():
         raise InputError("config file not found", path)
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise InputError(f"invalid YAML ({str(exc).splitlines()[0]})", path) from None
+    data = read_yaml(path)
     try:
         cfg = from_dict(cls, {} if data is None else data)
         if hasattr(cfg, "check"):

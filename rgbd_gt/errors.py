@@ -20,3 +20,14 @@ def require_file(path: str | os.PathLike) -> Path:
     if not path.is_file():
         raise InputError("file not found", path)
     return path
+
+
+def read_yaml(path: str | os.PathLike, text: str | None = None):
+    """The YAML document in file `path` (or in `text`, already read from it); InputError
+    "invalid YAML (why)" when it does not parse. Bytes that are not UTF-8 read as U+FFFD."""
+    import yaml
+
+    try:
+        return yaml.safe_load(Path(path).read_text(errors="replace") if text is None else text)
+    except yaml.YAMLError as exc:
+        raise InputError(f"invalid YAML ({str(exc).splitlines()[0]})", path) from None

@@ -93,15 +93,10 @@ def camera_disagreement(camera, init_meta: dict, camera_path) -> str | None:
 def read_pairs(path: Path, camera: Path) -> list[dict[str, Path]]:
     """The (scan, image, camera) paths of a --pairs YAML (`pairs:` a list of mappings with scan,
     image and optionally camera, which defaults to `camera`), relative to the file's folder."""
-    import yaml
-
-    from rgbd_gt.errors import require_file
+    from rgbd_gt.errors import read_yaml, require_file
 
     path = require_file(path)
-    try:
-        data = yaml.safe_load(path.read_text(errors="replace"))
-    except yaml.YAMLError as exc:
-        raise InputError(f"invalid YAML ({str(exc).splitlines()[0]})", path) from None
+    data = read_yaml(path)
     items = data.get("pairs") if isinstance(data, dict) else None
     if not isinstance(items, list) or not items:
         raise InputError("needs `pairs:`, a list of {scan, image[, camera]}", path)

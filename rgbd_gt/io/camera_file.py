@@ -12,7 +12,7 @@ import numpy as np
 import yaml
 
 from rgbd_gt.camera import Camera
-from rgbd_gt.errors import InputError, require_file
+from rgbd_gt.errors import InputError, read_yaml, require_file
 from rgbd_gt.io.atomic import atomic_output
 
 VALID_DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
@@ -153,10 +153,7 @@ def read_camera(path: str | os.PathLike,
     text = path.read_text(errors="replace")
     if is_opencv_file(path, text):
         return _read_opencv(path)
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise InputError(f"invalid YAML ({str(exc).splitlines()[0]})", path) from None
+    data = read_yaml(path, text)
     if not isinstance(data, dict):
         raise InputError("camera file must be a YAML mapping", path)
     if "camera_matrix" in data and "image_width" in data:

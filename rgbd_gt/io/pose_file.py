@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from rgbd_gt.errors import InputError, require_file
+from rgbd_gt.errors import InputError, read_yaml, require_file
 from rgbd_gt.io.atomic import atomic_output
 
 POSE_KEY = "T_cam_from_scan"
@@ -56,10 +56,7 @@ def read_pose(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
     text = path.read_text(errors="replace")
     if is_opencv_file(path, text):
         return _read_opencv_pose(path), {}
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise InputError(f"invalid YAML ({str(exc).splitlines()[0]})", path) from None
+    data = read_yaml(path, text)
     if not isinstance(data, dict) or POSE_KEY not in data:
         raise InputError(f"pose file has no '{POSE_KEY}' key", path)
     T = check_rigid(data.pop(POSE_KEY), path)
