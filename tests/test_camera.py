@@ -171,6 +171,8 @@ def test_livox_camera_calib_files(tmp_path):
         ("width: 640\nheight: 480\nfx: -5\nfy: 500\ncx: 320\ncy: 240\n", "fx must lie between 1 and"),
         ("width: [640\n", "invalid YAML"),
         ("- 1\n- 2\n", "mapping"),
+        ("%YAML:1.0\ncamera_matrix: !!opencv-matrix\n  rows: 3\n  cols: 3\n  dt: d\n  data: [1, 2, 3]\n",
+         r"OpenCV calibration file \(a matrix's data does not hold rows x cols values\)$"),
     ],
 )
 def test_bad_camera_files(tmp_path, text, needle):

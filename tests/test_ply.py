@@ -91,6 +91,10 @@ def test_ascii_file_with_an_element_before_vertices(tmp_path):
         (b"ply\nformat binary_little_endian 1.0\nelement vertex 10\nproperty float x\nproperty float y\nproperty float z\nend_header\n" + b"\0" * 20, "truncated"),
         (b"ply\nformat ascii 1.0\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n3 0 1 2\n", "no vertex"),
         (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float a\nend_header\n1\n", "no x, y, z"),
+        (b"ply\nformat ascii 1.0\nelement vertex 1e3\nproperty float x\nend_header\n1\n", "count '1e3', not a whole number"),
+        # numpy's own words, less its advice to a programmer
+        (b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+         b"1.5 2.5 3.5\n4.5 5.5\n1.5 2.5 3.5\n", r"number of columns changed from 3 to 2 at row 2\.?$"),
     ],
 )
 def test_corrupt_files_raise_input_error(tmp_path, content, needle):

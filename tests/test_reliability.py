@@ -10,6 +10,7 @@ import yaml
 
 from conftest import assert_one_line_error, run_cli
 from rgbd_gt.bench.fuzz import crc32c
+from rgbd_gt.errors import InputError
 from rgbd_gt.io.ply import write_ply
 from rgbd_gt.io.scan import Scan
 from rgbd_gt.synth.generate import SynthConfig, generate
@@ -126,6 +127,14 @@ def test_files_are_checked_against_their_length(scene, tmp_path):
     proc = run_cli("overlay", "--scan", scene / "scan.ply", "--image", tmp_path / "cut.jpg", "--camera",
                    scene / "camera.yaml", "--pose", scene / "gt_pose.yaml", "-o", tmp_path / "ov.png")
     assert_one_line_error(proc, "cut.jpg", "Premature end")
+    # a PNG whose first chunk is not IHDR: the decoder's complaint, without its log line's prefix
+    from rgbd_gt.io.image import read_image
+
+    png = bytearray((scene / "photo.png").read_bytes())
+    png[12:16] = b"IDAT"
+    (tmp_path / "ihdr.png").write_bytes(bytes(png))
+    with pytest.raises(InputError, match=r"ihdr.png: not a readable image \(IHDR chunk shall be first"):
+        read_image(tmp_path / "ihdr.png")
     # one scan id of 2e9 is a label, not 2e9 scans to summarise
     xyz = np.random.default_rng(0).uniform(-1, 1, (1000, 3))
     write_ply(tmp_path / "ids.ply", Scan(xyz, scan_id=np.where(np.arange(1000) < 500, 0, 2_000_000_000).astype(np.int32)))

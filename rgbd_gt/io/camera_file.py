@@ -71,9 +71,9 @@ def opencv_nodes(path: Path, names: tuple[str, ...]) -> dict[str, np.ndarray | f
             return {name: value(fs.getNode(name)) for name in names}
         finally:
             fs.release()
-    except cv2.error as exc:
-        lines = str(exc).strip().splitlines() or ["unreadable"]
-        raise InputError(f"not a readable OpenCV calibration file ({lines[-1]})", path) from None
+    except cv2.error as exc:  # its text names OpenCV's own source file; the check that failed says more
+        why = "a matrix's data does not hold rows x cols values" if "nelems" in (exc.err or "") else exc.err or "unreadable"
+        raise InputError(f"not a readable OpenCV calibration file ({why})", path) from None
     except SystemError:  # a truncated file ends in SystemError inside the binding, which says only that
         raise InputError("not a readable OpenCV calibration file (truncated or corrupt)", path) from None
 

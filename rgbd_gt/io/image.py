@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ from rgbd_gt.io.native import native_output
 
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")  # what the image outputs may be
+OPENCV_LOG_PREFIX = re.compile(r"^\[\w+:[\d@.]+\]\s+global\s+\S+:\d+\s+\w+\s+")
 MAX_PIXELS = 400_000_000  # a header claiming more is corrupt (or a photo no camera takes)
 
 
@@ -36,7 +38,8 @@ def _imread(path: Path, flags: int) -> np.ndarray:
             img = None
     bad = [line for line in said if "Premature end" in line or "Corrupt JPEG" in line or "error" in line.lower()]
     if img is None or img.size == 0 or bad:
-        why = f" ({bad[0].strip()})" if bad else ""
+        # OpenCV's log lines start with where it logged: "[ERROR:0@94.036] global grfmt_png.cpp:297 readHeader "
+        why = f" ({OPENCV_LOG_PREFIX.sub('', bad[0].strip())})" if bad else ""
         raise InputError(f"not a readable image{why}", path)
     return img
 

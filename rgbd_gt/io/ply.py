@@ -49,9 +49,9 @@ def _parse_header(path: Path, f) -> tuple[str, list[tuple[str, int, list]], list
         elif key == "comment":
             comments.append(line.decode("utf-8", errors="replace").strip()[len("comment") :].strip())
         elif key == "element" and len(words) == 3:
+            if not words[2].isdigit():
+                raise InputError(f"PLY element '{words[1]}' has count {words[2]!r}, not a whole number of 0 or more", path)
             count = int(words[2])
-            if count < 0:
-                raise InputError(f"PLY element '{words[1]}' has a negative count {count}", path)
             elements.append((words[1], count, []))
         elif key == "property" and elements:
             if words[1] == "list" and len(words) == 5:
@@ -119,7 +119,8 @@ def _vertex_table(path: Path) -> tuple[np.ndarray, list[str]]:
     except InputError:
         raise
     except (OSError, ValueError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read PLY: {exc}", path) from None
+        why = str(exc).split("; use `usecols`")[0]  # numpy's advice is to a programmer
+        raise InputError(f"cannot read PLY: {why}", path) from None
 
 
 def _colors(table: np.ndarray) -> np.ndarray | None:
