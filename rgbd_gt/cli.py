@@ -451,8 +451,10 @@ def refine(
         cfg = dataclasses.replace(cfg, verify=dataclasses.replace(cfg.verify, repeats=repeats))
     try:
         cfg.check()
-    except ValueError as exc:
-        raise InputError(str(exc)) from None
+    except ValueError as exc:  # the config file was checked as it was read: an option made it wrong
+        given = {**flags, "repeats": repeats}
+        options = ", ".join(f"--{k.replace('_', '-')} {v}" for k, v in given.items() if v is not None)
+        raise InputError(f"{exc} (options given: {options})") from None
     everything = ([dict(scan=scan, image=image, camera=camera)] if scan is not None else []) + listed
     inputs = [load_inputs(p["scan"], p["image"], p["camera"], init, mask if k == 0 else None, cache)
               for k, p in enumerate(everything)]

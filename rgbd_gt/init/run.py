@@ -186,7 +186,7 @@ def read_correspondences(path: Path, minimum: int = 6) -> Picks:
         labels.append(r[order[5]] if 0 <= order[5] < len(r) and r[order[5]] else str(k))
     data = np.array(values, np.float64).reshape(-1, 5)
     if len(data) < minimum:
-        raise InputError(f"need at least {minimum} rows of u,v,x,y,z, got {len(data)}", path)
+        raise InputError(f"need at least {minimum} row{'s' if minimum > 1 else ''} of u,v,x,y,z, got {len(data)}", path)
     if not np.isfinite(data).all():
         raise InputError(f"row {int(np.nonzero(~np.isfinite(data).all(1))[0][0]) + 1} has a value that is not a finite number", path)
     return Picks(data[:, :2], data[:, 2:], labels)
