@@ -137,14 +137,9 @@ def prepare_scan(scan_path: Path, root: Path, progress: Callable[[str], None] = 
     progress("hashing the scan file")
     key = file_key(scan_path)
     folder = cache_folder(root, scan_path, key)
-    meta_path = folder / "meta.json"
-    if meta_path.exists():
-        try:
-            meta = json.loads(meta_path.read_text())
-            if meta.get("key") == key and meta.get("version") == CACHE_VERSION:
-                return _open(folder, scan_path, meta)
-        except (OSError, ValueError, KeyError):
-            pass  # an unreadable cache is rebuilt
+    meta = _current_meta(folder, key)
+    if meta is not None:
+        return _open(folder, scan_path, meta)
     progress("preparing the scan (once)")
     _build(scan_path, folder, key, progress)
     for old in root.glob(f"{scan_path.stem}-*/meta.json"):  # this file's earlier contents: stale
@@ -154,7 +149,17 @@ def prepare_scan(scan_path: Path, root: Path, progress: Callable[[str], None] = 
             stale = False
         if stale:
             shutil.rmtree(old.parent, ignore_errors=True)
-    return _open(folder, scan_path, json.loads(meta_path.read_text()))
+    return _open(folder, scan_path, json.loads((folder / "meta.json").read_text()))
+
+
+def _current_meta(folder: Path, key: dict) -> dict | None:
+    """The meta.json of the cache in `folder` when it is of `key` and this version; else None (an
+    unreadable cache is rebuilt)."""
+    try:
+        meta = json.loads((folder / "meta.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return meta if isinstance(meta, dict) and meta.get("key") == key and meta.get("version") == CACHE_VERSION else None
 
 
 def storage_centre(scan: Scan) -> np.ndarray:
@@ -293,9 +298,16 @@ def _build(scan_path: Path, folder: Path, key: dict, progress: Callable[[str], N
                 "arrays": names, "centre": centre.tolist(), "origins": scan.origins.tolist(), "angular_step": step,
                 "blocks": len(blocks)}
         (stage / "meta.json").write_text(json.dumps(meta, indent=1))
-        if folder.exists():
-            shutil.rmtree(folder)
-        os.replace(stage, folder)
+        # another run that prepared the same scan meanwhile has put an equal cache in place, which it
+        # may be reading: keep that one
+        if _current_meta(folder, key) is None:
+            shutil.rmtree(folder, ignore_errors=True)
+            try:
+                os.replace(stage, folder)
+            except OSError:
+                if _current_meta(folder, key) is None:
+                    raise
+        shutil.rmtree(stage, ignore_errors=True)
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
         raise
@@ -303,7 +315,9 @@ def _build(scan_path: Path, folder: Path, key: dict, progress: Callable[[str], N
 
 def _write_npz(path: Path, **arrays) -> None:
     """np.savez, atomically (a run stopped while writing leaves no broken file)."""
-    tmp = path.with_name(f".{path.name}.tmp.npz")
+    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp.npz", dir=path.parent)  # one per writer
+    os.close(fd)
+    tmp = Path(name)
     try:
         np.savez(tmp, **arrays)
         os.replace(tmp, path)

@@ -134,6 +134,23 @@ def test_a_changed_scan_file_is_prepared_again(scenes, tmp_path):
     np.testing.assert_allclose(np.sort(second.subset(slice(None)).xyz[:, 0]), np.sort(scan.xyz[:, 0]), atol=2e-6)
 
 
+def test_a_run_that_prepared_the_same_scan_meanwhile_keeps_its_cache(scenes, tmp_path):
+    """Two runs started together on one output folder both prepare the scan: the second to finish
+    keeps the first's cache (which the first has open) instead of replacing it under it."""
+    from rgbd_gt.prepared import _build, file_key
+
+    path = scenes / "s5" / "scan.ply"
+    first = prepare_scan(path, tmp_path / "cache")
+    meta = first.folder / "meta.json"
+    stamp, xyz = meta.stat().st_mtime_ns, np.array(first.arrays["xyz"])
+    _build(path, first.folder, file_key(path), lambda msg: None)  # the other run, which began before this one finished
+    assert meta.stat().st_mtime_ns == stamp
+    assert [p.name for p in (tmp_path / "cache").iterdir()] == [first.folder.name]  # its staging folder is gone
+    np.testing.assert_array_equal(first.arrays["xyz"], xyz)
+    first.board(BoardSpec(9, 6, 0.05), path)
+    assert [p.name for p in first.folder.glob(".*")] == []  # the board written through a temporary file of its own
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
