@@ -679,7 +679,8 @@ def write_report(path: Path, results: list[Result], seed: int, seconds: float) -
         lines.append(f"| {kind} | {len(rs)} | {sum(r.trial.invalid for r in rs)} | {sum(bool(r.problems) for r in rs)} |")
     lines += ["", "What a trial is: one command line of the seeds (a small synthetic scene with exact truth, and the "
               "small real files of ../shared/data: a PJLab LiDAR frame with its calibration text and photo, two E57 "
-              "files, a checkerboard photo) with one change: a file mutated (truncated, bytes changed, emptied, random "
+              "files, a checkerboard photo; `run` on a config of one scan and on a site of two, the synthetic scan with its board "
+              "and the LiDAR frame with its rig's extrinsic, each trial on its own copy) with one change: a file mutated (truncated, bytes changed, emptied, random "
               "or another format's bytes, a number, a header count or an E57 XML value replaced with its page checksum "
               "made right, a YAML value of another type, a line removed), an odd argument (NaN, inf, negative, huge, "
               "not a number, an unknown or a missing option, an unknown command) or an odd output path (an existing "
