@@ -177,6 +177,49 @@ def test_pick_errors(tmp_path):
     assert not (tmp_path / "p.csv").exists()
 
 
+def test_pick_server_answers_bad_requests_with_errors(tmp_path):
+    """Requests the page never sends (made by hand, or by another tool): an error answer each,
+    no traceback in the terminal, and no pair that is not finite saved."""
+    import json
+    import urllib.error
+    import urllib.request
+
+    scene = tmp_path / "scene"
+    assert run_cli("synth", scene, "--size", "small", "--seed", 7).returncode == 0
+    out = tmp_path / "p.csv"
+    proc, url = _start_pick("--scan", scene / "scan.ply", "--image", scene / "photo.png", "--camera", scene / "camera.yaml",
+                            "-o", out)
+
+    def ask(path: str, body: bytes | None = None, headers: dict | None = None) -> tuple[int, dict]:
+        request = urllib.request.Request(url + path, data=body, headers=headers or {})
+        try:
+            with urllib.request.urlopen(request, timeout=30) as r:
+                return r.status, json.loads(r.read())
+        except urllib.error.HTTPError as exc:
+            return exc.code, json.loads(exc.read())
+
+    try:
+        pair = {"u": 1, "v": 2, "x": 0.5, "y": 1.5, "z": 1.0}
+        for body in ([1], {"pairs": "abc"}, {"pairs": [1, 2]}, {"pairs": [{**pair, "u": "a"}]}, {"pairs": [{**pair, "x": True}]}):
+            for api in ("solve", "save"):
+                code, answer = ask(f"api/{api}", json.dumps(body).encode())
+                assert code == 200 and answer["ok"] is False and "pair" in answer["error"], (api, body, answer)
+        code, answer = ask("api/save", b'{"pairs": [{"u": 1e400, "v": 2, "x": 0.5, "y": 1.5, "z": 1.0}]}')
+        assert answer["error"] == "pair 1: u must be a finite number, got inf"
+        assert ask("api/solve", b"\xff\xfe")[0] == 400
+        assert ask("api/solve", b"{}", {"Content-Length": "abc"})[0] == 400
+        for query in ("x=inf&y=1", "x=nan&y=1", "x=1", "x=a&y=2"):
+            assert ask(f"api/point?{query}")[0] == 400, query
+        assert ask("api/point?x=10&y=10")[0] == 200
+        assert ask("api/quit", b"{}")[1] == {"ok": True}
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0 and proc.stderr.read() == ""
+    assert not out.exists()
+
+
 def test_click_views_know_their_points(tmp_path):
     """Each scan image (grid, panorama from the origin, view at a pose) gives, under a pixel, a
     scan point that the view itself put there (no browser needed)."""

@@ -7,6 +7,7 @@ point under a click, the live pose of the pairs so far and its overlay, and save
 from __future__ import annotations
 
 import json
+import math
 import threading
 from dataclasses import dataclass, field
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -76,6 +77,21 @@ class PickSession:
         return out
 
 
+def request_pairs(data) -> list[dict]:
+    """The pairs of a request's JSON body ({"pairs": [{u, v, x, y, z, label}, ...]}), each
+    coordinate a finite number or null (a pair half made); InputError otherwise. The page sends
+    only such; anything else is a request made by hand, answered with an error, not a traceback."""
+    pairs = data.get("pairs", []) if isinstance(data, dict) else None
+    if not isinstance(pairs, list) or not all(isinstance(p, dict) for p in pairs):
+        raise InputError("the request needs pairs: a list of {u, v, x, y, z}")
+    for k, p in enumerate(pairs, 1):
+        for c in "uvxyz":
+            v = p.get(c)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)):
+                raise InputError(f"pair {k}: {c} must be a finite number, got {v!r}")
+    return pairs
+
+
 def _handler(session: PickSession, stop: threading.Event):
     page = resources.files("rgbd_gt.init") / "pick_page"
     photo_jpg = cv2.imencode(".jpg", cv2.cvtColor(session.photo, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 92])[1].tobytes()
@@ -112,24 +128,27 @@ def _handler(session: PickSession, stop: threading.Event):
             elif url.path == "/api/point":
                 q = parse_qs(url.query)
                 try:
-                    p = session.view.point_at(float(q["x"][0]), float(q["y"][0]))
+                    x, y = float(q["x"][0]), float(q["y"][0])
                 except (KeyError, ValueError):
-                    return self._json({"error": "x and y are needed"}, 400)
+                    x = y = math.nan
+                if not (math.isfinite(x) and math.isfinite(y)):
+                    return self._json({"error": "x and y are needed, as finite numbers"}, 400)
+                p = session.view.point_at(x, y)
                 self._json({"xyz": None if p is None else p.tolist()})
             else:
                 self._json({"error": "not found"}, 404)
 
         def do_POST(self) -> None:
-            try:
+            try:  # a bad length, bytes that are not UTF-8 or text that is not JSON
                 data = json.loads(self.rfile.read(int(self.headers.get("Content-Length", 0))) or b"{}")
-            except json.JSONDecodeError:
+            except ValueError:
                 return self._json({"error": "not JSON"}, 400)
             url = urlparse(self.path)
             try:
                 if url.path == "/api/solve":
-                    self._json({"ok": True, **session.solve(data.get("pairs", []))})
+                    self._json({"ok": True, **session.solve(request_pairs(data))})
                 elif url.path == "/api/save":
-                    pairs = [p for p in data.get("pairs", []) if all(p.get(c) is not None for c in "uvxyz")]
+                    pairs = [p for p in request_pairs(data) if all(p.get(c) is not None for c in "uvxyz")]
                     write_pairs(session.output, pairs)
                     session.saved = len(pairs)
                     self._json({"ok": True, "rows": len(pairs), "path": str(session.output)})
