@@ -145,9 +145,11 @@ def connect_ray(address: str):
 
     if address != "auto":  # Ray retries an unreachable address for minutes: ask it once first
         host, _, port = address.split("://")[-1].rpartition(":")
+        if not (port.isdigit() and 0 < int(port) < 65536):
+            raise InputError(f"--ray {address!r}: give HOST:PORT of the cluster's head (a port 1-65535), or auto")
         try:
             socket.create_connection((host or "127.0.0.1", int(port)), timeout=10).close()
-        except (OSError, ValueError) as exc:
+        except OSError as exc:
             raise InputError(f"--ray {address}: no Ray cluster answers there ({exc}); give HOST:PORT of its head, "
                              "or auto") from None
     try:

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import run_cli
+from conftest import assert_one_line_error, run_cli
 from rgbd_gt.init.detect import BoardSpec
 from rgbd_gt.init.run import board_in_scan
 from rgbd_gt.io import load_scan, read_camera, read_pose, save_scan
@@ -181,6 +181,8 @@ def test_site_runs_the_same_locally_in_workers_and_on_ray(scenes, tmp_path):
         outs[name] = tmp_path / f"out_{name}"
 
     port = _free_port()
+    assert_one_line_error(run_cli("run", tmp_path / "local.yaml", "--ray", "127.0.0.1:99999"), "give HOST:PORT", "port 1-65535")
+    assert_one_line_error(run_cli("run", tmp_path / "local.yaml", "--ray", f"127.0.0.1:{port}"), "no Ray cluster answers there")
     temp = Path(f"/tmp/rgbd-gt-ray-{os.getpid()}")
     ray_cli = [sys.executable, "-m", "ray.scripts.scripts"]
     env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
