@@ -87,6 +87,11 @@ def test_run_bad_config(tmp_path):
     assert_one_line_error(run_cli("run", tmp_path / "noinit.yaml"), "noinit.yaml", "init: no pose file", "rig.yaml")
     (tmp_path / "nocorners.yaml").write_text("scan: x.ply\ncamera: c.yaml\nphotos: [a.png]\nboard:\n  points: corners.csv\n")
     assert_one_line_error(run_cli("run", tmp_path / "nocorners.yaml"), "board.points: no corners file", "corners.csv")
+    import torch
+
+    if not torch.cuda.is_available():  # one error before any work, not every photo failing on it
+        (tmp_path / "cuda.yaml").write_text("scan: x.ply\ncamera: c.yaml\nphotos: [a.png]\ndevice: cuda\n")
+        assert_one_line_error(run_cli("run", tmp_path / "cuda.yaml"), "cuda.yaml", "device: cuda, but this machine has no CUDA")
     # the corners, as every path of a config, are found beside the config, wherever the run starts
     from rgbd_gt.config import load_config
     from rgbd_gt.workflow import RunConfig, resolve
