@@ -144,13 +144,19 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[list[ScanJob], Path]:
         return Path(os.path.normpath(p))
 
     def photos_of(patterns: list[str]) -> list[Path]:
-        found: list[Path] = []
+        found: dict[Path, None] = {}  # in order, once each: patterns may overlap
         for pattern in patterns:
             hits = sorted(glob.glob(str(base / pattern)))
             if not hits:
                 raise InputError(f"no photo matches '{pattern}'", config_path)
-            found += [norm(Path(h)) for h in hits]
-        return found
+            found.update((norm(Path(h)), None) for h in hits)
+        stems: dict[str, Path] = {}
+        for photo in found:  # a photo's outputs are OUTPUT/<stem>/: a second one there would resume the first's pose
+            if photo.stem in stems:
+                raise InputError(f"photos {stems[photo.stem]} and {photo} would write to the same folder "
+                                 f"'{photo.stem}': rename one, or list them under scans: with names", config_path)
+            stems[photo.stem] = photo
+        return list(found)
 
     def existing(path: str, key: str, kind: str) -> Path:
         """The config's file `path`, checked before any scan is prepared."""
@@ -329,18 +335,29 @@ def _view(prepared, index: np.ndarray, T_init: np.ndarray):
 
 def initial_pose(photo: Path, image: np.ndarray, prepared, camera, job: ScanJob, path: Path) -> tuple[np.ndarray, dict]:
     """The photo's initial pose file `path`: read when it exists, else written from job.init (a
-    pose file shared by the photos) or made from job.board (found once per scan, `scan_board`)."""
+    pose file shared by the photos) or made from job.board (found once per scan, `scan_board`).
+    It records the photo's SHA-1: a rerun whose photo under that name has other content is an
+    error, not the old photo's pose resumed."""
     from rgbd_gt.init.run import detect_photo_board, init_from_board
     from rgbd_gt.io import read_pose, write_pose
+    from rgbd_gt.prepared import file_key
 
-    if not path.exists() and job.init is not None:
+    sha1 = file_key(photo)["sha1"]
+    if path.exists():
+        T, meta = read_pose(path)
+        if meta.get("photo_sha1") not in (None, sha1):  # None: written before photos were recorded
+            raise InputError(f"{path.parent} holds outputs made from other content ({meta.get('photo')}, SHA-1 "
+                             f"{str(meta['photo_sha1'])[:12]}): remove that folder to redo this photo", photo)
+        return T, meta
+    if job.init is not None:
         T, meta = read_pose(job.init)
-        write_pose(path, T, **{**meta, "method": f"the config's init ({job.init})"})
-    elif not path.exists():
+        meta["method"] = f"the config's init ({job.init})"
+    else:
         spec = board_spec(job.board)
         found = detect_photo_board(image, spec, photo)
         r = init_from_board(scan_board(prepared, job.board), image, camera, spec, found)
-        write_pose(path, r.T_cam_from_scan, **r.pose_meta())
+        T, meta = r.T_cam_from_scan, r.pose_meta()
+    write_pose(path, T, **{**meta, "photo": str(photo), "photo_sha1": sha1})
     return read_pose(path)
 
 

@@ -72,6 +72,18 @@ def test_run_two_photos_then_resume(tmp_path):
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps  # nothing recomputed
     rows = {r["photo"]: r for r in csv.DictReader(open(tmp_path / "out" / "summary.csv"))}
     assert rows["photo.png"]["skipped"] == "init refine depth qa overlay"
+    # another photo under a name already done is not given that photo's pose; nor is a second
+    # photo of the same name in another folder
+    (scene / "photo.png").write_bytes((scene / "photo_1.png").read_bytes())
+    again = run_cli("run", tmp_path / "run.yaml")
+    rows = {r["photo"]: r for r in csv.DictReader(open(tmp_path / "out" / "summary.csv"))}
+    assert rows["photo.png"]["status"] == "failed" and "holds outputs made from other content" in rows["photo.png"]["error"]
+    assert rows["photo_1.png"]["verdict"] == "ok"
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / "photo_1.png").write_bytes(b"")
+    config["photos"].append("b/photo*.png")
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump(config))
+    assert_one_line_error(run_cli("run", tmp_path / "run.yaml"), "would write to the same folder 'photo_1'")
 
 
 def test_run_bad_config(tmp_path):
