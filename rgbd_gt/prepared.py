@@ -54,6 +54,7 @@ class PreparedScan:
     arrays: dict[str, np.ndarray]
     blocks: Blocks
     angular_step: float | None  # radians between neighbouring points seen from the scanner (`scan_step`)
+    sha1: str = ""  # of the scan file it was prepared from
 
     def __len__(self) -> int:
         return len(self.arrays["xyz"])
@@ -240,7 +241,7 @@ def _open(folder: Path, scan_path: Path, meta: dict) -> PreparedScan:
     with np.load(folder / "blocks.npz") as z:
         blocks = Blocks(z["start"], z["lo"], z["hi"])
     return PreparedScan(folder, scan_path, np.array(meta["centre"]), np.array(meta["origins"]).reshape(-1, 3), arrays,
-                        blocks, meta.get("angular_step"))
+                        blocks, meta.get("angular_step"), meta["key"]["sha1"])
 
 
 def _build(scan_path: Path, folder: Path, key: dict, progress: Callable[[str], None]) -> None:

@@ -10,7 +10,7 @@ import numpy as np
 import yaml
 
 from conftest import assert_one_line_error, run_cli
-from rgbd_gt.io import read_pose
+from rgbd_gt.io import load_scan, read_pose, save_scan
 from rgbd_gt.io.depth_file import read_depth_exr
 from rgbd_gt.pose import rotation_error_deg, translation_error_m
 
@@ -77,8 +77,16 @@ def test_run_two_photos_then_resume(tmp_path):
     (scene / "photo.png").write_bytes((scene / "photo_1.png").read_bytes())
     again = run_cli("run", tmp_path / "run.yaml")
     rows = {r["photo"]: r for r in csv.DictReader(open(tmp_path / "out" / "summary.csv"))}
-    assert rows["photo.png"]["status"] == "failed" and "holds outputs made from other content" in rows["photo.png"]["error"]
+    assert rows["photo.png"]["status"] == "failed" and "holds outputs made from another photo" in rows["photo.png"]["error"]
     assert rows["photo_1.png"]["verdict"] == "ok"
+    moved = load_scan(scene / "scan.e57")  # a scan registered again: the poses of the old one do not hold
+    moved.xyz = moved.xyz + [0.01, 0.0, 0.0]
+    save_scan(scene / "moved.ply", moved)
+    config["scan"] = "scene/moved.ply"
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump(config))
+    assert run_cli("run", tmp_path / "run.yaml").returncode == 1  # every photo failed
+    rows = {r["photo"]: r for r in csv.DictReader(open(tmp_path / "out" / "summary.csv"))}
+    assert "holds outputs made from another scan" in rows["photo_1.png"]["error"], rows["photo_1.png"]
     (tmp_path / "b").mkdir()
     (tmp_path / "b" / "photo_1.png").write_bytes(b"")
     config["photos"].append("b/photo*.png")
