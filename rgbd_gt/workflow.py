@@ -336,17 +336,17 @@ def _view(prepared, index: np.ndarray, T_init: np.ndarray):
 def initial_pose(photo: Path, image: np.ndarray, prepared, camera, job: ScanJob, path: Path) -> tuple[np.ndarray, dict]:
     """The photo's initial pose file `path`: read when it exists, else written from job.init (a
     pose file shared by the photos) or made from job.board (found once per scan, `scan_board`).
-    It records the SHA-1 of the photo and of the scan: a rerun whose photo under that name, or
-    whose scan, has other content is an error, not the old pose resumed."""
+    It records the SHA-1 of the photo, the scan and the camera file: a rerun where one of them
+    has other content is an error, not the old pose resumed."""
     from rgbd_gt.init.run import detect_photo_board, init_from_board
     from rgbd_gt.io import read_pose, write_pose
     from rgbd_gt.prepared import file_key
 
     made_from = {"photo": str(photo), "photo_sha1": file_key(photo)["sha1"], "scan": str(prepared.source),
-                 "scan_sha1": prepared.sha1}
+                 "scan_sha1": prepared.sha1, "camera": str(job.camera), "camera_sha1": file_key(job.camera)["sha1"]}
     if path.exists():
         T, meta = read_pose(path)
-        for kind in ("photo", "scan"):  # no SHA-1 recorded: written before they were
+        for kind in ("photo", "scan", "camera"):  # no SHA-1 recorded: written before they were
             if meta.get(f"{kind}_sha1") not in (None, made_from[f"{kind}_sha1"]):
                 raise InputError(f"{path.parent} holds outputs made from another {kind} ({meta.get(kind)}, SHA-1 "
                                  f"{str(meta[kind + '_sha1'])[:12]}): remove that folder to redo this photo", photo)

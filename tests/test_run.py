@@ -87,6 +87,13 @@ def test_run_two_photos_then_resume(tmp_path):
     assert run_cli("run", tmp_path / "run.yaml").returncode == 1  # every photo failed
     rows = {r["photo"]: r for r in csv.DictReader(open(tmp_path / "out" / "summary.csv"))}
     assert "holds outputs made from another scan" in rows["photo_1.png"]["error"], rows["photo_1.png"]
+    camera = yaml.safe_load((scene / "camera.yaml").read_text())
+    (scene / "camera.yaml").write_text(yaml.safe_dump({**camera, "fx": camera["fx"] * 1.01}))  # calibrated again
+    config["scan"] = "scene/scan.e57"
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump(config))
+    run_cli("run", tmp_path / "run.yaml")
+    rows = {r["photo"]: r for r in csv.DictReader(open(tmp_path / "out" / "summary.csv"))}
+    assert "holds outputs made from another camera" in rows["photo_1.png"]["error"], rows["photo_1.png"]
     (tmp_path / "b").mkdir()
     (tmp_path / "b" / "photo_1.png").write_bytes(b"")
     config["photos"].append("b/photo*.png")
