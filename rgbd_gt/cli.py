@@ -760,11 +760,14 @@ def run_workflow(
     if ray_address is not None and workers != 1:
         raise InputError("--workers is for local runs; on Ray every photo is a task (give one or the other)")
     cfg = load_config(RunConfig, config)  # checked there
-    if cfg.device == "cuda" and ray_address is None:  # on Ray, the nodes that run the photos may have one
-        import torch
+    if ray_address is None:  # on Ray, the nodes that run the photos may have CUDA where this one has none
+        from rgbd_gt.align.refine import resolve_device
 
-        if not torch.cuda.is_available():
-            raise InputError("device: cuda, but this machine has no CUDA device (auto takes it when there is one)", config)
+        try:
+            resolve_device(cfg.device)
+        except InputError:
+            raise InputError("device: cuda, but this machine has no CUDA device (auto takes it when there is one)",
+                             config) from None
     jobs, out_dir = resolve(config, cfg)
     inputs = [config] + [p for j in jobs for p in (j.scan, j.camera, *j.photos)]
     # checked only: each step commits its own files, so that a rerun resumes where one stopped

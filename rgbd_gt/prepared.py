@@ -25,6 +25,7 @@ import numpy as np
 
 from rgbd_gt.camera import Camera
 from rgbd_gt.errors import require_file
+from rgbd_gt.io.atomic import atomic_output
 from rgbd_gt.io.scan import Scan
 from rgbd_gt.render.blocks import VIEW_MARGIN, Blocks, block_order, block_points, blocks_in_view, points_in_view
 
@@ -121,8 +122,9 @@ class PreparedScan:
             near = board_neighbourhood(local, sb.corners, spec.square)
             board = BoardInScan(sb.corners, sb.ids, local.xyz[near], colors_to_gray(scan_colors(local, scan_path)[near]),
                                 "board found in the scan's virtual views", sb.plane_rms_m, sb)
-        _write_npz(path, corners=board.corners, ids=board.ids, near_xyz=board.near_xyz, near_gray=board.near_gray,
-                   method=np.array(board.method), plane_rms_m=np.array(board.plane_rms_m or np.nan))
+        with atomic_output(path) as tmp:  # a temporary file of its own: two runs may write it at once
+            np.savez(tmp, corners=board.corners, ids=board.ids, near_xyz=board.near_xyz, near_gray=board.near_gray,
+                     method=np.array(board.method), plane_rms_m=np.array(board.plane_rms_m or np.nan))
         return board
 
 
@@ -312,17 +314,3 @@ def _build(scan_path: Path, folder: Path, key: dict, progress: Callable[[str], N
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
         raise
-
-
-def _write_npz(path: Path, **arrays) -> None:
-    """np.savez, atomically (a run stopped while writing leaves no broken file)."""
-    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp.npz", dir=path.parent)  # one per writer
-    os.close(fd)
-    tmp = Path(name)
-    try:
-        np.savez(tmp, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-
