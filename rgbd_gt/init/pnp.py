@@ -135,6 +135,12 @@ def board_pose(img_corners: np.ndarray, img_ids: np.ndarray, scan_corners: np.nd
     return best
 
 
+def _fits(n: int, threshold_px: float) -> str:
+    # hand picks on a photo of several megapixels are often 10-40 px off: say which knob to turn
+    return (f"puts 4 or more of the {n} pairs within {threshold_px:g} px of their pixels "
+            f"(--ransac-px: hand picks on a large photo may need 10-40)")
+
+
 def pnp_ransac(obj: np.ndarray, img: np.ndarray, camera: Camera, threshold_px: float = 4.0) -> tuple[np.ndarray, np.ndarray]:
     """RANSAC PnP for hand-picked correspondences. Returns (T, inlier mask)."""
     dist = np.asarray(camera.distortion, float)
@@ -145,7 +151,7 @@ def pnp_ransac(obj: np.ndarray, img: np.ndarray, camera: Camera, threshold_px: f
     except cv2.error:
         ok, inl = False, None
     if not ok or inl is None or len(inl) < 4:
-        raise InputError("RANSAC PnP found no consistent pose in the correspondences")
+        raise InputError("RANSAC PnP found no pose that " + _fits(len(obj), threshold_px))
     mask = np.zeros(len(obj), bool)
     mask[inl.ravel()] = True
     rvec, tvec = cv2.solvePnPRefineLM(obj[mask], img[mask], camera.K, dist, rvec, tvec)
@@ -186,5 +192,5 @@ def estimate_focal(obj: np.ndarray, img: np.ndarray, camera: Camera,
             cb = cost(b)[0]
     _, T, mask, cam = cost((lo + hi) / 2)
     if T is None:
-        raise InputError("no focal length gives a consistent pose for the correspondences")
+        raise InputError("no focal length gives a pose that " + _fits(len(obj), threshold_px))
     return cam, T, mask
