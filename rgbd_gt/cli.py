@@ -223,7 +223,7 @@ def init_pose(
     marker: Optional[float] = typer.Option(None, "--marker", help="ChArUco marker side in metres (default 0.75 x square)."),
     estimate_focal: bool = typer.Option(False, "--estimate-focal", help="With --correspondences: also estimate the focal length (fx = fy; principal point from the camera file, no distortion), for photos without calibration."),
     camera_out: Optional[Path] = typer.Option(None, "--camera-out", help="With --estimate-focal: write the camera with the estimated focal here (YAML), for refine and export-depth."),
-    ransac_px: float = typer.Option(4.0, "--ransac-px", help="With --correspondences: a pair farther than this (pixels) from where the pose puts its scan point is an outlier."),
+    ransac_px: float = typer.Option(4.0, "--ransac-px", help="With --correspondences: a pair farther than this (pixels) from where the pose puts its scan point is an outlier. Hand picks on a photo of several megapixels may need 10-40."),
     report: Optional[Path] = typer.Option(None, "--report", help="Folder for the photo with its corners or picks (used / dropped) and their reprojections, and the virtual scan view."),
     cache: Optional[Path] = typer.Option(None, "--cache", help=CACHE_HELP + " The board found in the scan is kept there too: the next photo of this scan skips the search."),
 ) -> None:
