@@ -333,23 +333,43 @@ def _view(prepared, index: np.ndarray, T_init: np.ndarray):
     return scan, scan_colors(scan, prepared.source, to_align=True)
 
 
+def made_from(prepared, files: dict[str, Path]) -> dict:
+    """The path and SHA-1 of the scan and of each of `files` ({kind: path}) that outputs are made
+    from, as recorded beside them."""
+    from rgbd_gt.prepared import file_key
+
+    made = {"scan": str(prepared.source), "scan_sha1": prepared.sha1}
+    for kind, path in files.items():
+        made |= {kind: str(path), f"{kind}_sha1": file_key(path)["sha1"]}
+    return made
+
+
+def made_from_other(recorded: dict, made: dict) -> str | None:
+    """The first kind of input whose SHA-1 in `recorded` differs from `made`'s (`made_from`), or
+    None. No SHA-1 recorded is no difference: outputs written before they were are resumed."""
+    return next((k.removesuffix("_sha1") for k in made if k.endswith("_sha1") and recorded.get(k) not in (None, made[k])), None)
+
+
 def initial_pose(photo: Path, image: np.ndarray, prepared, camera, job: ScanJob, path: Path) -> tuple[np.ndarray, dict]:
     """The photo's initial pose file `path`: read when it exists, else written from job.init (a
     pose file shared by the photos) or made from job.board (found once per scan, `scan_board`).
-    It records the SHA-1 of the photo, the scan and the camera file: a rerun where one of them
-    has other content is an error, not the old pose resumed."""
+    It records the SHA-1 of the photo, the scan, the camera file and the init or board corners
+    file: a rerun where one of them has other content is an error, not the old pose resumed."""
     from rgbd_gt.init.run import detect_photo_board, init_from_board
     from rgbd_gt.io import read_pose, write_pose
-    from rgbd_gt.prepared import file_key
 
-    made_from = {"photo": str(photo), "photo_sha1": file_key(photo)["sha1"], "scan": str(prepared.source),
-                 "scan_sha1": prepared.sha1, "camera": str(job.camera), "camera_sha1": file_key(job.camera)["sha1"]}
+    files = {"photo": photo, "camera": job.camera}
+    if job.init is not None:
+        files["init"] = job.init
+    elif job.board.points:
+        files["board_points"] = Path(job.board.points)
+    made = made_from(prepared, files)
     if path.exists():
         T, meta = read_pose(path)
-        for kind in ("photo", "scan", "camera"):  # no SHA-1 recorded: written before they were
-            if meta.get(f"{kind}_sha1") not in (None, made_from[f"{kind}_sha1"]):
-                raise InputError(f"{path.parent} holds outputs made from another {kind} ({meta.get(kind)}, SHA-1 "
-                                 f"{str(meta[kind + '_sha1'])[:12]}): remove that folder to redo this photo", photo)
+        kind = made_from_other(meta, made)
+        if kind is not None:
+            raise InputError(f"{path.parent} holds outputs made from another {kind.replace('_', ' ')} ({meta.get(kind)}, "
+                             f"SHA-1 {str(meta[kind + '_sha1'])[:12]}): remove that folder to redo this photo", photo)
         return T, meta
     if job.init is not None:
         T, meta = read_pose(job.init)
@@ -359,7 +379,7 @@ def initial_pose(photo: Path, image: np.ndarray, prepared, camera, job: ScanJob,
         found = detect_photo_board(image, spec, photo)
         r = init_from_board(scan_board(prepared, job.board), image, camera, spec, found)
         T, meta = r.T_cam_from_scan, r.pose_meta()
-    write_pose(path, T, **{**meta, **made_from})
+    write_pose(path, T, **{**meta, **made})
     return read_pose(path)
 
 
@@ -392,9 +412,10 @@ def shared_camera(job: ScanJob, prepared, camera, cfg: RunConfig, progress: Call
     from rgbd_gt.io.scan import scan_colors
 
     out = job.out
-    if (out / "camera.yaml").exists():
-        return read_camera(out / "camera.yaml")
-    estimates = []
+    made = made_from(prepared, {"camera": job.camera})
+    if (out / "camera.yaml").exists() and made_from_other(_json_or_empty(out / "intrinsics.json").get("made_from", {}), made) is None:
+        return read_camera(out / "camera.yaml")  # else refined again: the camera file or the scan has changed
+    estimates, errors = [], []
     for photo in job.photos:
         progress(f"{photo.name}: camera")
         try:
@@ -405,12 +426,13 @@ def shared_camera(job: ScanJob, prepared, camera, cfg: RunConfig, progress: Call
             scan = prepared.view(camera, T_init)
             inputs = RefineInputs(scan.xyz, scan_colors(scan, prepared.source, to_align=True), image, camera, T_init, None, scan, init_meta)
             r = make_aligner(inputs, cfg.refine, cfg.device).refine(T_init)
-        except InputError:
-            continue  # the photo's own run reports why
+        except InputError as exc:
+            errors.append(str(exc))  # and the photo's own run reports it
+            continue
         if r.intrinsics is not None and np.isfinite(r.intrinsics_sigma[0]):
             estimates.append({"photo": photo.name, "q": r.intrinsics.tolist(), "sigma": r.intrinsics_sigma})
     if not estimates:
-        raise InputError("no photo gave a camera estimate (refine_intrinsics): check the boards and the camera file")
+        raise InputError("no photo gave a camera estimate (refine_intrinsics): " + (errors[0] if errors else "check the boards and the camera file"))
     q = np.array([e["q"] for e in estimates])
     w = 1 / np.square(np.array([e["sigma"] for e in estimates]))  # inf sigma (not refined): weight 0
     for e in estimates:  # JSON has no inf: null where not refined
@@ -422,8 +444,15 @@ def shared_camera(job: ScanJob, prepared, camera, cfg: RunConfig, progress: Call
     with atomic_output(out / "intrinsics.json") as tmp:
         tmp.write_text(json.dumps({"mode": cfg.refine.refine_intrinsics, "photos": estimates, "shared": shared.tolist(),
                                    "shared_sigma": [None if not np.isfinite(v) else float(v) for v in sigma],
-                                   "camera": out.name + "/camera.yaml"}, indent=1))
+                                   "camera": out.name + "/camera.yaml", "made_from": made}, indent=1))
     return result
+
+
+def _json_or_empty(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
 
 
 def write_summary(path: Path, results: list[PhotoResult]) -> None:

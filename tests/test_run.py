@@ -1,7 +1,9 @@
 """rgbd-gt run: the whole workflow on a synthetic scene with two photos, resumable."""
 
 import csv
+import hashlib
 import os
+import shutil
 import subprocess
 import sys
 
@@ -150,6 +152,15 @@ def test_run_refines_one_camera_for_all_photos(tmp_path):
         gt = read_pose(scene / truth)[0]
         assert translation_error_m(T, gt) < 0.005 and rotation_error_deg(T, gt) < 0.05
         assert (tmp_path / "out" / photo / "depth.exr").exists()
+    # the camera calibrated again: the photos made with the old one say so, and once removed
+    # they are redone with a camera refined again from the new file, not the old shared one
+    (scene / "camera_off.yaml").write_text((scene / "camera_off.yaml").read_text() + "# calibrated again\n")
+    assert_one_line_error(run_cli("run", tmp_path / "run.yaml"), "no photo gave a camera estimate", "made from another camera")
+    for photo in ("photo", "photo_1"):
+        shutil.rmtree(tmp_path / "out" / photo)
+    assert run_cli("run", tmp_path / "run.yaml").returncode == 0
+    made = __import__("json").loads((tmp_path / "out" / "intrinsics.json").read_text())["made_from"]
+    assert made["camera_sha1"] == hashlib.sha1((scene / "camera_off.yaml").read_bytes()).hexdigest()
 
 
 def test_run_on_a_real_lidar_frame_with_the_rigs_extrinsic(tmp_path):
@@ -163,7 +174,9 @@ def test_run_on_a_real_lidar_frame_with_the_rigs_extrinsic(tmp_path):
     from rgbd_gt.pose import transform_points
 
     folder = _need("lidar_camera") / "pjlab_3"
-    config = {"scan": str(folder / "calib.pcd"), "camera": str(folder / "calib.txt"), "init": str(folder / "calib.txt"),
+    rig = tmp_path / "rig.txt"
+    rig.write_text((folder / "calib.txt").read_text())
+    config = {"scan": str(folder / "calib.pcd"), "camera": str(folder / "calib.txt"), "init": str(rig),
               "photos": [str(folder / "calib.png")], "output": "out"}
     (tmp_path / "run.yaml").write_text(yaml.safe_dump(config))
     proc = run_cli("run", tmp_path / "run.yaml", "--export-failed")
@@ -188,6 +201,11 @@ def test_run_on_a_real_lidar_frame_with_the_rigs_extrinsic(tmp_path):
     np.minimum.at(nearest, px[inside, 1] * 1920 + px[inside, 0], zp[inside])
     have = np.flatnonzero(z.ravel() > 0)
     assert np.mean(np.abs(nearest[have] - z.ravel()[have]) < 1e-3) > 0.99
+    # the rig calibrated again: the photo's outputs are not resumed from the old extrinsic
+    rig.write_text(rig.read_text() + "\n")
+    proc = run_cli("run", tmp_path / "run.yaml")
+    row = next(csv.DictReader(open(tmp_path / "out" / "summary.csv")))
+    assert row["status"] == "failed" and "holds outputs made from another init" in row["error"], row
 
 
 def test_run_depth_covers_what_the_refined_pose_sees(tmp_path):

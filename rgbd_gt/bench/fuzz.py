@@ -475,7 +475,8 @@ def make_trial(k: int, tpls: list[dict], seeds: dict[str, Path], root: Path, rng
             name = f"command {argv[0]!r}"
             invalid = True
     elif what == "output":
-        o = [j for j, a in enumerate(argv) if a in ("-o", "--json", "--png16", "--mask", "--report", "--extract-images")]
+        o = [j for j, a in enumerate(argv) if a in ("-o", "--json", "--png16", "--mask", "--report", "--extract-images")
+             and not (a == "--mask" and argv[0] == "refine")]  # refine's --mask is the photo's mask: an input
         how = rng.choice(["existing folder", "under a file", "missing folder", "extension", "an input", "another output"])
         kind = f"output path: {how}"
         j = rng.choice(o) if o else None
