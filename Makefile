@@ -28,6 +28,7 @@ bench: $(STAMP)
 	$(PY) benchmarks/load_large_scan.py
 	$(PY) benchmarks/trust.py
 	$(PY) benchmarks/lidar.py
+	$(PY) -m rgbd_gt.bench.verticals
 	$(PY) benchmarks/intrinsics.py
 	$(PY) benchmarks/big_photo.py
 	$(PY) benchmarks/scale.py
