@@ -99,7 +99,7 @@ def main(argv: list[str] | None = None) -> None:
     from rgbd_gt.io.pcd import read_pcd
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2].parent / "shared" / "data")
+    ap.add_argument("--data", type=Path, default=Path("../shared/data"))
     ap.add_argument("--cases", type=Path, default=Path("bench_out/lidar/cases.json"),
                     help="benchmarks/lidar.py's results: the roll of its nid results too")
     args = ap.parse_args(argv)
