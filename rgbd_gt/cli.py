@@ -615,13 +615,17 @@ def qa_edges(
     chance). The Canny score: how far the scan's Canny edges lie from the photo's (median/mean
     distance in pixels, fraction within 1 px); on busy real photos it is close to chance. Both
     say nothing for a scan too sparse for its splats (a LiDAR sweep): they are then marked
-    unusable (null in --json)."""
+    unusable (null in --json). The verticals check measures geometry alone, sweeps included: how
+    far the pose rolls the photo about its optical axis from upright, the photo's vertical lines
+    (poles, building and door edges) against the scan's own vertical (its pole-like columns,
+    with z roughly up); null where either has too few."""
     from rgbd_gt.io.scan import scan_colors
     from rgbd_gt.io import read_camera, read_pose
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import IMAGE_SUFFIXES, read_image, write_image
     from rgbd_gt.io.outputs import Outputs
     from rgbd_gt.qa.edges import as_json, qa, side_by_side, structural_qa, working_view
+    from rgbd_gt.qa.verticals import photo_segments, verticals_qa
 
     outs = Outputs([scan, image, camera, pose, before])
     staged = outs.file(output, "-o", IMAGE_SUFFIXES)
@@ -647,19 +651,22 @@ def qa_edges(
         if score.scan_edge_pixels == 0:
             raise InputError("no scan edges in view of this pose (no scan points in view?)", pose)
         img, structural = structural_qa(the_scan, colors, photo, cam, T, view=view)
-        result = {**structural.as_dict(), **score.as_dict()}
+        segments = photo_segments(photo, cam)
+        upright = verticals_qa(the_scan.xyz, photo, cam, T, segments=segments)
+        result = {**structural.as_dict(), **score.as_dict(), **upright.as_dict()}
 
-        def row(structural, score) -> str:
-            return f"{structural.summary()}; Canny {score.summary()}"
+        def row(structural, score, upright) -> str:
+            return f"{structural.summary()}; Canny {score.summary()}; verticals {upright.summary()}"
 
-        rows = [("after" if before else "score", row(structural, score))]
+        rows = [("after" if before else "score", row(structural, score, upright))]
         if T_before is not None:
             view_b = working_view(the_scan, colors, photo, cam, T_before)
             _, score_b = qa(the_scan, colors, photo, cam, T_before, view=view_b)
             img_b, structural_b = structural_qa(the_scan, colors, photo, cam, T_before, view=view_b)
+            upright_b = verticals_qa(the_scan.xyz, photo, cam, T_before, segments=segments)
             img = side_by_side(img_b, img)
-            result.update({**structural_b.as_dict("before_"), **score_b.as_dict("before_")})
-            rows.insert(0, ("before", row(structural_b, score_b)))
+            result.update({**structural_b.as_dict("before_"), **score_b.as_dict("before_"), **upright_b.as_dict("before_")})
+            rows.insert(0, ("before", row(structural_b, score_b, upright_b)))
     with outs:
         write_image(staged, img)
         if json_out:

@@ -37,6 +37,11 @@ def test_qa_edges_on_a_synthetic_scene(tmp_path):
     # the structural score: clearly better than chance at the refined pose, and better than at the init
     assert score["edge_ratio"] > 1.25 and score["edge_ratio"] > score["before_edge_ratio"]
     assert score["edge_check_usable"] and score["structural_edge_pixels"] > 1000 and score["canny_usable"]
+    # the room's vertical edges stand upright at the refined pose (its interval holds 0), less so at the init
+    assert score["verticals_usable"] and score["verticals_segments"] >= 8 and score["verticals_poles"] >= 10
+    assert score["verticals_roll_low_deg"] < 0.05 and score["verticals_roll_high_deg"] > -0.05, score
+    assert abs(score["verticals_roll_deg"]) < 0.25, score
+    assert abs(score["before_verticals_roll_deg"]) > abs(score["verticals_roll_deg"]) + 0.2, score
     import cv2
 
     assert cv2.imread(str(tmp_path / "qa.png")).shape == (480, 2 * 640 + 8, 3)
@@ -73,3 +78,6 @@ def test_qa_edges_on_a_sweep_says_its_scores_say_nothing(tmp_path):
     # the Canny distances are those of the splats' discs: not reported as numbers either
     assert not score["canny_usable"] and score["mean_distance_px"] is None and score["scan_edge_pixels"] > 0
     assert "Canny says nothing" in " ".join(proc.stdout.split())
+    # geometry alone still checks it: the photo's poles stand upright at the reference (to 0.2 deg)
+    assert score["verticals_usable"] and abs(score["verticals_roll_deg"]) < 0.5, score
+    assert "verticals roll" in " ".join(proc.stdout.split())

@@ -201,6 +201,8 @@ def test_run_on_a_real_lidar_frame_with_the_rigs_extrinsic(tmp_path):
     np.minimum.at(nearest, px[inside, 1] * 1920 + px[inside, 0], zp[inside])
     have = np.flatnonzero(z.ravel() > 0)
     assert np.mean(np.abs(nearest[have] - z.ravel()[have]) < 1e-3) > 0.99
+    qa = yaml.safe_load((out / "qa.json").read_text())  # geometry checks a sweep: the photo's poles stand upright
+    assert qa["verticals_usable"] and abs(qa["verticals_roll_deg"]) < 0.6 and abs(qa["before_verticals_roll_deg"]) < 0.6, qa
     # the rig calibrated again: the photo's outputs are not resumed from the old extrinsic
     rig.write_text(rig.read_text() + "\n")
     proc = run_cli("run", tmp_path / "run.yaml")

@@ -1,11 +1,11 @@
-"""rgbd_gt.bench.verticals: how upright a pose holds a street photo, against exact synthetic truth
-and on the real PJLab scenes (docs/lidar-method.md, "What the vertical lines say")."""
+"""rgbd_gt.qa.verticals: how upright a pose holds a photo, against exact synthetic truth and on the
+real PJLab scenes (docs/lidar-method.md, "What the vertical lines say about the references")."""
 
 import cv2
 import numpy as np
 import pytest
 
-from rgbd_gt.bench.verticals import photo_segments, residuals_deg, roll_deg, sweep_vertical
+from rgbd_gt.qa.verticals import photo_segments, residuals_deg, roll_deg, scan_vertical, verticals_qa
 from rgbd_gt.camera import Camera
 
 K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
@@ -54,7 +54,7 @@ def test_segments_of_a_photo_and_the_vertical_of_a_sweep():
     poles = [np.array([x, y, -1.8]) + np.outer(rng.uniform(0, 4, 40), true_up) + rng.normal(0, 0.01, (40, 3))
              for x, y in rng.uniform(-25, 25, (12, 2))]
     ground = np.c_[rng.uniform(-30, 30, (20000, 2)), rng.normal(-1.8, 0.02, 20000)]
-    up, dirs = sweep_vertical(np.concatenate(poles + [ground]))
+    up, dirs = scan_vertical(np.concatenate(poles + [ground]), np.zeros(3))
     assert len(dirs) >= 10
     assert np.degrees(np.arccos(np.clip(up @ true_up, -1, 1))) < 0.1
 
@@ -65,15 +65,20 @@ def test_the_real_scenes_references_held_upright():
     traffic lights (which is why no objective can land within 0.2 deg of it there)."""
     from conftest import _need
     from rgbd_gt.io import read_camera, read_pose
+    from rgbd_gt.io.image import read_image
     from rgbd_gt.io.pcd import read_pcd
 
     rolls = {}
     for scene, photo in (("pjlab_2", "calib.jpg"), ("pjlab_3", "calib.png")):
         folder = _need("lidar_camera") / scene
-        image = cv2.imread(str(folder / photo))
+        image = read_image(folder / photo)
         camera = read_camera(folder / "calib.txt", (image.shape[1], image.shape[0]))
-        up, dirs = sweep_vertical(read_pcd(folder / "calib.pcd").xyz)
+        points, T = read_pcd(folder / "calib.pcd").xyz, read_pose(folder / "calib.txt")[0]
+        up, dirs = scan_vertical(points, np.zeros(3))
         assert len(dirs) > 50 and np.degrees(np.arccos(up[2])) < 0.5  # the sensor stands upright
-        Kc = np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1]])
-        rolls[scene] = roll_deg(photo_segments(image, camera), Kc, read_pose(folder / "calib.txt")[0][:3, :3], up)
-    assert abs(rolls["pjlab_3"]) < 0.4 and rolls["pjlab_2"] < -1.0, rolls
+        rolls[scene] = verticals_qa(points, image, camera, T)
+    assert abs(rolls["pjlab_3"].roll) < 0.4 and rolls["pjlab_3"].high < 0.5, rolls
+    assert rolls["pjlab_2"].high < -1.0, rolls
+    assert "from upright" in rolls["pjlab_2"].summary()
+    few = verticals_qa(points[:100], image, camera, T)  # no poles among 100 points: says nothing
+    assert not few.usable and np.isnan(few.roll) and "says nothing" in few.summary()

@@ -1,0 +1,142 @@
+"""Whether a pose holds the photo upright: the photo's near-vertical line segments (poles,
+building, door and vehicle edges) against the scan's own vertical (the median direction of its
+pole-like columns of points), as a rotation about the camera's optical axis. Geometry alone: no
+color, intensity or gray level enters it, so it checks LiDAR sweeps, which the edge scores
+cannot (they are too sparse to draw). Measured on the PJLab scenes: docs/lidar-method.md."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rgbd_gt.camera import Camera
+
+MIN_SEGMENTS, MIN_POLES = 8, 10  # fewer say nothing: the interval of a few segments' median is degrees wide
+
+
+@dataclass
+class VerticalsScore:
+    """roll: the rotation (degrees) about the optical axis, after the pose, that would stand the
+    photo's vertical lines along the scan's vertical (0: upright); low, high: its 95% bootstrap
+    interval over the segments; segments, poles: how many entered. usable is False with fewer than
+    MIN_SEGMENTS segments or MIN_POLES poles (roll and interval nan)."""
+
+    roll: float
+    low: float
+    high: float
+    segments: int
+    poles: int
+    usable: bool = True
+
+    def summary(self) -> str:
+        if not self.usable:
+            return f"says nothing ({self.segments} vertical lines in the photo, {self.poles} poles in the scan)"
+        return (f"roll {self.roll:+.2f} deg (95% {self.low:+.2f} .. {self.high:+.2f}) from upright, "
+                f"{self.segments} lines, {self.poles} poles")
+
+    def as_dict(self, prefix: str = "") -> dict:
+        return {f"{prefix}verticals_roll_deg": self.roll, f"{prefix}verticals_roll_low_deg": self.low,
+                f"{prefix}verticals_roll_high_deg": self.high, f"{prefix}verticals_segments": self.segments,
+                f"{prefix}verticals_poles": self.poles, f"{prefix}verticals_usable": self.usable}
+
+
+def photo_segments(image: np.ndarray, camera: Camera, min_px: float = 40.0, max_tilt_deg: float = 12.0,
+                   max_side: int = 1920) -> np.ndarray:
+    """(n, 4) x1, y1, x2, y2 (the photo's pixels, lens distortion removed) of the line segments
+    (OpenCV's LSD) that are at least `min_px` long and within `max_tilt_deg` of the image's
+    vertical, found on the undistorted photo scaled to at most `max_side` pixels (a 24 MP photo
+    costs what a 2 MP one does). image: (h, w, 3) RGB uint8 of the camera's size."""
+    import cv2
+
+    from rgbd_gt.camera import rescale, undistort_image
+
+    s = min(1.0, max_side / max(camera.width, camera.height))
+    size = (max(1, round(camera.width * s)), max(1, round(camera.height * s)))
+    small = image if s == 1.0 else cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+    gray = cv2.cvtColor(undistort_image(rescale(camera, *size), small), cv2.COLOR_RGB2GRAY)
+    found = cv2.createLineSegmentDetector().detect(gray)[0]
+    seg = np.zeros((0, 4)) if found is None else found.reshape(-1, 4).astype(np.float64)
+    d = seg[:, 2:] - seg[:, :2]
+    tilt = np.degrees(np.arctan2(np.abs(d[:, 0]), np.abs(d[:, 1])))
+    seg = seg[(np.hypot(d[:, 0], d[:, 1]) >= min_px) & (tilt <= max_tilt_deg)]
+    scale = np.tile([camera.width / size[0], camera.height / size[1]], 2)
+    return (seg + 0.5) * scale - 0.5
+
+
+def scan_vertical(points: np.ndarray, centre: np.ndarray, cell: float = 0.25, min_height: float = 2.0,
+                  max_tilt_deg: float = 8.0, reach: float = 40.0) -> tuple[np.ndarray, np.ndarray]:
+    """The scan's vertical (3,), unit, in its own frame (z roughly up, as scanners and vehicles
+    hold it): the median of the directions of its pole-like columns (the points of one `cell` x
+    `cell` metre column within `reach` metres of `centre` (3,) horizontally, spanning at least
+    `min_height` metres, close to a line, within `max_tilt_deg` of z). Also returns those
+    directions (k, 3); none: (0, 0, 1). points: (N, 3) metres."""
+    near = points[np.linalg.norm(points[:, :2] - centre[:2], axis=1) < reach]
+    ij = np.floor((near[:, :2] - centre[:2]) / cell).astype(np.int64) + int(np.ceil(reach / cell))
+    key = ij[:, 0] * (2 * int(np.ceil(reach / cell)) + 1) + ij[:, 1]
+    order = np.argsort(key, kind="stable")
+    near, key = near[order], key[order]
+    starts = np.flatnonzero(np.r_[True, np.diff(key) != 0]) if len(key) else np.zeros(0, np.int64)
+    ends = np.r_[starts[1:], len(key)].astype(np.int64)
+    if not len(starts):
+        return np.array([0.0, 0.0, 1.0]), np.zeros((0, 3))
+    height = np.maximum.reduceat(near[:, 2], starts) - np.minimum.reduceat(near[:, 2], starts)
+    tall = (ends - starts >= 8) & (height >= min_height)
+    dirs = []
+    for a, b in zip(starts[tall], ends[tall]):  # the tall columns: some hundreds
+        q = near[a:b] - near[a:b].mean(axis=0)
+        w, V = np.linalg.eigh(q.T @ q)
+        d = V[:, -1] * np.sign(V[2, -1])
+        if w[1] <= 0.01 * w[2] and d[2] >= np.cos(np.radians(max_tilt_deg)):
+            dirs.append(d)
+    dirs = np.array(dirs).reshape(-1, 3)
+    if not len(dirs):
+        return np.array([0.0, 0.0, 1.0]), dirs
+    up = np.median(dirs, axis=0)
+    return up / np.linalg.norm(up), dirs
+
+
+def residuals_deg(segments: np.ndarray, K: np.ndarray, R: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """(n,) signed angle (degrees) of each segment against the direction, at its midpoint, toward
+    the vanishing point K R up of the vertical. R: (3, 3) camera from scan."""
+    v = K @ (R @ up)
+    mid = (segments[:, :2] + segments[:, 2:]) / 2
+    toward = v[None, :2] - mid * v[2]
+    d = segments[:, 2:] - segments[:, :2]
+    diff = np.degrees(np.arctan2(d[:, 1], d[:, 0]) - np.arctan2(toward[:, 1], toward[:, 0]))
+    return (diff + 90) % 180 - 90
+
+
+def roll_deg(segments: np.ndarray, K: np.ndarray, R: np.ndarray, up: np.ndarray) -> float:
+    """The rotation (degrees) about the optical axis, applied after R, that brings the segments'
+    median residual (`residuals_deg`) to zero: how far R is rolled from upright."""
+    import cv2
+
+    lo, hi = -10.0, 10.0  # the median residual falls as the roll grows
+    for _ in range(40):
+        mid = (lo + hi) / 2
+        Rz = cv2.Rodrigues(np.array([0.0, 0.0, np.radians(mid)]))[0]
+        lo, hi = (mid, hi) if np.median(residuals_deg(segments, K, Rz @ R, up)) > 0 else (lo, mid)
+    return (lo + hi) / 2
+
+
+def roll_interval(segments: np.ndarray, K: np.ndarray, R: np.ndarray, up: np.ndarray, boots: int = 400,
+                  seed: int = 0) -> tuple[float, float]:
+    """95% bootstrap interval (degrees) of `roll_deg` over the segments."""
+    rng = np.random.default_rng(seed)
+    spread = [roll_deg(segments[rng.integers(0, len(segments), len(segments))], K, R, up) for _ in range(boots)]
+    return float(np.percentile(spread, 2.5)), float(np.percentile(spread, 97.5))
+
+
+def verticals_qa(points: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray, boots: int = 200,
+                 segments: np.ndarray | None = None) -> VerticalsScore:
+    """How far pose T (4, 4, camera from scan) rolls the photo (H, W, 3 RGB uint8) from upright
+    against the scan's points (N, 3) in view. `segments` (`photo_segments`) when already found."""
+    seg = photo_segments(photo, camera) if segments is None else segments
+    centre = -T[:3, :3].T @ T[:3, 3]
+    up, poles = scan_vertical(points, centre)
+    if len(seg) < MIN_SEGMENTS or len(poles) < MIN_POLES:
+        return VerticalsScore(float("nan"), float("nan"), float("nan"), len(seg), len(poles), usable=False)
+    K = np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1]])
+    low, high = roll_interval(seg, K, T[:3, :3], up, boots)
+    return VerticalsScore(roll_deg(seg, K, T[:3, :3], up), low, high, len(seg), len(poles))
