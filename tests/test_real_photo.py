@@ -45,7 +45,15 @@ def test_pumpA_from_picks_to_a_verdict(e57_dir, tmp_path):
     assert behind > 70, proc.stderr
 
     # refine on a photo that sees the scan from behind cannot be trusted, and is not
-    proc = run_cli("refine", "--scan", scan, "--image", photo, "--camera", PAGE / "cam3346.yaml", "--init", init,
-                   "-o", tmp_path / "refined.yaml")
+    refined = tmp_path / "refined.yaml"
+    proc = run_cli("refine", "--scan", scan, "--image", photo, "--camera", PAGE / "cam3346.yaml", "--init", init, "-o", refined)
     assert proc.returncode == 0, proc.stderr
-    assert yaml.safe_load((tmp_path / "refined.yaml").read_text())["verdict"] == "failed", proc.stdout
+    assert yaml.safe_load(refined.read_text())["verdict"] == "failed", proc.stdout
+    # the pipes and supports say the same by geometry alone: the picked pose holds the photo upright,
+    # refine's tilts it by more than a degree
+    proc = run_cli("qa-edges", "--scan", scan, "--image", photo, "--camera", PAGE / "cam3346.yaml", "--pose", refined,
+                   "--before", init, "-o", tmp_path / "qa.png", "--json", tmp_path / "qa.json")
+    assert proc.returncode == 0, proc.stderr
+    qa = yaml.safe_load((tmp_path / "qa.json").read_text())
+    assert qa["before_verticals_usable"] and abs(qa["before_verticals_roll_deg"]) < 0.5, qa
+    assert qa["verticals_roll_high_deg"] < -1.0, qa
