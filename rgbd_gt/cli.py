@@ -616,9 +616,9 @@ def qa_edges(
     distance in pixels, fraction within 1 px); on busy real photos it is close to chance. Both
     say nothing for a scan too sparse for its splats (a LiDAR sweep): they are then marked
     unusable (null in --json). The verticals check measures geometry alone, sweeps included: how
-    far the pose rolls the photo about its optical axis from upright, the photo's vertical lines
-    (poles, building and door edges) against the scan's own vertical (its pole-like columns,
-    with z roughly up); null where either has too few."""
+    far the pose is rolled about the optical axis off the scan's vertical: the photo's vertical
+    lines (poles, building and door edges, within 12 deg of the image's vertical) against the
+    scan's own (its pole-like columns, with z roughly up); null where either has too few."""
     from rgbd_gt.io.scan import scan_colors
     from rgbd_gt.io import read_camera, read_pose
     from rgbd_gt.io.camera_file import check_image_matches

@@ -1,5 +1,5 @@
 """The verticals check (rgbd_gt/qa/verticals.py) on the PJLab scenes: how far each reference
-extrinsic, and the LiDAR benchmark's nid results, roll the photo from upright. Prints a Markdown
+extrinsic, and the LiDAR benchmark's nid results, are rolled off the sweep's vertical. Prints a Markdown
 table (docs/lidar-method.md, "What the vertical lines say about the references").
 
     python -m rgbd_gt.bench.verticals [--data ../shared/data] [--cases bench_out/lidar/cases.json]

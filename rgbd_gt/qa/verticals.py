@@ -32,7 +32,7 @@ class VerticalsScore:
     def summary(self) -> str:
         if not self.usable:
             return f"says nothing ({self.segments} vertical lines in the photo, {self.poles} poles in the scan)"
-        return (f"roll {self.roll:+.2f} deg (95% {self.low:+.2f} .. {self.high:+.2f}) from upright, "
+        return (f"roll {self.roll:+.2f} deg (95% {self.low:+.2f} .. {self.high:+.2f}) off the scan's vertical, "
                 f"{self.segments} lines, {self.poles} poles")
 
     def as_dict(self, prefix: str = "") -> dict:
@@ -109,7 +109,7 @@ def residuals_deg(segments: np.ndarray, K: np.ndarray, R: np.ndarray, up: np.nda
 
 def roll_deg(segments: np.ndarray, K: np.ndarray, R: np.ndarray, up: np.ndarray) -> float:
     """The rotation (degrees) about the optical axis, applied after R, that brings the segments'
-    median residual (`residuals_deg`) to zero: how far R is rolled from upright."""
+    median residual (`residuals_deg`) to zero: how far R is rolled off the scan's vertical."""
     import cv2
 
     lo, hi = -10.0, 10.0  # the median residual falls as the roll grows
@@ -122,16 +122,23 @@ def roll_deg(segments: np.ndarray, K: np.ndarray, R: np.ndarray, up: np.ndarray)
 
 def roll_interval(segments: np.ndarray, K: np.ndarray, R: np.ndarray, up: np.ndarray, boots: int = 400,
                   seed: int = 0) -> tuple[float, float]:
-    """95% bootstrap interval (degrees) of `roll_deg` over the segments."""
-    rng = np.random.default_rng(seed)
-    spread = [roll_deg(segments[rng.integers(0, len(segments), len(segments))], K, R, up) for _ in range(boots)]
+    """95% bootstrap interval (degrees) of `roll_deg` over the segments. Each residual falls by
+    the roll added (exactly at the principal point, nearly elsewhere), so a resample's roll is the
+    roll plus the median of its residuals there: all resamples in one array operation."""
+    import cv2
+
+    roll = roll_deg(segments, K, R, up)
+    at = residuals_deg(segments, K, cv2.Rodrigues(np.array([0.0, 0.0, np.radians(roll)]))[0] @ R, up)
+    pick = np.random.default_rng(seed).integers(0, len(segments), (boots, len(segments)))
+    spread = roll + np.median(at[pick], axis=1)
     return float(np.percentile(spread, 2.5)), float(np.percentile(spread, 97.5))
 
 
 def verticals_qa(points: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray, boots: int = 200,
                  segments: np.ndarray | None = None) -> VerticalsScore:
-    """How far pose T (4, 4, camera from scan) rolls the photo (H, W, 3 RGB uint8) from upright
-    against the scan's points (N, 3) in view. `segments` (`photo_segments`) when already found."""
+    """How far pose T (4, 4, camera from scan) is rolled off the scan's vertical, by the photo's
+    (H, W, 3 RGB uint8) vertical lines and the scan's points (N, 3) in view. A photo taken rolled
+    by more than about 10 deg has no lines within the tilt limit: it says nothing. `segments` (`photo_segments`) when already found."""
     seg = photo_segments(photo, camera) if segments is None else segments
     centre = -T[:3, :3].T @ T[:3, 3]
     up, poles = scan_vertical(points, centre)
