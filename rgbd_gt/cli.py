@@ -625,7 +625,7 @@ def qa_edges(
     from rgbd_gt.io.image import IMAGE_SUFFIXES, read_image, write_image
     from rgbd_gt.io.outputs import Outputs
     from rgbd_gt.qa.edges import as_json, qa, side_by_side, structural_qa, working_view
-    from rgbd_gt.qa.verticals import photo_segments, verticals_qa
+    from rgbd_gt.qa.verticals import verticals_qa
 
     outs = Outputs([scan, image, camera, pose, before])
     staged = outs.file(output, "-o", IMAGE_SUFFIXES)
@@ -651,8 +651,7 @@ def qa_edges(
         if score.scan_edge_pixels == 0:
             raise InputError("no scan edges in view of this pose (no scan points in view?)", pose)
         img, structural = structural_qa(the_scan, colors, photo, cam, T, view=view)
-        segments = photo_segments(photo, cam)
-        upright = verticals_qa(the_scan.xyz, photo, cam, T, segments=segments)
+        upright, *upright_before = verticals_qa(the_scan.xyz, photo, cam, [T] + ([T_before] if T_before is not None else []))
         result = {**structural.as_dict(), **score.as_dict(), **upright.as_dict()}
 
         def row(structural, score, upright) -> str:
@@ -663,10 +662,9 @@ def qa_edges(
             view_b = working_view(the_scan, colors, photo, cam, T_before)
             _, score_b = qa(the_scan, colors, photo, cam, T_before, view=view_b)
             img_b, structural_b = structural_qa(the_scan, colors, photo, cam, T_before, view=view_b)
-            upright_b = verticals_qa(the_scan.xyz, photo, cam, T_before, segments=segments)
             img = side_by_side(img_b, img)
-            result.update({**structural_b.as_dict("before_"), **score_b.as_dict("before_"), **upright_b.as_dict("before_")})
-            rows.insert(0, ("before", row(structural_b, score_b, upright_b)))
+            result.update({**structural_b.as_dict("before_"), **score_b.as_dict("before_"), **upright_before[0].as_dict("before_")})
+            rows.insert(0, ("before", row(structural_b, score_b, upright_before[0])))
     with outs:
         write_image(staged, img)
         if json_out:

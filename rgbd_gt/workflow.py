@@ -223,7 +223,7 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     from rgbd_gt.io.image import read_image, write_image
     from rgbd_gt.qa.edges import as_json, qa, side_by_side
     from rgbd_gt.qa.overlay import overlay, points_image
-    from rgbd_gt.qa.verticals import photo_segments, verticals_qa
+    from rgbd_gt.qa.verticals import verticals_qa
     from rgbd_gt.render.depth import back_facing_fraction, point_depth, render_depth
     from rgbd_gt.render.points import as_points, is_sweep
 
@@ -302,12 +302,11 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     else:
         img_b, before = qa(scan, colors, image, camera, T_init)
         img_a, after = qa(scan, colors, image, camera, T)
-        segments = photo_segments(image, camera)
-        upright = {**verticals_qa(scan.xyz, image, camera, T, segments=segments).as_dict(),
-                   **verticals_qa(scan.xyz, image, camera, T_init, segments=segments).as_dict("before_")}
+        upright, upright_before = verticals_qa(scan.xyz, image, camera, [T, T_init])
         write_image(d / "qa.png", side_by_side(img_b, img_a))
         with atomic_output(files["qa"]) as tmp:
-            tmp.write_text(as_json({**after.as_dict(), **before.as_dict("before_"), **upright}))
+            tmp.write_text(as_json({**after.as_dict(), **before.as_dict("before_"), **upright.as_dict(),
+                                    **upright_before.as_dict("before_")}))
         lap("qa")
     progress("overlay")
     if files["overlay"].exists():

@@ -76,9 +76,9 @@ def test_the_real_scenes_references_held_upright():
         points, T = read_pcd(folder / "calib.pcd").xyz, read_pose(folder / "calib.txt")[0]
         up, dirs = scan_vertical(points, np.zeros(3))
         assert len(dirs) > 50 and np.degrees(np.arccos(up[2])) < 0.5  # the sensor stands upright
-        rolls[scene] = verticals_qa(points, image, camera, T)
+        rolls[scene] = verticals_qa(points, image, camera, [T])[0]
     assert abs(rolls["pjlab_3"].roll) < 0.4 and rolls["pjlab_3"].high < 0.5, rolls
     assert rolls["pjlab_2"].high < -1.0, rolls
     assert "off the scan's vertical" in rolls["pjlab_2"].summary()
-    few = verticals_qa(points[:100], image, camera, T)  # no poles among 100 points: says nothing
+    few = verticals_qa(points[:100], image, camera, [T])[0]  # no poles among 100 points: says nothing
     assert not few.usable and np.isnan(few.roll) and "says nothing" in few.summary()

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rgbd_gt.camera import Camera
+from rgbd_gt.pose import camera_centre, so3_exp
 
 MIN_SEGMENTS, MIN_POLES = 8, 10  # fewer say nothing: the interval of a few segments' median is degrees wide
 
@@ -28,6 +29,7 @@ class VerticalsScore:
     segments: int
     poles: int
     usable: bool = True
+    up: np.ndarray | None = None  # (3,) the scan's vertical it was measured against
 
     def summary(self) -> str:
         if not self.usable:
@@ -107,43 +109,46 @@ def residuals_deg(segments: np.ndarray, K: np.ndarray, R: np.ndarray, up: np.nda
     return (diff + 90) % 180 - 90
 
 
+def _rolled(R: np.ndarray, deg: float) -> np.ndarray:
+    """R (3, 3) followed by a rotation of `deg` degrees about the camera's optical axis."""
+    return so3_exp(np.array([0.0, 0.0, np.radians(deg)])) @ R
+
+
 def roll_deg(segments: np.ndarray, K: np.ndarray, R: np.ndarray, up: np.ndarray) -> float:
     """The rotation (degrees) about the optical axis, applied after R, that brings the segments'
     median residual (`residuals_deg`) to zero: how far R is rolled off the scan's vertical."""
-    import cv2
-
     lo, hi = -10.0, 10.0  # the median residual falls as the roll grows
     for _ in range(40):
         mid = (lo + hi) / 2
-        Rz = cv2.Rodrigues(np.array([0.0, 0.0, np.radians(mid)]))[0]
-        lo, hi = (mid, hi) if np.median(residuals_deg(segments, K, Rz @ R, up)) > 0 else (lo, mid)
+        lo, hi = (mid, hi) if np.median(residuals_deg(segments, K, _rolled(R, mid), up)) > 0 else (lo, mid)
     return (lo + hi) / 2
 
 
-def roll_interval(segments: np.ndarray, K: np.ndarray, R: np.ndarray, up: np.ndarray, boots: int = 400,
-                  seed: int = 0) -> tuple[float, float]:
-    """95% bootstrap interval (degrees) of `roll_deg` over the segments. Each residual falls by
-    the roll added (exactly at the principal point, nearly elsewhere), so a resample's roll is the
-    roll plus the median of its residuals there: all resamples in one array operation."""
-    import cv2
-
-    roll = roll_deg(segments, K, R, up)
-    at = residuals_deg(segments, K, cv2.Rodrigues(np.array([0.0, 0.0, np.radians(roll)]))[0] @ R, up)
+def roll_interval(segments: np.ndarray, K: np.ndarray, R: np.ndarray, up: np.ndarray, roll: float,
+                  boots: int = 400, seed: int = 0) -> tuple[float, float]:
+    """95% bootstrap interval (degrees) over the segments of `roll` (`roll_deg`). Each residual
+    falls by the roll added (exactly at the principal point, nearly elsewhere), so a resample's
+    roll is the roll plus the median of its residuals there: all resamples in one array operation."""
+    at = residuals_deg(segments, K, _rolled(R, roll), up)
     pick = np.random.default_rng(seed).integers(0, len(segments), (boots, len(segments)))
     spread = roll + np.median(at[pick], axis=1)
     return float(np.percentile(spread, 2.5)), float(np.percentile(spread, 97.5))
 
 
-def verticals_qa(points: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray, boots: int = 200,
-                 segments: np.ndarray | None = None) -> VerticalsScore:
-    """How far pose T (4, 4, camera from scan) is rolled off the scan's vertical, by the photo's
-    (H, W, 3 RGB uint8) vertical lines and the scan's points (N, 3) in view. A photo taken rolled
-    by more than about 10 deg has no lines within the tilt limit: it says nothing. `segments` (`photo_segments`) when already found."""
-    seg = photo_segments(photo, camera) if segments is None else segments
-    centre = -T[:3, :3].T @ T[:3, 3]
-    up, poles = scan_vertical(points, centre)
-    if len(seg) < MIN_SEGMENTS or len(poles) < MIN_POLES:
-        return VerticalsScore(float("nan"), float("nan"), float("nan"), len(seg), len(poles), usable=False)
-    K = np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1]])
-    low, high = roll_interval(seg, K, T[:3, :3], up, boots)
-    return VerticalsScore(roll_deg(seg, K, T[:3, :3], up), low, high, len(seg), len(poles))
+def verticals_qa(points: np.ndarray, photo: np.ndarray, camera: Camera, poses: list[np.ndarray],
+                 boots: int = 200) -> list[VerticalsScore]:
+    """How far each of `poses` (4, 4, camera from scan) is rolled off the scan's vertical, by the
+    photo's (H, W, 3 RGB uint8) vertical lines (found once for all poses) and the scan's points
+    (N, 3) in view (their vertical near each pose's camera). A photo taken rolled by more than
+    about 10 deg has no lines within the tilt limit: it says nothing."""
+    seg = photo_segments(photo, camera)
+    scores = []
+    for T in poses:
+        T = np.asarray(T, np.float64)
+        up, poles = scan_vertical(points, camera_centre(T))
+        if len(seg) < MIN_SEGMENTS or len(poles) < MIN_POLES:
+            scores.append(VerticalsScore(float("nan"), float("nan"), float("nan"), len(seg), len(poles), usable=False, up=up))
+            continue
+        roll = roll_deg(seg, camera.K, T[:3, :3], up)
+        scores.append(VerticalsScore(roll, *roll_interval(seg, camera.K, T[:3, :3], up, roll, boots), len(seg), len(poles), up=up))
+    return scores
