@@ -636,9 +636,10 @@ def qa_edges(
     check_image_matches(cam, photo.shape, image, camera)
     T, _ = read_pose(pose)
     T_before = read_pose(before)[0] if before else None
-    from rgbd_gt.prepared import scan_in_view
+    from rgbd_gt.prepared import view_and_around
+    from rgbd_gt.qa.verticals import MAX_POINTS, REACH
 
-    the_scan = scan_in_view(scan, cam, [T] if T_before is None else [T, T_before], cache)
+    the_scan, around = view_and_around(scan, cam, [T] if T_before is None else [T, T_before], REACH, MAX_POINTS, cache)
     if T_before is not None:
         from rgbd_gt.render.depth import expect_poses
 
@@ -651,7 +652,7 @@ def qa_edges(
         if score.scan_edge_pixels == 0:
             raise InputError("no scan edges in view of this pose (no scan points in view?)", pose)
         img, structural = structural_qa(the_scan, colors, photo, cam, T, view=view)
-        upright, *upright_before = verticals_qa(the_scan.xyz, photo, cam, [T] + ([T_before] if T_before is not None else []))
+        upright, *upright_before = verticals_qa(around, photo, cam, [T] + ([T_before] if T_before is not None else []))
         result = {**structural.as_dict(), **score.as_dict(), **upright.as_dict()}
 
         def row(structural, score, upright) -> str:

@@ -93,8 +93,18 @@ class PreparedScan:
 
     def near(self, lo: np.ndarray, hi: np.ndarray) -> Scan:
         """The points of the blocks that meet the box [lo, hi] (metres, scan frame)."""
+        return self.subset(self._meeting(lo, hi))
+
+    def xyz_around(self, centre: np.ndarray, reach: float, max_points: int) -> np.ndarray:
+        """(n, 3) scan-frame coordinates (metres, float64) of the points of the blocks that meet
+        the box `reach` metres around `centre` (3,), every k-th of them beyond `max_points`: for
+        work that wants the scan around a camera, behind it too, not its view."""
+        idx = self._meeting(centre - reach, centre + reach)
+        return self.arrays["xyz"][idx[:: max(1, -(-len(idx) // max_points))]].astype(np.float64) + self.centre
+
+    def _meeting(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         meet = np.all((self.blocks.hi >= lo) & (self.blocks.lo <= hi), axis=1)
-        return self.subset(block_points(self.blocks, meet))
+        return block_points(self.blocks, meet)
 
     def board(self, spec, scan_path=None):
         """The board (`init.run.BoardInScan`) found in the scan: searched once, then read from
@@ -192,6 +202,21 @@ def scan_in_view(scan_path: Path, camera: Camera, poses: list[np.ndarray], cache
 
         return view_as_stored(load_scan(scan_path, require_points=True), camera, poses)
     return prepare_scan(scan_path, cache).views(camera, poses)
+
+
+def view_and_around(scan_path: Path, camera: Camera, poses: list[np.ndarray], reach: float, max_points: int,
+                    cache: Path | None = None) -> tuple[Scan, np.ndarray]:
+    """`scan_in_view`, and the coordinates (n, 3) of the scan's points around the first pose's
+    camera (`PreparedScan.xyz_around`; without a cache, every point), the file read once."""
+    from rgbd_gt.pose import camera_centre
+
+    if cache is None:
+        from rgbd_gt.io.scan import load_scan
+
+        read = load_scan(scan_path, require_points=True)
+        return view_as_stored(read, camera, poses), read.xyz
+    prepared = prepare_scan(scan_path, cache)
+    return prepared.views(camera, poses), prepared.xyz_around(camera_centre(poses[0]), reach, max_points)
 
 
 def view_as_stored(scan: Scan, camera: Camera, poses: list[np.ndarray]) -> Scan:

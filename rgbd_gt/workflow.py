@@ -126,6 +126,8 @@ class PhotoResult:
     within_1px_before: float | None = None
     within_1px_after: float | None = None
     seen_from_behind: float | None = None  # of the depth map's view (`render.depth.back_facing_fraction`)
+    verticals_roll_before_deg: float | None = None  # off the scan's vertical (`qa.verticals`); None: says nothing
+    verticals_roll_after_deg: float | None = None
     seconds: float = 0.0
     skipped: list[str] = field(default_factory=list)
     error: str = ""
@@ -223,7 +225,8 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     from rgbd_gt.io.image import read_image, write_image
     from rgbd_gt.qa.edges import as_json, qa, side_by_side
     from rgbd_gt.qa.overlay import overlay, points_image
-    from rgbd_gt.qa.verticals import verticals_qa
+    from rgbd_gt.pose import camera_centre
+    from rgbd_gt.qa import verticals
     from rgbd_gt.render.depth import back_facing_fraction, point_depth, render_depth
     from rgbd_gt.render.points import as_points, is_sweep
 
@@ -302,7 +305,8 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     else:
         img_b, before = qa(scan, colors, image, camera, T_init)
         img_a, after = qa(scan, colors, image, camera, T)
-        upright, upright_before = verticals_qa(scan.xyz, image, camera, [T, T_init])
+        around = prepared.xyz_around(camera_centre(T), verticals.REACH, verticals.MAX_POINTS)
+        upright, upright_before = verticals.verticals_qa(around, image, camera, [T, T_init])
         write_image(d / "qa.png", side_by_side(img_b, img_a))
         with atomic_output(files["qa"]) as tmp:
             tmp.write_text(as_json({**after.as_dict(), **before.as_dict("before_"), **upright.as_dict(),
@@ -321,6 +325,7 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     score = json.loads(files["qa"].read_text())
     res.edge_before_px, res.edge_after_px = score["before_mean_distance_px"], score["mean_distance_px"]
     res.within_1px_before, res.within_1px_after = score["before_within_1px"], score["within_1px"]
+    res.verticals_roll_before_deg, res.verticals_roll_after_deg = score.get("before_verticals_roll_deg"), score.get("verticals_roll_deg")
     res.steps["mesh"] = round(scan.derived.get("mesh_seconds", 0.0), 3)  # within the steps that rendered first
     res.seconds = time.perf_counter() - start
     return res
@@ -463,7 +468,7 @@ def write_summary(path: Path, results: list[PhotoResult]) -> None:
 
     cols = ["photo", "status", "verdict", "init_rms_px", "refine_loss", "inlier_fraction", "edge_ratio", "edge_before_px",
             "edge_after_px", "within_1px_before", "within_1px_after", "seen_from_behind", "seconds", "skipped", "reasons", "error",
-            "scan", "view_points", "steps"]
+            "scan", "view_points", "steps", "verticals_roll_before_deg", "verticals_roll_after_deg"]
     with atomic_output(path) as tmp, open(tmp, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(cols)

@@ -8,6 +8,7 @@ import sys
 
 import cv2
 import numpy as np
+import pytest
 import yaml
 
 from conftest import assert_one_line_error, run_cli
@@ -199,6 +200,8 @@ def test_run_on_a_real_lidar_frame_with_the_rigs_extrinsic(tmp_path):
     assert np.mean(np.abs(nearest[have] - z.ravel()[have]) < 1e-3) > 0.99
     qa = yaml.safe_load((out / "qa.json").read_text())  # geometry checks a sweep: the photo's poles stand upright
     assert qa["verticals_usable"] and abs(qa["verticals_roll_deg"]) < 0.6 and abs(qa["before_verticals_roll_deg"]) < 0.6, qa
+    assert qa["verticals_poles"] > 100  # from the sweep around the camera, not the 10-20 poles in view
+    assert float(row["verticals_roll_before_deg"]) == pytest.approx(qa["before_verticals_roll_deg"], abs=1e-5)
     # the rig calibrated again: the photo's outputs are not resumed from the old extrinsic
     rig.write_text(rig.read_text() + "\n")
     proc = run_cli("run", tmp_path / "run.yaml")

@@ -77,8 +77,13 @@ def test_the_real_scenes_references_held_upright():
         up, dirs = scan_vertical(points, np.zeros(3))
         assert len(dirs) > 50 and np.degrees(np.arccos(up[2])) < 0.5  # the sensor stands upright
         rolls[scene] = verticals_qa(points, image, camera, [T])[0]
-    assert abs(rolls["pjlab_3"].roll) < 0.4 and rolls["pjlab_3"].high < 0.5, rolls
+    assert abs(rolls["pjlab_3"].roll) < 0.4 and rolls["pjlab_3"].low < 0.15, rolls
     assert rolls["pjlab_2"].high < -1.0, rolls
+    # where the column grid's borders fall does not decide it (one grid at the camera: up to 0.3 deg)
+    shift = np.array([0.1, 0.03, 0.0])
+    moved = T.copy()
+    moved[:3, 3] -= T[:3, :3] @ shift
+    assert abs(verticals_qa(points + shift, image, camera, [moved])[0].roll - rolls["pjlab_3"].roll) < 0.15
     assert "off the scan's vertical" in rolls["pjlab_2"].summary()
     few = verticals_qa(points[:100], image, camera, [T])[0]  # no poles among 100 points: says nothing
     assert not few.usable and np.isnan(few.roll) and "says nothing" in few.summary()

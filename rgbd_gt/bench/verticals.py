@@ -18,7 +18,8 @@ def main(argv: list[str] | None = None) -> None:
     from rgbd_gt.io import read_camera, read_pose
     from rgbd_gt.io.image import read_image
     from rgbd_gt.io.pcd import read_pcd
-    from rgbd_gt.qa.verticals import photo_segments, roll_deg, verticals_qa
+    from rgbd_gt.pose import camera_centre
+    from rgbd_gt.qa.verticals import scan_vertical, verticals_qa
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", type=Path, default=Path("../shared/data"))
@@ -33,12 +34,15 @@ def main(argv: list[str] | None = None) -> None:
         folder = args.data / "lidar_camera" / scene
         photo = read_image(next(p for p in (folder / "calib.png", folder / "calib.jpg") if p.exists()))
         camera = read_camera(folder / "calib.txt", (photo.shape[1], photo.shape[0]))
-        ref, = verticals_qa(read_pcd(folder / "calib.pcd").xyz, photo, camera, [read_pose(folder / "calib.txt")[0]], boots=400)
-        segments = photo_segments(photo, camera)  # the results against the same vertical as the reference
-        rolls = [roll_deg(segments, camera.K, np.array(c["T"])[:3, :3], ref.up) for c in cases
-                 if c.get("objective") == "nid" and c.get("scenes") == scene]
+        T_ref = read_pose(folder / "calib.txt")[0]
+        points = read_pcd(folder / "calib.pcd").xyz
+        ref, *results = verticals_qa(points, photo, camera,
+                                     [T_ref] + [np.array(c["T"]) for c in cases
+                                                if c.get("objective") == "nid" and c.get("scenes") == scene], boots=400)
+        rolls = [r.roll for r in results]
+        up = scan_vertical(points, camera_centre(T_ref))[0]
         tail = f"{np.median(rolls):+.2f} ({min(rolls):+.2f} .. {max(rolls):+.2f}), {len(rolls)} results" if rolls else ""
-        print(f"| {scene} | {ref.segments} | {ref.poles}; {np.degrees(np.arccos(ref.up[2])):.2f} deg | "
+        print(f"| {scene} | {ref.segments} | {ref.poles}; {np.degrees(np.arccos(up[2])):.2f} deg | "
               f"{ref.roll:+.2f} deg ({ref.low:+.2f} .. {ref.high:+.2f}) | {tail} |")
 
 if __name__ == "__main__":

@@ -14,14 +14,20 @@ from rgbd_gt.camera import Camera
 from rgbd_gt.pose import camera_centre, so3_exp
 
 MIN_SEGMENTS, MIN_POLES = 8, 10  # fewer say nothing: the interval of a few segments' median is degrees wide
+# the column grid is laid at these fractions of a cell (along its diagonal) and the rolls averaged:
+# on one grid, which columns a pole splits into moved the PJLab rolls by up to 0.3 deg
+GRID_OFFSETS = (0.0, 0.25, 0.5, 0.75)
+REACH = 40.0  # metres around the camera that the scan's poles are taken from
+MAX_POINTS = 2_000_000  # of those, every k-th beyond this (a scan of tens of millions of points)
 
 
 @dataclass
 class VerticalsScore:
     """roll: the rotation (degrees) about the optical axis, after the pose, that would stand the
     photo's vertical lines along the scan's vertical (0: upright); low, high: its 95% bootstrap
-    interval over the segments; segments, poles: how many entered. usable is False with fewer than
-    MIN_SEGMENTS segments or MIN_POLES poles (roll and interval nan)."""
+    interval over the segments and the poles; segments, poles: how many entered (poles: on the
+    first grid). usable is False with fewer than MIN_SEGMENTS segments or MIN_POLES poles (roll
+    and interval nan)."""
 
     roll: float
     low: float
@@ -29,7 +35,6 @@ class VerticalsScore:
     segments: int
     poles: int
     usable: bool = True
-    up: np.ndarray | None = None  # (3,) the scan's vertical it was measured against
 
     def summary(self) -> str:
         if not self.usable:
@@ -67,46 +72,60 @@ def photo_segments(image: np.ndarray, camera: Camera, min_px: float = 40.0, max_
 
 
 def scan_vertical(points: np.ndarray, centre: np.ndarray, cell: float = 0.25, min_height: float = 2.0,
-                  max_tilt_deg: float = 8.0, reach: float = 40.0) -> tuple[np.ndarray, np.ndarray]:
+                  max_tilt_deg: float = 8.0, reach: float = REACH, offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """The scan's vertical (3,), unit, in its own frame (z roughly up, as scanners and vehicles
     hold it): the median of the directions of its pole-like columns (the points of one `cell` x
     `cell` metre column within `reach` metres of `centre` (3,) horizontally, spanning at least
-    `min_height` metres, close to a line, within `max_tilt_deg` of z). Also returns those
-    directions (k, 3); none: (0, 0, 1). points: (N, 3) metres."""
-    near = points[np.linalg.norm(points[:, :2] - centre[:2], axis=1) < reach]
-    ij = np.floor((near[:, :2] - centre[:2]) / cell).astype(np.int64) + int(np.ceil(reach / cell))
-    key = ij[:, 0] * (2 * int(np.ceil(reach / cell)) + 1) + ij[:, 1]
+    `min_height` metres, close to a line, within `max_tilt_deg` of z; the grid shifted by `offset`
+    cells along x and y). Also returns those directions (k, 3); none: (0, 0, 1). points: (N, 3) metres."""
+    near = points[np.linalg.norm(points[:, :2] - centre[:2], axis=1) < reach].astype(np.float64)
+    # cells on the scan's own grid, not one anchored at `centre`: poses compared on one photo
+    # (before and after refine) then measure the same columns
+    ij = np.floor(near[:, :2] / cell + offset).astype(np.int64)
+    ij -= ij.min(axis=0) if len(ij) else 0
+    key = ij[:, 0] * (ij[:, 1].max(initial=0) + 1) + ij[:, 1]
     order = np.argsort(key, kind="stable")
     near, key = near[order], key[order]
     starts = np.flatnonzero(np.r_[True, np.diff(key) != 0]) if len(key) else np.zeros(0, np.int64)
-    ends = np.r_[starts[1:], len(key)].astype(np.int64)
+    counts = np.diff(np.r_[starts, len(key)])
+    up, none = np.array([0.0, 0.0, 1.0]), np.zeros((0, 3))
     if not len(starts):
-        return np.array([0.0, 0.0, 1.0]), np.zeros((0, 3))
+        return up, none
     height = np.maximum.reduceat(near[:, 2], starts) - np.minimum.reduceat(near[:, 2], starts)
-    tall = (ends - starts >= 8) & (height >= min_height)
-    dirs = []
-    for a, b in zip(starts[tall], ends[tall]):  # the tall columns: some hundreds
-        q = near[a:b] - near[a:b].mean(axis=0)
-        w, V = np.linalg.eigh(q.T @ q)
-        d = V[:, -1] * np.sign(V[2, -1])
-        if w[1] <= 0.01 * w[2] and d[2] >= np.cos(np.radians(max_tilt_deg)):
-            dirs.append(d)
-    dirs = np.array(dirs).reshape(-1, 3)
+    tall = (counts >= 8) & (height >= min_height)
+    if not tall.any():
+        return up, none
+    # every tall column's scatter matrix at once (a wall or a dense scan has thousands of them)
+    n = counts[tall]
+    first = np.r_[0, np.cumsum(n)[:-1]]
+    q = near[np.repeat(tall, counts)]
+    q -= np.repeat(q[first], n, axis=0)  # about each column's first point: no cancellation far from 0
+    i, j = np.triu_indices(3)
+    sums = np.add.reduceat(q, first, axis=0)
+    prods = np.add.reduceat(q[:, i] * q[:, j], first, axis=0)
+    scatter = np.zeros((len(n), 3, 3))
+    scatter[:, i, j] = prods - sums[:, i] * sums[:, j] / n[:, None]
+    scatter[:, j, i] = scatter[:, i, j]
+    w, V = np.linalg.eigh(scatter)
+    d = V[:, :, -1] * np.sign(V[:, 2:3, -1])
+    dirs = d[(w[:, 1] <= 0.01 * w[:, 2]) & (d[:, 2] >= np.cos(np.radians(max_tilt_deg)))]
     if not len(dirs):
-        return np.array([0.0, 0.0, 1.0]), dirs
+        return up, none
     up = np.median(dirs, axis=0)
     return up / np.linalg.norm(up), dirs
 
 
 def residuals_deg(segments: np.ndarray, K: np.ndarray, R: np.ndarray, up: np.ndarray) -> np.ndarray:
     """(n,) signed angle (degrees) of each segment against the direction, at its midpoint, toward
-    the vanishing point K R up of the vertical. R: (3, 3) camera from scan."""
-    v = K @ (R @ up)
+    the vanishing point K R up of the vertical; for b verticals `up` (b, 3): (b, n). R: (3, 3)
+    camera from scan."""
+    v = np.atleast_2d(up) @ (K @ R).T  # (b, 3)
     mid = (segments[:, :2] + segments[:, 2:]) / 2
-    toward = v[None, :2] - mid * v[2]
+    toward = v[:, None, :2] - mid[None] * v[:, None, 2:]
     d = segments[:, 2:] - segments[:, :2]
-    diff = np.degrees(np.arctan2(d[:, 1], d[:, 0]) - np.arctan2(toward[:, 1], toward[:, 0]))
-    return (diff + 90) % 180 - 90
+    diff = np.degrees(np.arctan2(d[:, 1], d[:, 0]) - np.arctan2(toward[..., 1], toward[..., 0]))
+    res = (diff + 90) % 180 - 90
+    return res if np.ndim(up) == 2 else res[0]
 
 
 def _rolled(R: np.ndarray, deg: float) -> np.ndarray:
@@ -124,14 +143,21 @@ def roll_deg(segments: np.ndarray, K: np.ndarray, R: np.ndarray, up: np.ndarray)
     return (lo + hi) / 2
 
 
-def roll_interval(segments: np.ndarray, K: np.ndarray, R: np.ndarray, up: np.ndarray, roll: float,
+def roll_interval(segments: np.ndarray, K: np.ndarray, R: np.ndarray, poles: list[np.ndarray], rolls: list[float],
                   boots: int = 400, seed: int = 0) -> tuple[float, float]:
-    """95% bootstrap interval (degrees) over the segments of `roll` (`roll_deg`). Each residual
-    falls by the roll added (exactly at the principal point, nearly elsewhere), so a resample's
-    roll is the roll plus the median of its residuals there: all resamples in one array operation."""
-    at = residuals_deg(segments, K, _rolled(R, roll), up)
-    pick = np.random.default_rng(seed).integers(0, len(segments), (boots, len(segments)))
-    spread = roll + np.median(at[pick], axis=1)
+    """95% bootstrap interval (degrees) of the mean of `rolls`, each the `roll_deg` against the
+    median of one grid's pole directions (k, 3) in `poles` (`scan_vertical`), resampling both the
+    segments and the poles: the vertical is a measurement too. Each residual falls by the roll
+    added (exactly at the principal point, nearly elsewhere), so a resample's roll is the roll
+    plus the median of its residuals there: all resamples in one array operation per grid."""
+    rng = np.random.default_rng(seed)
+    pick = rng.integers(0, len(segments), (boots, len(segments)))
+    spread = np.zeros(boots)
+    for dirs, roll in zip(poles, rolls):
+        ups = np.median(dirs[rng.integers(0, len(dirs), (boots, len(dirs)))], axis=1)
+        at = residuals_deg(segments, K, _rolled(R, roll), ups / np.linalg.norm(ups, axis=1, keepdims=True))
+        spread += roll + np.median(np.take_along_axis(at, pick, axis=1), axis=1)
+    spread /= len(poles)
     return float(np.percentile(spread, 2.5)), float(np.percentile(spread, 97.5))
 
 
@@ -139,16 +165,23 @@ def verticals_qa(points: np.ndarray, photo: np.ndarray, camera: Camera, poses: l
                  boots: int = 200) -> list[VerticalsScore]:
     """How far each of `poses` (4, 4, camera from scan) is rolled off the scan's vertical, by the
     photo's (H, W, 3 RGB uint8) vertical lines (found once for all poses) and the scan's points
-    (N, 3) in view (their vertical near each pose's camera). A photo taken rolled by more than
-    about 10 deg has no lines within the tilt limit: it says nothing."""
+    (N, 3) around the cameras, behind them too, not only in view (a view holds too few poles:
+    PJLab 8-24 against 170-250 within REACH); their vertical is taken near each pose's camera,
+    averaged over GRID_OFFSETS. A photo
+    taken rolled by more than about 10 deg has no lines within the tilt limit: it says nothing."""
     seg = photo_segments(photo, camera)
     scores = []
     for T in poses:
         T = np.asarray(T, np.float64)
-        up, poles = scan_vertical(points, camera_centre(T))
-        if len(seg) < MIN_SEGMENTS or len(poles) < MIN_POLES:
-            scores.append(VerticalsScore(float("nan"), float("nan"), float("nan"), len(seg), len(poles), usable=False, up=up))
+        centre = camera_centre(T)
+        around = points[np.linalg.norm(points[:, :2] - centre[:2], axis=1) < REACH]  # once for every grid
+        around = around[:: max(1, -(-len(around) // MAX_POINTS))]
+        found = [scan_vertical(around, centre, offset=o) for o in GRID_OFFSETS]
+        poles = [dirs for _, dirs in found]
+        if len(seg) < MIN_SEGMENTS or min(map(len, poles)) < MIN_POLES:
+            scores.append(VerticalsScore(float("nan"), float("nan"), float("nan"), len(seg), len(poles[0]), usable=False))
             continue
-        roll = roll_deg(seg, camera.K, T[:3, :3], up)
-        scores.append(VerticalsScore(roll, *roll_interval(seg, camera.K, T[:3, :3], up, roll, boots), len(seg), len(poles), up=up))
+        rolls = [roll_deg(seg, camera.K, T[:3, :3], up) for up, _ in found]
+        scores.append(VerticalsScore(float(np.mean(rolls)), *roll_interval(seg, camera.K, T[:3, :3], poles, rolls, boots),
+                                     len(seg), len(poles[0])))
     return scores
