@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import glob
+import hashlib
 import json
 import os
 import time
@@ -362,7 +363,8 @@ def initial_pose(photo: Path, image: np.ndarray, prepared, camera, job: ScanJob,
     """The photo's initial pose file `path`: read when it exists, else written from job.init (a
     pose file shared by the photos) or made from job.board (found once per scan, `scan_board`).
     It records the SHA-1 of the photo, the scan, the camera file and the init or board corners
-    file: a rerun where one of them has other content is an error, not the old pose resumed."""
+    file, and the board's layout: a rerun where one of them has other content is an error, not
+    the old pose resumed."""
     from rgbd_gt.init.run import detect_photo_board, init_from_board
     from rgbd_gt.io import read_pose, write_pose
 
@@ -372,6 +374,10 @@ def initial_pose(photo: Path, image: np.ndarray, prepared, camera, job: ScanJob,
     elif job.board.points:
         files["board_points"] = Path(job.board.points)
     made = made_from(prepared, files)
+    if job.init is None:  # the board's layout is the config's, not a file's: its text stands for the content
+        b = job.board
+        made["board"] = f"{b.cols}x{b.rows} inner corners, square {b.square} m" + (f", {b.charuco} markers {b.marker} m" if b.charuco else "")
+        made["board_sha1"] = hashlib.sha1(made["board"].encode()).hexdigest()
     if path.exists():
         T, meta = read_pose(path)
         kind = made_from_other(meta, made)

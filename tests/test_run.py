@@ -89,9 +89,13 @@ def test_run_two_photos_then_resume(tmp_path):
     assert run_cli("run", tmp_path / "run.yaml").returncode == 1  # every photo failed
     rows = {r["photo"]: r for r in csv.DictReader(open(tmp_path / "out" / "summary.csv"))}
     assert "holds outputs made from another scan" in rows["photo_1.png"]["error"], rows["photo_1.png"]
+    config["scan"] = "scene/scan.e57"
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump({**config, "board": {"square": 0.06}}))  # the board measured again
+    run_cli("run", tmp_path / "run.yaml")
+    rows = {r["photo"]: r for r in csv.DictReader(open(tmp_path / "out" / "summary.csv"))}
+    assert "holds outputs made from another board (9x6 inner corners, square 0.05 m" in rows["photo_1.png"]["error"], rows
     camera = yaml.safe_load((scene / "camera.yaml").read_text())
     (scene / "camera.yaml").write_text(yaml.safe_dump({**camera, "fx": camera["fx"] * 1.01}))  # calibrated again
-    config["scan"] = "scene/scan.e57"
     (tmp_path / "run.yaml").write_text(yaml.safe_dump(config))
     run_cli("run", tmp_path / "run.yaml")
     rows = {r["photo"]: r for r in csv.DictReader(open(tmp_path / "out" / "summary.csv"))}
