@@ -759,8 +759,8 @@ def run_workflow(
     import dataclasses
 
     from rgbd_gt.config import load_config
-    from rgbd_gt.engine import CACHE_FOLDER, PhotoTask, failed, prepare_job, run_local, run_ray
-    from rgbd_gt.io.outputs import Outputs
+    from rgbd_gt.engine import CACHE_FOLDER, PhotoTask, check_ray_address, failed, prepare_job, run_local, run_ray
+    from rgbd_gt.io.outputs import Outputs, hold_folder
     from rgbd_gt.workflow import RunConfig, job_camera, resolve, shared_camera, verdict_counts, write_run_record, write_summary
 
     if ray_address is not None and workers != 1:
@@ -779,6 +779,9 @@ def run_workflow(
     # checked only: each step commits its own files, so that a rerun resumes where one stopped
     Outputs(inputs).folder(out_dir, "output")
     cameras = {j.name: job_camera(j) for j in jobs}
+    if ray_address is not None:
+        check_ray_address(ray_address)
+    held = hold_folder(out_dir, "output")  # noqa: F841 (held until the process ends)
     cache_root = out_dir / CACHE_FOLDER
     site = len(jobs) > 1 or bool(cfg.scans)
 

@@ -134,6 +134,23 @@ def _thread_pools_of(threads: int):
                 os.environ[k] = v
 
 
+def check_ray_address(address: str) -> None:
+    """InputError unless `address` is 'auto' or a HOST:PORT where something answers: Ray itself
+    retries an unreachable address for minutes."""
+    import socket
+
+    if address == "auto":
+        return
+    host, _, port = address.split("://")[-1].rpartition(":")
+    if not (port.isdigit() and 0 < int(port) < 65536):
+        raise InputError(f"--ray {address!r}: give HOST:PORT of the cluster's head (a port 1-65535), or auto")
+    try:
+        socket.create_connection((host or "127.0.0.1", int(port)), timeout=10).close()
+    except OSError as exc:
+        raise InputError(f"--ray {address}: no Ray cluster answers there ({exc}); give HOST:PORT of its head, "
+                         "or auto") from None
+
+
 def connect_ray(address: str):
     """ray, connected to the cluster at `address` ('auto': the one running on this machine)."""
     try:
@@ -141,17 +158,8 @@ def connect_ray(address: str):
     except ImportError:
         raise InputError("--ray needs the ray package (pip install ray)") from None
     import logging
-    import socket
 
-    if address != "auto":  # Ray retries an unreachable address for minutes: ask it once first
-        host, _, port = address.split("://")[-1].rpartition(":")
-        if not (port.isdigit() and 0 < int(port) < 65536):
-            raise InputError(f"--ray {address!r}: give HOST:PORT of the cluster's head (a port 1-65535), or auto")
-        try:
-            socket.create_connection((host or "127.0.0.1", int(port)), timeout=10).close()
-        except OSError as exc:
-            raise InputError(f"--ray {address}: no Ray cluster answers there ({exc}); give HOST:PORT of its head, "
-                             "or auto") from None
+    check_ray_address(address)
     try:
         ray.init(address=address, logging_level=logging.ERROR, log_to_driver=False, configure_logging=True)
     except (ConnectionError, RuntimeError, ValueError) as exc:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import assert_one_line_error, run_cli
+from conftest import ROOT, assert_one_line_error, run_cli
 from rgbd_gt.io import load_scan, read_pose, save_scan
 from rgbd_gt.io.depth_file import read_depth_exr
 from rgbd_gt.pose import rotation_error_deg, translation_error_m
@@ -68,7 +68,7 @@ def test_run_two_photos_then_resume(tmp_path):
                    "--init", tmp_path / "out" / "photo" / "init.yaml", "-o", alone, "--max-points", 40000,
                    "--repeats", 0, "--cache", tmp_path / "out" / ".scan-cache").returncode == 0
     np.testing.assert_allclose(read_pose(alone)[0], T_run, atol=1e-9)
-    stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "out").rglob("*") if p.is_file() and p.name not in ("summary.csv", "run.json")}
+    stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "out").rglob("*") if p.is_file() and p.name not in ("summary.csv", "run.json", ".run.lock")}
     again = run_cli("run", tmp_path / "run.yaml")
     assert again.returncode == 0, again.stderr
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps  # nothing recomputed
@@ -132,6 +132,18 @@ def test_run_bad_config(tmp_path):
     (tmp_path / "corners.csv").write_text("x,y,z\n")
     jobs, _ = resolve(tmp_path / "nocorners.yaml", load_config(RunConfig, tmp_path / "nocorners.yaml"))
     assert jobs[0].board.points == str(tmp_path / "corners.csv")
+    # a second run on an output folder that a run is writing is refused before any work
+    import fcntl
+
+    (tmp_path / "c.yaml").write_bytes((ROOT / "docs" / "real-data" / "cam3346.yaml").read_bytes())
+    (tmp_path / "busy.yaml").write_text("scan: x.ply\ncamera: c.yaml\nphotos: [a.png]\noutput: busy\n")
+    (tmp_path / "busy").mkdir()
+    with open(tmp_path / "busy" / ".run.lock", "a+") as lock:
+        lock.write("4242\n")
+        lock.flush()
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        assert_one_line_error(run_cli("run", tmp_path / "busy.yaml"), "busy: output: another rgbd-gt run (pid 4242) is writing")
+    assert not (tmp_path / "busy" / "summary.csv").exists()
 
 
 def test_run_refines_one_camera_for_all_photos(tmp_path):

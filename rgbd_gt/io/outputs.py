@@ -134,3 +134,26 @@ class Outputs:
             self.commit()
         else:
             self.discard()
+
+
+def hold_folder(path: Path, option: str):
+    """Take the folder `path` (made if missing) for this process: an exclusive advisory lock on
+    its `.run.lock`, held while the returned file object stays open (at the latest, until the
+    process ends). A second run on the same output folder is refused rather than computing and
+    writing the same photos beside the first."""
+    import fcntl
+
+    path.mkdir(parents=True, exist_ok=True)
+    f = open(path / ".run.lock", "a+")
+    try:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        f.seek(0)
+        pid = f.read().strip() or "unknown"
+        f.close()
+        raise InputError(f"{option}: another rgbd-gt run (pid {pid}) is writing this folder: wait for it to end, "
+                         "or give another output", path) from None
+    f.truncate(0)
+    f.write(f"{os.getpid()}\n")
+    f.flush()
+    return f
