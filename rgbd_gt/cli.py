@@ -839,7 +839,7 @@ def run_workflow(
     seconds = time.perf_counter() - start
     write_run_record(out_dir / "run.json", prepared, seconds, "ray" if ray_address is not None else "local", workers)
     table = Table(title=f"rgbd-gt run: {len(results)} photo(s) in {seconds:.0f} s")
-    wide = out.width >= 100  # on a narrow terminal or in a log (80 columns) the Canny columns go (summary.csv has them)
+    wide = out.width >= 110  # on a narrow terminal or in a log (80 columns) the Canny and roll columns go (summary.csv has them)
 
     def f(v, fmt):
         return "-" if v is None else format(v, fmt)
@@ -850,8 +850,9 @@ def run_workflow(
                "edges / chance": lambda r: f(r.edge_ratio, ".2f"),
                "Canny px before -> after": lambda r: f"{f(r.edge_before_px, '.2f')} -> {f(r.edge_after_px, '.2f')}",
                "within 1 px": lambda r: f"{f(r.within_1px_before, '.0%')} -> {f(r.within_1px_after, '.0%')}",
+               "roll deg": lambda r: f(r.verticals_roll_after_deg, "+.2f"),
                "s": lambda r: f(r.seconds, ".1f")}
-    shown = [c for c in columns if (c != "scan" or site) and (wide or c not in ("Canny px before -> after", "within 1 px"))]
+    shown = [c for c in columns if (c != "scan" or site) and (wide or c not in ("Canny px before -> after", "within 1 px", "roll deg"))]
     for col in shown:  # cells wrap, never cut: a verdict is never "suspe…"
         table.add_column(col, overflow="fold", min_width=7 if col in ("status", "verdict") else None)
     for r in results:
