@@ -147,12 +147,14 @@ def hold_folder(path: Path, option: str):
     f = open(path / ".run.lock", "a+")
     try:
         fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
+    except BlockingIOError:
         f.seek(0)
         pid = f.read().strip() or "unknown"
         f.close()
         raise InputError(f"{option}: another rgbd-gt run (pid {pid}) is writing this folder: wait for it to end, "
                          "or give another output", path) from None
+    except OSError:  # a file system without locks (some network mounts): run unguarded, as before there were any
+        return f
     f.truncate(0)
     f.write(f"{os.getpid()}\n")
     f.flush()
