@@ -224,10 +224,10 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.depth_file import write_depth_exr, write_depth_png16
     from rgbd_gt.io.image import read_image, write_image
-    from rgbd_gt.qa.edges import as_json, qa, side_by_side
-    from rgbd_gt.qa.overlay import overlay, points_image
     from rgbd_gt.pose import camera_centre
     from rgbd_gt.qa import verticals
+    from rgbd_gt.qa.edges import as_json, qa, side_by_side
+    from rgbd_gt.qa.overlay import overlay, points_image
     from rgbd_gt.render.depth import back_facing_fraction, point_depth, render_depth
     from rgbd_gt.render.points import as_points, is_sweep
 
