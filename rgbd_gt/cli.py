@@ -270,7 +270,12 @@ def init_pose(
             check_picks(picks, cam, the_scan.xyz, correspondences, the_scan.origins)
             check_spread(picks.obj, picks.img, str(correspondences), 6)  # named after the file
             result = init_from_correspondences(picks, cam, estimate_focal, ransac_px)
+            from rgbd_gt.qa.verticals import verticals_qa
+
+            # a check the picks do not take part in: a few pairs hardly check each other
+            upright = verticals_qa(the_scan.xyz, photo, result.camera, [result.T_cam_from_scan])[0]
         else:
+            upright = None
             spec = BoardSpec(cols, rows, square, charuco, marker)
             corners = read_csv_rows(board_points, "x,y,z") if board_points else None
             found = detect_photo_board(photo, spec, image)
@@ -279,7 +284,7 @@ def init_pose(
             else:
                 in_scan = board_in_scan(whole_scan(scan, cache), spec, corners, scan)
             result = init_from_board(in_scan, photo, cam, spec, found)
-    meta = result.pose_meta()
+    meta = result.pose_meta() | (upright.as_dict() if upright is not None else {})
     with outs:
         if camera_out is not None:
             from rgbd_gt.io.camera_file import write_camera
@@ -300,6 +305,8 @@ def init_pose(
     if result.extra.get("estimated_focal_px"):
         sigma = (result.uncertainty or {}).get("focal_px")
         rows.append(("estimated focal", f"{result.extra['estimated_focal_px']:.1f} px" + (f" (1 sigma {sigma:.1f} px)" if sigma else "")))
+    if upright is not None:
+        rows.append(("verticals", upright.summary()))
     rows.append(("time", f"{result.seconds:.1f} s"))
     _summary("init-pose", rows, output, report)
     if camera_out is not None:

@@ -34,6 +34,9 @@ def test_pumpA_from_picks_to_a_verdict(e57_dir, tmp_path):
     meta = yaml.safe_load(init.read_text())
     assert meta["points_used"] >= 5 and meta["reprojection_rms_px"] < 5, meta
     assert 0.1 < meta["uncertainty"]["rotation_deg"] < 3, meta  # six hand picks: a start, and stated as one
+    # a check the picks take no part in: the photo's vertical lines stand along the scan's vertical pipes
+    assert meta["verticals_usable"] and meta["verticals_roll_low_deg"] < 0 < meta["verticals_roll_high_deg"], meta
+    assert "verticals" in proc.stdout and "roll" in proc.stdout, proc.stdout
     T = read_pose(init)[0]
     centre = -T[:3, :3].T @ T[:3, 3]
     assert np.linalg.norm(centre) > 6 and T[2, 1] > 0.8, (centre, T)  # across the room, facing the scanner (-y of it)

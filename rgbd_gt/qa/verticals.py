@@ -47,8 +47,10 @@ class VerticalsScore:
                 f"{self.segments} lines, {self.poles} poles")
 
     def as_dict(self, prefix: str = "") -> dict:
-        return {f"{prefix}verticals_roll_deg": self.roll, f"{prefix}verticals_roll_low_deg": self.low,
-                f"{prefix}verticals_roll_high_deg": self.high, f"{prefix}verticals_segments": self.segments,
+        """Plain values for JSON and pose files: the roll and its interval None when it says nothing."""
+        roll, low, high = (self.roll, self.low, self.high) if self.usable else (None, None, None)
+        return {f"{prefix}verticals_roll_deg": roll, f"{prefix}verticals_roll_low_deg": low,
+                f"{prefix}verticals_roll_high_deg": high, f"{prefix}verticals_segments": self.segments,
                 f"{prefix}verticals_poles": self.poles, f"{prefix}verticals_usable": self.usable}
 
 
