@@ -173,8 +173,8 @@ def verticals_qa(points: np.ndarray, photo: np.ndarray, camera: Camera, poses: l
     photo's (H, W, 3 RGB uint8) vertical lines (found once for all poses) and the scan's points
     (N, 3) around the cameras, behind them too, not only in view (a view holds too few poles:
     PJLab 8-24 against 170-250 within REACH); their vertical is taken near each pose's camera,
-    averaged over GRID_OFFSETS. A photo
-    taken rolled by more than about 10 deg has no lines within the tilt limit: it says nothing."""
+    averaged over GRID_OFFSETS. A photo taken rolled by more than about 10 deg has no lines
+    within the tilt limit: it says nothing."""
     seg = photo_segments(photo, camera)
     scores = []
     for T in poses:
