@@ -484,11 +484,17 @@ def refine(
         result, verification = refine_verified(inputs[0], cfg, device, progress, keep_residuals=report is not None,
                                                check=held_out, more=inputs[1:])
     meta = refine_meta(result, cfg, inputs[0].T_init, init, verification, pairs=len(inputs), camera=inputs[0].camera)
+    from rgbd_gt.align.refine import refined_camera
+    from rgbd_gt.qa.verticals import verticals_qa
+
+    # geometry alone, outside the verdict (one of six parameters): the one check a sweep's pose has
+    upright, upright_init = verticals_qa(inputs[0].around, inputs[0].photo, refined_camera(inputs[0].camera, result),
+                                         [result.T_cam_from_scan, inputs[0].T_init])
+    meta |= upright.as_dict() | upright_init.as_dict("init_")
     if warnings:
         meta["warnings"] = warnings
     with outs:
         if camera_out is not None:
-            from rgbd_gt.align.refine import refined_camera
             from rgbd_gt.io.camera_file import write_camera
 
             write_camera(staged_camera, refined_camera(inputs[0].camera, result))
@@ -513,6 +519,7 @@ def refine(
         rows.append(("repeat runs", f"{ev['repeatability']['starts']} starts, spread {ev['repeatability']['spread_px']:.3f} px"))
     if "check" in ev:
         rows.append(("check pairs", f"{ev['check']['rms_init_px']:.2f} px at the init -> {ev['check']['rms_px']:.2f} px"))
+    rows += [("verticals at init", upright_init.summary()), ("verticals", upright.summary())]
     if "intrinsics" in meta:
         intr, sig = meta["intrinsics"], meta["intrinsics"]["sigma"]
         rows.append(("camera refined", f"fx {intr['fx']:.2f} px ({intr['change']['focal_percent']:+.2f}%, 1 sigma "

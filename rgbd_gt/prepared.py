@@ -206,17 +206,20 @@ def scan_in_view(scan_path: Path, camera: Camera, poses: list[np.ndarray], cache
 
 def view_and_around(scan_path: Path, camera: Camera, poses: list[np.ndarray], reach: float, max_points: int,
                     cache: Path | None = None) -> tuple[Scan, np.ndarray]:
-    """`scan_in_view`, and the coordinates (n, 3) of the scan's points around the first pose's
-    camera (`PreparedScan.xyz_around`; without a cache, every point), the file read once."""
+    """`scan_in_view`, and the coordinates (n, 3) of the scan's points in the box `reach` metres
+    around the first pose's camera, every k-th beyond `max_points` (`PreparedScan.xyz_around`),
+    the file read once."""
     from rgbd_gt.pose import camera_centre
 
+    centre = camera_centre(poses[0])
     if cache is None:
         from rgbd_gt.io.scan import load_scan
 
         read = load_scan(scan_path, require_points=True)
-        return view_as_stored(read, camera, poses), read.xyz
+        near = read.xyz[np.all(np.abs(read.xyz - centre) <= reach, axis=1)]
+        return view_as_stored(read, camera, poses), near[:: max(1, -(-len(near) // max_points))]
     prepared = prepare_scan(scan_path, cache)
-    return prepared.views(camera, poses), prepared.xyz_around(camera_centre(poses[0]), reach, max_points)
+    return prepared.views(camera, poses), prepared.xyz_around(centre, reach, max_points)
 
 
 def view_as_stored(scan: Scan, camera: Camera, poses: list[np.ndarray]) -> Scan:

@@ -51,7 +51,11 @@ def test_pumpA_from_picks_to_a_verdict(e57_dir, tmp_path):
     refined = tmp_path / "refined.yaml"
     proc = run_cli("refine", "--scan", scan, "--image", photo, "--camera", PAGE / "cam3346.yaml", "--init", init, "-o", refined)
     assert proc.returncode == 0, proc.stderr
-    assert yaml.safe_load(refined.read_text())["verdict"] == "failed", proc.stdout
+    done = yaml.safe_load(refined.read_text())
+    assert done["verdict"] == "failed", proc.stdout
+    # refine reports the verticals check beside its verdict: the picked pose upright, its result tilted
+    assert done["init_verticals_roll_low_deg"] < 0 < done["init_verticals_roll_high_deg"], done
+    assert done["verticals_roll_high_deg"] < -1.0, done
     # the pipes and supports say the same by geometry alone: the picked pose holds the photo upright,
     # refine's tilts it by more than a degree
     proc = run_cli("qa-edges", "--scan", scan, "--image", photo, "--camera", PAGE / "cam3346.yaml", "--pose", refined,

@@ -42,6 +42,7 @@ class RefineInputs:
     ignore: np.ndarray | None
     scan: object = None  # the `io.Scan` (its grid renders the verification's edge check); points only when None
     init_meta: dict = field(default_factory=dict)  # the init pose file's other keys (its `uncertainty`)
+    around: np.ndarray | None = None  # (M, 3) the scan around the init's camera, for the verticals check
 
     @property
     def normals(self) -> np.ndarray | None:
@@ -55,12 +56,14 @@ class RefineInputs:
 
 def load_inputs(scan_path: Path, image_path: Path, camera_path: Path, init_path: Path,
                 mask_path: Path | None = None, cache: Path | None = None) -> RefineInputs:
-    """The refine command's inputs; the scan's points in view of the init from the prepared scan
-    under `cache` when given (`prepared.scan_in_view`), else from the file."""
+    """The refine command's inputs; the scan's points in view of the init (and around its
+    camera) from the prepared scan under `cache` when given (`prepared.view_and_around`), else
+    from the file."""
     from rgbd_gt.io import read_camera, read_pose
     from rgbd_gt.io.camera_file import check_image_matches
     from rgbd_gt.io.image import read_image, read_mask
-    from rgbd_gt.prepared import scan_in_view
+    from rgbd_gt.prepared import view_and_around
+    from rgbd_gt.qa.verticals import MAX_POINTS, REACH
     from rgbd_gt.render.normals import with_normals
 
     photo = read_image(image_path, to_align=True)
@@ -72,12 +75,13 @@ def load_inputs(scan_path: Path, image_path: Path, camera_path: Path, init_path:
     # (minutes for tens of millions of points without a grid), then cost what the photo sees.
     # The view `run` takes (render.blocks.VIEW_MARGIN), as its cache holds it: both hand the
     # aligner the same points and get the same pose.
-    scan = scan_in_view(scan_path, camera, [T_init], cache)
+    scan, around = view_and_around(scan_path, camera, [T_init], REACH, MAX_POINTS, cache)
     if len(scan) == 0:
         raise InputError("no scan points in view of the initial pose (nor near it): check the pose, the camera file "
                          "and the scan", init_path)
     scan = with_normals(scan)
-    return RefineInputs(scan.xyz, scan_colors(scan, scan_path, to_align=True), photo, camera, T_init, ignore, scan, init_meta)
+    return RefineInputs(scan.xyz, scan_colors(scan, scan_path, to_align=True), photo, camera, T_init, ignore, scan, init_meta,
+                        around)
 
 
 def camera_disagreement(camera, init_meta: dict, camera_path) -> str | None:
