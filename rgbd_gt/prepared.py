@@ -93,18 +93,20 @@ class PreparedScan:
 
     def near(self, lo: np.ndarray, hi: np.ndarray) -> Scan:
         """The points of the blocks that meet the box [lo, hi] (metres, scan frame)."""
-        return self.subset(self._meeting(lo, hi))
+        return self.subset(block_points(self.blocks, self._meeting(lo, hi)))
 
     def xyz_around(self, centre: np.ndarray, reach: float, max_points: int) -> np.ndarray:
         """(n, 3) scan-frame coordinates (metres, float64) of the points of the blocks that meet
         the box `reach` metres around `centre` (3,), every k-th of them beyond `max_points`: for
         work that wants the scan around a camera, behind it too, not its view."""
-        idx = self._meeting(centre - reach, centre + reach)
-        return self.arrays["xyz"][idx[:: max(1, -(-len(idx) // max_points))]].astype(np.float64) + self.centre
+        meet = self._meeting(centre - reach, centre + reach)
+        total = int(np.diff(self.blocks.start)[meet].sum())
+        idx = block_points(self.blocks, meet, max(1, -(-total // max_points)))
+        return self.arrays["xyz"][idx].astype(np.float64) + self.centre
 
     def _meeting(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-        meet = np.all((self.blocks.hi >= lo) & (self.blocks.lo <= hi), axis=1)
-        return block_points(self.blocks, meet)
+        """(B,) bool: the blocks that meet the box [lo, hi]."""
+        return np.all((self.blocks.hi >= lo) & (self.blocks.lo <= hi), axis=1)
 
     def board(self, spec, scan_path=None):
         """The board (`init.run.BoardInScan`) found in the scan: searched once, then read from
@@ -216,7 +218,10 @@ def view_and_around(scan_path: Path, camera: Camera, poses: list[np.ndarray], re
         from rgbd_gt.io.scan import load_scan
 
         read = load_scan(scan_path, require_points=True)
-        near = read.xyz[np.all(np.abs(read.xyz - centre) <= reach, axis=1)]
+        inside = np.ones(len(read), bool)
+        for axis in range(3):  # a column at a time: no temporary of the whole scan's size x 3
+            inside &= np.abs(read.xyz[:, axis] - centre[axis]) <= reach
+        near = read.xyz[inside]
         return view_as_stored(read, camera, poses), near[:: max(1, -(-len(near) // max_points))]
     prepared = prepare_scan(scan_path, cache)
     return prepared.views(camera, poses), prepared.xyz_around(centre, reach, max_points)

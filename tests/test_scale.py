@@ -19,7 +19,7 @@ from rgbd_gt.init.detect import BoardSpec
 from rgbd_gt.init.run import board_in_scan
 from rgbd_gt.io import load_scan, read_camera, read_pose, save_scan
 from rgbd_gt.prepared import prepare_scan
-from rgbd_gt.render.blocks import points_in_view
+from rgbd_gt.render.blocks import block_points, points_in_view
 from rgbd_gt.render.depth import render_depth
 from rgbd_gt.render.normals import with_normals
 
@@ -72,6 +72,16 @@ def test_prepared_scan_gives_what_the_whole_scan_gives(scenes, tmp_path):
     np.testing.assert_allclose(board.corners, direct.corners, atol=1e-4)
     assert len(board.near_xyz) == len(direct.near_xyz)
     np.testing.assert_allclose(p.board(spec).corners, board.corners)
+
+    # the points around a camera (the verticals check): the blocks within reach, every k-th point
+    centre = -T[:3, :3].T @ T[:3, 3]
+    near = p.xyz_around(centre, 2.0, 10**9)
+    box = np.all(np.abs(scan.xyz - centre) <= 2.0, axis=1)
+    assert box.sum() <= len(near) < len(scan)  # whole blocks: a few points beyond the box too
+    meet = p._meeting(centre - 2.0, centre + 2.0)
+    for step in (1, 7, 1000):
+        np.testing.assert_array_equal(block_points(p.blocks, meet, step), block_points(p.blocks, meet)[::step])
+    assert len(p.xyz_around(centre, 2.0, 1000)) <= 1000
 
 
 def test_single_commands_read_the_prepared_scan(scenes, tmp_path):

@@ -64,14 +64,21 @@ def blocks_in_view(blocks: Blocks, camera: Camera, T_cam_from_scan: np.ndarray, 
     return ~out
 
 
-def block_points(blocks: Blocks, selected: np.ndarray) -> np.ndarray:
-    """(n,) int64 indices of the points of the selected blocks ((B,) bool), in block order."""
+def block_points(blocks: Blocks, selected: np.ndarray, step: int = 1) -> np.ndarray:
+    """(n,) int64 indices of the points of the selected blocks ((B,) bool), in block order; every
+    `step`-th of them (without making the whole list first: a box around a camera may hold
+    tens of millions)."""
     first, count = blocks.start[:-1][selected], np.diff(blocks.start)[selected]
     if count.sum() == 0:
         return np.zeros(0, np.int64)
     # ranges first[k] .. first[k] + count[k] without a loop over blocks
-    offset = np.repeat(first - np.r_[0, np.cumsum(count)[:-1]], count)
-    return np.arange(int(count.sum()), dtype=np.int64) + offset
+    if step == 1:
+        offset = np.repeat(first - np.r_[0, np.cumsum(count)[:-1]], count)
+        return np.arange(int(count.sum()), dtype=np.int64) + offset
+    end = np.cumsum(count)
+    at = np.arange(0, int(end[-1]), step, dtype=np.int64)
+    k = np.searchsorted(end, at, side="right")
+    return at + (first - (end - count))[k]
 
 
 def view_bounds(camera: Camera, margin: float = VIEW_MARGIN) -> tuple[float, float, float, float]:
