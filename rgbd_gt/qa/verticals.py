@@ -172,24 +172,24 @@ def roll_interval(segments: np.ndarray, K: np.ndarray, R: np.ndarray, poles: lis
 def verticals_qa(points: np.ndarray, photo: np.ndarray, camera: Camera, poses: list[np.ndarray],
                  boots: int = 200) -> list[VerticalsScore]:
     """How far each of `poses` (4, 4, camera from scan) is rolled off the scan's vertical, by the
-    photo's (H, W, 3 RGB uint8) vertical lines (found once for all poses) and the scan's points
-    (N, 3) around the cameras, behind them too, not only in view (a view holds too few poles:
-    PJLab 8-24 against 170-250 within REACH); their vertical is taken near each pose's camera,
-    averaged over GRID_OFFSETS. A photo taken rolled by more than about 10 deg has no lines
-    within the tilt limit: it says nothing."""
+    photo's (H, W, 3 RGB uint8) vertical lines and the scan's points (N, 3) around the cameras,
+    behind them too, not only in view (a view holds too few poles: PJLab 8-24 against 170-250
+    within REACH). Both are found once, the vertical near the first pose's camera (averaged over
+    GRID_OFFSETS), so that the poses of one photo (an init and its refinement) are measured
+    against the same one. A photo taken rolled by more than about 10 deg has no lines within the
+    tilt limit: it says nothing."""
     seg = photo_segments(photo, camera)
+    centre = camera_centre(np.asarray(poses[0], np.float64))
+    around = points[np.linalg.norm(points[:, :2] - centre[:2], axis=1) < REACH]
+    around = around[:: max(1, -(-len(around) // MAX_POINTS))]
+    found = [scan_vertical(around, centre, offset=o) for o in GRID_OFFSETS]
+    poles = [dirs for _, dirs in found]
+    if len(seg) < MIN_SEGMENTS or min(map(len, poles)) < MIN_POLES:
+        return [VerticalsScore(float("nan"), float("nan"), float("nan"), len(seg), len(poles[0]), usable=False) for _ in poses]
     scores = []
     for T in poses:
-        T = np.asarray(T, np.float64)
-        centre = camera_centre(T)
-        around = points[np.linalg.norm(points[:, :2] - centre[:2], axis=1) < REACH]  # once for every grid
-        around = around[:: max(1, -(-len(around) // MAX_POINTS))]
-        found = [scan_vertical(around, centre, offset=o) for o in GRID_OFFSETS]
-        poles = [dirs for _, dirs in found]
-        if len(seg) < MIN_SEGMENTS or min(map(len, poles)) < MIN_POLES:
-            scores.append(VerticalsScore(float("nan"), float("nan"), float("nan"), len(seg), len(poles[0]), usable=False))
-            continue
-        rolls = [roll_deg(seg, camera.K, T[:3, :3], up) for up, _ in found]
-        low, high = roll_interval(seg, camera.K, T[:3, :3], poles, rolls, boots)
+        R = np.asarray(T, np.float64)[:3, :3]
+        rolls = [roll_deg(seg, camera.K, R, up) for up, _ in found]
+        low, high = roll_interval(seg, camera.K, R, poles, rolls, boots)
         scores.append(VerticalsScore(float(np.mean(rolls)), low - SYSTEMATIC_DEG, high + SYSTEMATIC_DEG, len(seg), len(poles[0])))
     return scores
