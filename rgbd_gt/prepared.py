@@ -27,7 +27,7 @@ from rgbd_gt.camera import Camera
 from rgbd_gt.errors import require_file
 from rgbd_gt.io.atomic import atomic_output
 from rgbd_gt.io.scan import Scan
-from rgbd_gt.render.blocks import VIEW_MARGIN, Blocks, block_order, block_points, blocks_in_view, points_in_view
+from rgbd_gt.render.blocks import VIEW_MARGIN, Blocks, block_order, block_points, blocks_in_view, points_in_view, thinning_step
 
 CACHE_VERSION = 4
 ARRAYS = Scan.PER_POINT + ("cells",)  # per point, block-ordered
@@ -101,7 +101,7 @@ class PreparedScan:
         work that wants the scan around a camera, behind it too, not its view."""
         meet = self._meeting(centre - reach, centre + reach)
         total = int(np.diff(self.blocks.start)[meet].sum())
-        idx = block_points(self.blocks, meet, max(1, -(-total // max_points)))
+        idx = block_points(self.blocks, meet, thinning_step(total, max_points))
         return self.arrays["xyz"][idx].astype(np.float64) + self.centre
 
     def _meeting(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -222,7 +222,7 @@ def view_and_around(scan_path: Path, camera: Camera, poses: list[np.ndarray], re
         for axis in range(3):  # a column at a time: no temporary of the whole scan's size x 3
             inside &= np.abs(read.xyz[:, axis] - centre[axis]) <= reach
         near = read.xyz[inside]
-        return view_as_stored(read, camera, poses), near[:: max(1, -(-len(near) // max_points))]
+        return view_as_stored(read, camera, poses), near[:: thinning_step(len(near), max_points)]
     prepared = prepare_scan(scan_path, cache)
     return prepared.views(camera, poses), prepared.xyz_around(centre, reach, max_points)
 

@@ -12,6 +12,7 @@ import numpy as np
 
 from rgbd_gt.camera import Camera
 from rgbd_gt.pose import camera_centre, so3_exp
+from rgbd_gt.render.blocks import thinning_step
 
 MIN_SEGMENTS, MIN_POLES = 8, 10  # fewer say nothing: the interval of a few segments' median is degrees wide
 # the column grid is laid at these fractions of a cell (along its diagonal) and the rolls averaged:
@@ -181,7 +182,7 @@ def verticals_qa(points: np.ndarray, photo: np.ndarray, camera: Camera, poses: l
     seg = photo_segments(photo, camera)
     centre = camera_centre(np.asarray(poses[0], np.float64))
     around = points[np.linalg.norm(points[:, :2] - centre[:2], axis=1) < REACH]
-    around = around[:: max(1, -(-len(around) // MAX_POINTS))]
+    around = around[:: thinning_step(len(around), MAX_POINTS)]
     found = [scan_vertical(around, centre, offset=o) for o in GRID_OFFSETS]
     poles = [dirs for _, dirs in found]
     if len(seg) < MIN_SEGMENTS or min(map(len, poles)) < MIN_POLES:

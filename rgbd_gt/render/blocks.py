@@ -64,6 +64,11 @@ def blocks_in_view(blocks: Blocks, camera: Camera, T_cam_from_scan: np.ndarray, 
     return ~out
 
 
+def thinning_step(n: int, most: int) -> int:
+    """k such that every k-th of n items keeps at most `most` of them (1: all)."""
+    return max(1, -(-n // most))
+
+
 def block_points(blocks: Blocks, selected: np.ndarray, step: int = 1) -> np.ndarray:
     """(n,) int64 indices of the points of the selected blocks ((B,) bool), in block order; every
     `step`-th of them (without making the whole list first: a box around a camera may hold
