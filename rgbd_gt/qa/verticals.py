@@ -88,18 +88,18 @@ def scan_vertical(points: np.ndarray, centre: np.ndarray, cell: float = 0.25, mi
     `min_height` metres, close to a line, within `max_tilt_deg` of z; the grid shifted by `offset`
     cells along x and y). Also returns those directions (k, 3); none: (0, 0, 1). points: (N, 3) metres."""
     near = points[np.linalg.norm(points[:, :2] - centre[:2], axis=1) < reach].astype(np.float64)
-    # cells on the scan's own grid, not one anchored at `centre`: poses compared on one photo
-    # (before and after refine) then measure the same columns
+    up, none = np.array([0.0, 0.0, 1.0]), np.zeros((0, 3))
+    if not len(near):
+        return up, none
+    # cells on the scan's own grid, not one anchored at `centre`: where the camera stands does
+    # not decide which columns a pole splits into
     ij = np.floor(near[:, :2] / cell + offset).astype(np.int64)
-    ij -= ij.min(axis=0) if len(ij) else 0
-    key = ij[:, 0] * (ij[:, 1].max(initial=0) + 1) + ij[:, 1]
+    ij -= ij.min(axis=0)
+    key = ij[:, 0] * (ij[:, 1].max() + 1) + ij[:, 1]
     order = np.argsort(key, kind="stable")
     near, key = near[order], key[order]
-    starts = np.flatnonzero(np.r_[True, np.diff(key) != 0]) if len(key) else np.zeros(0, np.int64)
+    starts = np.flatnonzero(np.r_[True, np.diff(key) != 0])
     counts = np.diff(np.r_[starts, len(key)])
-    up, none = np.array([0.0, 0.0, 1.0]), np.zeros((0, 3))
-    if not len(starts):
-        return up, none
     height = np.maximum.reduceat(near[:, 2], starts) - np.minimum.reduceat(near[:, 2], starts)
     tall = (counts >= 8) & (height >= min_height)
     if not tall.any():
