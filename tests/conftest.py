@@ -1,4 +1,5 @@
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -29,6 +30,24 @@ def icl_dir() -> Path:
 @pytest.fixture
 def checkerboard_dir() -> Path:
     return _need("checkerboard")
+
+
+@pytest.fixture(scope="session")
+def synth_scene(tmp_path_factory):
+    """synth_scene(dest, seed, photos=1) -> dest: a copy of the small synthetic scene of that seed,
+    made once per session (about 3 s each), so that a test may change its files."""
+    made: dict[tuple[int, int], Path] = {}
+
+    def copy(dest: Path, seed: int, photos: int = 1) -> Path:
+        if (seed, photos) not in made:
+            src = tmp_path_factory.mktemp(f"synth{seed}x{photos}") / "scene"
+            proc = run_cli("synth", src, "--size", "small", "--seed", seed, "--photos", photos)
+            assert proc.returncode == 0, proc.stderr
+            made[seed, photos] = src
+        shutil.copytree(made[seed, photos], dest, dirs_exist_ok=True)
+        return dest
+
+    return copy
 
 
 def run_cli(*args, cwd=None) -> subprocess.CompletedProcess:

@@ -154,10 +154,9 @@ def test_coarse_levels_blur_the_scan_colors_as_the_pyramid_blurs_the_photo():
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory):
+def scene(tmp_path_factory, synth_scene):
     d = tmp_path_factory.mktemp("refine_scene")
-    proc = run_cli("synth", d, "--size", "small", "--seed", 0)
-    assert proc.returncode == 0, proc.stderr
+    synth_scene(d, 0)
     return d
 
 
@@ -218,7 +217,7 @@ def test_the_pose_does_not_depend_on_the_order_of_the_points(scene, objective, m
     assert translation_error_m(a, other) > 1e-6  # the seed does pick other points
 
 
-def test_the_coarsest_level_moves_towards_the_truth(tmp_path):
+def test_the_coarsest_level_moves_towards_the_truth(tmp_path, synth_scene):
     """The coarsest level (40x30) resolves neither the checkerboard's 15 px squares nor the
     wall's text in seed 3's scene. Against the scan's sharp colors it hardly moved the pose
     (8 point subsets: median 25 mm / 0.36 deg from the init's 30 mm / 0.95 deg; on another init
@@ -226,8 +225,7 @@ def test_the_coarsest_level_moves_towards_the_truth(tmp_path):
     blurred as the level blurs the photo it brings every subset nearer (12 mm / 0.24 deg)."""
     from rgbd_gt.align.refine import make_aligner
 
-    proc = run_cli("synth", tmp_path, "--size", "small", "--seed", 3)
-    assert proc.returncode == 0, proc.stderr
+    synth_scene(tmp_path, 3)
     inputs = load_inputs(tmp_path / "scan.ply", tmp_path / "photo.png", tmp_path / "camera.yaml", tmp_path / "init_pose.yaml")
     gt, _ = read_pose(tmp_path / "gt_pose.yaml")
     init_mm, init_deg = translation_error_m(inputs.T_init, gt) * 1e3, rotation_error_deg(inputs.T_init, gt)

@@ -45,11 +45,11 @@ def test_charuco_detection():
 
 
 @pytest.fixture(scope="module")
-def scenes(tmp_path_factory):
+def scenes(tmp_path_factory, synth_scene):
     out = []
     for seed in (0, 1):
         d = tmp_path_factory.mktemp(f"init{seed}")
-        assert run_cli("synth", d, "--size", "small", "--seed", seed).returncode == 0
+        synth_scene(d, seed)
         out.append(d)
     return out
 

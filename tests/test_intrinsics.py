@@ -35,9 +35,9 @@ def test_corrected_projection_jacobian():
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory):
+def scene(tmp_path_factory, synth_scene):
     d = tmp_path_factory.mktemp("intr")
-    assert run_cli("synth", d, "--size", "small", "--seed", 3).returncode == 0
+    synth_scene(d, 3)
     cam = yaml.safe_load((d / "camera.yaml").read_text())
     cam["fx"] *= 1.02
     cam["fy"] *= 1.02

@@ -60,11 +60,11 @@ def test_differentiable_rotation_matches_rodrigues():
 
 
 @pytest.fixture(scope="module")
-def intensity_scene(tmp_path_factory):
+def intensity_scene(tmp_path_factory, synth_scene):
     """A synthetic scene whose scan keeps only an 'intensity': a non-monotonic function of its
     gray, which no per-point regression from the photo's colors recovers, but NID does."""
     d = tmp_path_factory.mktemp("nid_scene")
-    assert run_cli("synth", d, "--size", "small", "--seed", 2).returncode == 0
+    synth_scene(d, 2)
     scan = load_scan(d / "scan.ply")
     gray = colors_to_gray(scan.rgb) / 255.0
     save_scan(d / "intensity.ply", Scan(xyz=scan.xyz, intensity=(np.sin(3 * np.pi * gray) ** 2).astype(np.float32),

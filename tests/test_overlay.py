@@ -28,9 +28,9 @@ def _dots_agreement(photo: np.ndarray, points: np.ndarray) -> float:
     return float(np.corrcoef(p[drawn], d[drawn])[0, 1])
 
 
-def test_overlay_at_the_true_pose_agrees_with_the_photo(tmp_path):
+def test_overlay_at_the_true_pose_agrees_with_the_photo(tmp_path, synth_scene):
     scene = tmp_path / "scene"
-    assert run_cli("synth", scene, "--size", "small", "--seed", 4).returncode == 0
+    synth_scene(scene, 4)
     T = read_pose(scene / "gt_pose.yaml")[0]
     write_pose(tmp_path / "off.yaml", apply_update(T, np.r_[0.0, 0.01, 0.0, 0.02, 0.0, 0.0]))  # 0.6 deg, 2 cm
     photo = cv2.imread(str(scene / "photo.png"))
@@ -64,9 +64,9 @@ def test_overlay_at_the_true_pose_agrees_with_the_photo(tmp_path):
     assert "true_points.png is left from an earlier run" in proc.stderr, proc.stderr
 
 
-def test_overlay_errors(tmp_path):
+def test_overlay_errors(tmp_path, synth_scene):
     scene = tmp_path / "scene"
-    assert run_cli("synth", scene, "--size", "small", "--seed", 5).returncode == 0
+    synth_scene(scene, 5)
     args = ["overlay", "--scan", scene / "scan.ply", "--image", scene / "photo.png", "--camera", scene / "camera.yaml"]
     T = read_pose(scene / "gt_pose.yaml")[0]
     away = T.copy()

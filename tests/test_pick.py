@@ -91,9 +91,9 @@ def _pick_in_browser(args: list, clicks: list, shot: Path, label: str | None = N
     return solution, subprocess.CompletedProcess(proc.args, proc.returncode, proc.stdout.read(), proc.stderr.read())
 
 
-def test_pick_pairs_in_a_browser(tmp_path):
+def test_pick_pairs_in_a_browser(tmp_path, synth_scene):
     scene = tmp_path / "scene"
-    assert run_cli("synth", scene, "--size", "small", "--seed", 6).returncode == 0
+    synth_scene(scene, 6)
     pairs = _chosen_pairs(scene)
     out = tmp_path / "pairs.csv"
     solution, proc = _pick_in_browser(["--scan", scene / "scan.ply", "--image", scene / "photo.png", "--camera",
@@ -165,9 +165,9 @@ def test_pick_on_a_real_sweep(tmp_path):
     assert solution["inliers"] == len(clicks)
 
 
-def test_pick_errors(tmp_path):
+def test_pick_errors(tmp_path, synth_scene):
     scene = tmp_path / "scene"
-    assert run_cli("synth", scene, "--size", "small", "--seed", 7).returncode == 0
+    synth_scene(scene, 7)
     args = ["pick", "--scan", scene / "scan.ply", "--image", scene / "photo.png", "--no-browser"]
     assert_one_line_error(run_cli(*args, "-o", tmp_path / "p.txt"), "p.txt", ".csv")
     (tmp_path / "a_file").write_text("x")
@@ -177,7 +177,7 @@ def test_pick_errors(tmp_path):
     assert not (tmp_path / "p.csv").exists()
 
 
-def test_pick_server_answers_bad_requests_with_errors(tmp_path):
+def test_pick_server_answers_bad_requests_with_errors(tmp_path, synth_scene):
     """Requests the page never sends (made by hand, or by another tool): an error answer each,
     no traceback in the terminal, and no pair that is not finite saved."""
     import json
@@ -185,7 +185,7 @@ def test_pick_server_answers_bad_requests_with_errors(tmp_path):
     import urllib.request
 
     scene = tmp_path / "scene"
-    assert run_cli("synth", scene, "--size", "small", "--seed", 7).returncode == 0
+    synth_scene(scene, 7)
     out = tmp_path / "p.csv"
     proc, url = _start_pick("--scan", scene / "scan.ply", "--image", scene / "photo.png", "--camera", scene / "camera.yaml",
                             "-o", out)
@@ -220,14 +220,14 @@ def test_pick_server_answers_bad_requests_with_errors(tmp_path):
     assert not out.exists()
 
 
-def test_click_views_know_their_points(tmp_path):
+def test_click_views_know_their_points(tmp_path, synth_scene):
     """Each scan image (grid, panorama from the origin, view at a pose) gives, under a pixel, a
     scan point that the view itself put there (no browser needed)."""
     from rgbd_gt.init.pick import click_view
     from rgbd_gt.io.scan import Scan
 
     scene = tmp_path / "scene"
-    assert run_cli("synth", scene, "--size", "small", "--seed", 9).returncode == 0
+    synth_scene(scene, 9)
     scan = load_scan(scene / "scan.ply")
     cam = read_camera(scene / "camera.yaml")
     T = read_pose(scene / "gt_pose.yaml")[0]

@@ -21,9 +21,9 @@ def test_score_of_identical_and_shifted_edges():
     assert abs(s.median_distance_px - 3) < 0.05 and s.within_1px == 0
 
 
-def test_qa_edges_on_a_synthetic_scene(tmp_path):
+def test_qa_edges_on_a_synthetic_scene(tmp_path, synth_scene):
     d = tmp_path / "scene"
-    assert run_cli("synth", d, "--size", "small", "--seed", 1).returncode == 0
+    synth_scene(d, 1)
     assert run_cli("refine", "--scan", d / "scan.ply", "--image", d / "photo.png", "--camera", d / "camera.yaml",
                    "--init", d / "init_pose.yaml", "-o", d / "pose.yaml").returncode == 0
     proc = run_cli("qa-edges", "--scan", d / "scan.ply", "--image", d / "photo.png", "--camera", d / "camera.yaml",

@@ -17,9 +17,9 @@ from rgbd_gt.io.depth_file import read_depth_exr
 from rgbd_gt.pose import rotation_error_deg, translation_error_m
 
 
-def test_run_two_photos_then_resume(tmp_path):
+def test_run_two_photos_then_resume(tmp_path, synth_scene):
     scene = tmp_path / "scene"
-    assert run_cli("synth", scene, "--size", "small", "--seed", 2, "--photos", 2).returncode == 0
+    synth_scene(scene, 2, 2)
     noise = np.random.default_rng(0).integers(0, 256, (480, 640, 3), dtype=np.uint8)
     cv2.imwrite(str(scene / "photo_blank.png"), noise)  # a photo without the board
     cv2.imwrite(str(scene / "photo_small.png"), noise[:240, :320])  # not the camera's size
@@ -146,11 +146,11 @@ def test_run_bad_config(tmp_path):
     assert not (tmp_path / "busy" / "summary.csv").exists()
 
 
-def test_run_refines_one_camera_for_all_photos(tmp_path):
+def test_run_refines_one_camera_for_all_photos(tmp_path, synth_scene):
     """refine_intrinsics in a run: one camera from all photos (their estimates weighted by their
     variances), then every pose with it; the camera file's focal is 2% off."""
     scene = tmp_path / "scene"
-    assert run_cli("synth", scene, "--size", "small", "--seed", 8, "--photos", 2).returncode == 0
+    synth_scene(scene, 8, 2)
     cam = yaml.safe_load((scene / "camera.yaml").read_text())
     (scene / "camera_off.yaml").write_text(yaml.safe_dump({**cam, "fx": cam["fx"] * 1.02, "fy": cam["fy"] * 1.02}))
     config = {"scan": "scene/scan.ply", "camera": "scene/camera_off.yaml", "photos": ["scene/photo*.png"],
@@ -225,7 +225,7 @@ def test_run_on_a_real_lidar_frame_with_the_rigs_extrinsic(tmp_path):
     assert row["status"] == "failed" and "holds outputs made from another init" in row["error"], row
 
 
-def test_run_depth_covers_what_the_refined_pose_sees(tmp_path):
+def test_run_depth_covers_what_the_refined_pose_sees(tmp_path, synth_scene):
     """A refined pose 4 deg from its init (beyond the initial view's margin): run's depth map is
     export-depth's at that pose, border included (refine is skipped: its pose file is given)."""
     import cv2 as _cv2
@@ -233,7 +233,7 @@ def test_run_depth_covers_what_the_refined_pose_sees(tmp_path):
     from rgbd_gt.io import write_pose
 
     scene = tmp_path / "scene"
-    assert run_cli("synth", scene, "--size", "small", "--seed", 2).returncode == 0
+    synth_scene(scene, 2)
     gt = read_pose(scene / "gt_pose.yaml")[0]
     turn = np.eye(4)
     turn[:3, :3] = _cv2.Rodrigues(np.radians([0.0, 4.0, 0.0]))[0]

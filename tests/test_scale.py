@@ -25,11 +25,10 @@ from rgbd_gt.render.normals import with_normals
 
 
 @pytest.fixture(scope="module")
-def scenes(tmp_path_factory):
+def scenes(tmp_path_factory, synth_scene):
     root = tmp_path_factory.mktemp("scale")
     for seed, photos in ((2, 2), (5, 1)):
-        proc = run_cli("synth", root / f"s{seed}", "--size", "small", "--seed", seed, "--photos", photos)
-        assert proc.returncode == 0, proc.stderr
+        synth_scene(root / f"s{seed}", seed, photos)
     return root
 
 

@@ -16,12 +16,11 @@ SEEDS = (0, 1)
 
 
 @pytest.fixture(scope="module")
-def scenes(tmp_path_factory):
+def scenes(tmp_path_factory, synth_scene):
     out = {}
     for seed in SEEDS:
         d = tmp_path_factory.mktemp(f"synth{seed}")
-        proc = run_cli("synth", d, "--size", "small", "--seed", seed)
-        assert proc.returncode == 0, proc.stderr
+        synth_scene(d, seed)
         out[seed] = d
     return out
 

@@ -15,13 +15,13 @@ from rgbd_gt.qa.edges import chance_relative, photo_strength, structural_edges
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory):
+def scene(tmp_path_factory, synth_scene):
     """A scene where refine is reliable from its init's distance: from 12 starts 1 deg / 5 cm
     around the truth, none of the 72 runs with seeds 0-5 ended off (the seed-3 scene: 5 of 72,
     so that there the verdict's nearby starts fail a right result with some seeds, as its
     false alarms in docs/trust.md)."""
     d = tmp_path_factory.mktemp("verify")
-    assert run_cli("synth", d, "--size", "small", "--seed", 2).returncode == 0
+    synth_scene(d, 2)
     return d
 
 
@@ -58,9 +58,9 @@ def test_mirrored_photo_is_failed_and_strict_exits_3(scene, tmp_path):
     assert doc["reasons"] and any("chance" in r for r in doc["reasons"]), doc["reasons"]
 
 
-def test_photo_of_another_scene_is_not_ok(scene, tmp_path_factory, tmp_path):
+def test_photo_of_another_scene_is_not_ok(scene, tmp_path_factory, tmp_path, synth_scene):
     other = tmp_path_factory.mktemp("other")
-    assert run_cli("synth", other, "--size", "small", "--seed", 5).returncode == 0
+    synth_scene(other, 5)
     out = tmp_path / "pose.yaml"
     proc = _refine(scene, other / "photo.png", out, "--repeats", "2")
     assert proc.returncode == 0, proc.stderr  # without --strict a failed verdict is no error
