@@ -163,6 +163,61 @@ def test_livox_camera_calib_files(tmp_path):
         assert (depths[0] > 0).sum() > 5000 and np.array_equal(depths[0], depths[1])
 
 
+
+def _autoware_file(cam: Camera, T_lidar_from_cam: np.ndarray, model: str = "plumb_bob", size=None) -> str:
+    """A calibration file as Autoware's camera-LiDAR calibrator writes it (cv::FileStorage of
+    OpenCV 3/4, then ImageSize, ReprojectionError and DistModel appended as plain YAML)."""
+    def matrix(name, m):
+        m = np.atleast_2d(m)
+        data = ", ".join(f"{v:.16e}" for v in m.ravel())
+        return f"{name}: !!opencv-matrix\n   rows: {m.shape[0]}\n   cols: {m.shape[1]}\n   dt: d\n   data: [ {data} ]\n"
+    K = [[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1]]
+    size = size or [cam.width, cam.height]
+    return ("%YAML:1.0\n---\n" + matrix("CameraExtrinsicMat", T_lidar_from_cam) + matrix("CameraMat", K)
+            + matrix("DistCoeff", np.array(cam.distortion)) + f"ImageSize: {size}\nReprojectionError: 0.\nDistModel: {model}\n")
+
+
+def test_autoware_calibration_file(tmp_path):
+    """Autoware's calibration YAML is one file for both: the camera (CameraMat, DistCoeff,
+    ImageSize) and the pose, CameraExtrinsicMat being the camera's pose in the LiDAR frame (the
+    inverse of T_cam_from_scan). Written for pjlab_3's rig where the data are present, it reads as
+    calib.txt reads the same values and drives export-depth to the same depth map."""
+    from conftest import DATA, run_cli
+    from rgbd_gt.io import read_pose
+    from rgbd_gt.io.depth_file import read_depth_exr
+    from rgbd_gt.pose import invert
+
+    scene = DATA / "lidar_camera" / "pjlab_3"
+    cam, T = CAM, np.eye(4)
+    T[:3, :3], T[:3, 3] = [[0, -1, 0], [0, 0, -1], [1, 0, 0]], [0.05, -0.1, 0.02]
+    if scene.exists():
+        cam, T = read_camera(scene / "calib.txt", (1920, 1200)), read_pose(scene / "calib.txt")[0]
+    path = tmp_path / "autoware.yaml"
+    path.write_text(_autoware_file(cam, invert(T)))
+    assert read_camera(path) == cam
+    np.testing.assert_allclose(read_pose(path)[0], T, atol=1e-12)
+    for name, text, needle in (("fisheye.yaml", _autoware_file(cam, invert(T), model="equidistant"), "DistModel 'equidistant'"),
+                               ("size.yaml", _autoware_file(cam, invert(T), size=[cam.width]), r"ImageSize must be \[width, height\]"),
+                               ("nosize.yaml", _autoware_file(cam, invert(T)).replace("ImageSize", "Size"), "or 'ImageSize'"),
+                               ("norows.yaml", _autoware_file(cam, invert(T)).replace("   rows: 3\n", ""), "lacks its rows or cols")):
+        (tmp_path / name).write_text(text)
+        with pytest.raises(InputError, match=needle):
+            read_camera(tmp_path / name)
+    for name, text, needle in (("skew.yaml", _autoware_file(cam, np.diag([1.0, 1.0, 2.0, 1.0])), "not rigid|orthonormal"),
+                               ("words.yaml", _autoware_file(cam, invert(T)).replace("0.0000000000000000e+00", "abc", 1),
+                                "not a list of numbers")):  # the extrinsic's last row holds the first 0
+        (tmp_path / name).write_text(text)
+        with pytest.raises(InputError, match=needle):
+            read_pose(tmp_path / name)
+    if scene.exists():
+        depths = []
+        for camera, pose, image in ((scene / "calib.txt", scene / "calib.txt", ["--image", scene / "calib.png"]), (path, path, [])):
+            out = tmp_path / f"depth_{len(depths)}.exr"
+            proc = run_cli("export-depth", "--scan", scene / "calib.pcd", "--camera", camera, *image, "--pose", pose, "-o", out)
+            assert proc.returncode == 0, proc.stderr
+            depths.append(read_depth_exr(out)[0])
+        assert (depths[0] > 0).sum() > 5000 and np.array_equal(depths[0], depths[1])
+
 @pytest.mark.parametrize(
     "text,needle",
     [

@@ -162,6 +162,7 @@ def make_seeds(folder: Path, data: Path | None) -> dict[str, Path]:
         seeds.update({k: p for k, p in real.items() if p.is_file()})
     if "calib_txt" in seeds:  # the same rig as livox_camera_calib writes it
         from rgbd_gt.io import read_pose
+        from rgbd_gt.pose import invert
 
         cam, T = read_camera(seeds["calib_txt"], (1920, 1200)), read_pose(seeds["calib_txt"])[0]
         livox = folder / "livox.yaml"
@@ -170,7 +171,14 @@ def make_seeds(folder: Path, data: Path | None) -> dict[str, Path]:
         matrix.write_text("".join(",".join(f"{v:g}" for v in row) + "\n" for row in T))
         opencv = folder / "extrinsic.yaml"
         opencv.write_text(f"%YAML:1.0\nExtrinsicMat: !!opencv-matrix\n  rows: 4\n  cols: 4\n  dt: d\n  data: {T.ravel().tolist()}\n")
-        seeds.update(livox_yaml=livox, extrinsic_txt=matrix, extrinsic_cv=opencv)
+        autoware = folder / "autoware.yaml"  # camera and pose in one file, the pose inverted (camera to LiDAR)
+        autoware.write_text(
+            "%YAML:1.0\n---\n" + "".join(f"{name}: !!opencv-matrix\n   rows: {m.shape[0]}\n   cols: {m.shape[1]}\n   dt: d\n"
+                                         f"   data: {m.ravel().tolist()}\n"
+                                         for name, m in (("CameraExtrinsicMat", invert(T)), ("CameraMat", cam.K),
+                                                         ("DistCoeff", np.array([cam.distortion])))) +
+            f"ImageSize: [{cam.width}, {cam.height}]\nReprojectionError: 0.\nDistModel: plumb_bob\n")
+        seeds.update(livox_yaml=livox, extrinsic_txt=matrix, extrinsic_cv=opencv, autoware=autoware)
     return seeds
 
 
@@ -390,6 +398,8 @@ def templates(seeds: dict[str, Path]) -> list[dict]:
                        "--pose", s["extrinsic_txt"], "-o", "{out}/d.exr"], outs=["d.exr"]),
             dict(argv=["overlay", "--scan", s["pcd"], "--image", s["jpg"], "--camera", s["livox_yaml"],
                        "--pose", s["extrinsic_cv"], "-o", "{out}/ov.png"], outs=["ov.png", "ov_blend.png", "ov_points.png"]),
+            dict(argv=["export-depth", "--scan", s["pcd"], "--camera", s["autoware"], "--pose", s["autoware"],
+                       "-o", "{out}/d.exr"], outs=["d.exr"]),
             dict(argv=["ingest", s["e57_real"], "-o", "{out}/merged.ply"], outs=["merged.ply"]),
             dict(argv=["ingest", s["e57_images"], "-o", "{out}/merged.ply", "--extract-images", "{out}/imgs"],
                  outs=["merged.ply", "imgs"]),

@@ -1,5 +1,5 @@
 """Camera files: the project's YAML, ROS camera_info YAML, OpenCV calibration files
-(cv2.FileStorage), and the calibration files of LiDAR-camera tools (`io.calib_txt`,
+(cv2.FileStorage; Autoware's camera-LiDAR calibration YAML among them), and the calibration files of LiDAR-camera tools (`io.calib_txt`,
 `io.calib_json`, livox_camera_calib's calib.yaml), which hold no image size."""
 
 from __future__ import annotations
@@ -55,14 +55,26 @@ def is_opencv_file(path: Path, text: str) -> bool:
     return text.lstrip().startswith("%YAML:1.0") or "opencv-matrix" in text or path.suffix.lower() == ".xml"
 
 
-def opencv_nodes(path: Path, names: tuple[str, ...]) -> dict[str, np.ndarray | float | None]:
+# OpenCV's failed checks in reading a matrix, in words
+OPENCV_CHECKS = {"nelems": "a matrix's data does not hold rows x cols values",
+                 "sizes_node": "a matrix lacks its rows or cols",
+                 "readRawData": "a matrix's data is not a list of numbers"}
+
+
+def opencv_nodes(path: Path, names: tuple[str, ...]) -> dict[str, np.ndarray | float | str | None]:
     """The named nodes of an OpenCV FileStorage file (YAML or XML): a matrix as an array, a
-    number as a float, None where absent or of another kind; OpenCV's errors as one InputError."""
+    sequence of numbers as a 1-D array, a number as a float, a string as a str, None where absent
+    or of another kind; OpenCV's errors as one InputError."""
     import cv2
 
     def value(node):
         if node.isMap():  # an !!opencv-matrix
             return node.mat()
+        if node.isSeq():  # Autoware's ImageSize: [w, h]
+            items = [node.at(i) for i in range(node.size())]
+            return np.array([i.real() for i in items]) if all(i.isReal() or i.isInt() for i in items) else None
+        if node.isString():
+            return node.string()
         return node.real() if node.isReal() or node.isInt() else None
 
     try:
@@ -72,24 +84,36 @@ def opencv_nodes(path: Path, names: tuple[str, ...]) -> dict[str, np.ndarray | f
         finally:
             fs.release()
     except cv2.error as exc:  # its text names OpenCV's own source file; the check that failed says more
-        why = "a matrix's data does not hold rows x cols values" if "nelems" in (exc.err or "") else exc.err or "unreadable"
+        err = exc.err or "unreadable"
+        why = next((words for check, words in OPENCV_CHECKS.items() if check in err), err)
         raise InputError(f"not a readable OpenCV calibration file ({why})", path) from None
     except SystemError:  # a truncated file ends in SystemError inside the binding, which says only that
         raise InputError("not a readable OpenCV calibration file (truncated or corrupt)", path) from None
 
 
-# OpenCV's calibration sample's node names, then livox_camera_calib's camera.yaml's (ORB-SLAM's style)
-OPENCV_NAMES = (("camera_matrix", "CameraMat"), ("distortion_coefficients", "DistCoeffs"),
+# OpenCV's calibration sample's node names, then livox_camera_calib's camera.yaml's (ORB-SLAM's
+# style), then Autoware's (DistCoeff; its size is ImageSize: [w, h])
+OPENCV_NAMES = (("camera_matrix", "CameraMat"), ("distortion_coefficients", "DistCoeffs", "DistCoeff"),
                 ("image_width", "Camera.width"), ("image_height", "Camera.height"))
+OPENCV_MODELS = ("plumb_bob", "rational_polynomial")  # the names ROS and Autoware give OpenCV's model
 
 
 def _read_opencv(path: Path) -> Camera:
-    nodes = opencv_nodes(path, tuple(name for names in OPENCV_NAMES for name in names))
+    nodes = opencv_nodes(path, tuple(name for names in OPENCV_NAMES for name in names) + ("ImageSize", "DistModel"))
     K, dist, w, h = (next((nodes[n] for n in names if nodes[n] is not None), None) for names in OPENCV_NAMES)
     if not isinstance(K, np.ndarray) or K.shape != (3, 3):
         raise InputError("OpenCV calibration file has no 3x3 'camera_matrix' (or 'CameraMat')", path)
+    size = nodes["ImageSize"]
+    if (w is None or h is None) and isinstance(size, np.ndarray):
+        if size.shape != (2,):
+            raise InputError(f"ImageSize must be [width, height], got {size.tolist()}", path)
+        w, h = size
     if w is None or h is None:
-        raise InputError("OpenCV calibration file has no 'image_width'/'image_height' (or 'Camera.width'/'Camera.height')", path)
+        raise InputError("OpenCV calibration file has no 'image_width'/'image_height' (or 'Camera.width'/'Camera.height', "
+                         "or 'ImageSize')", path)
+    model = nodes["DistModel"]
+    if model is not None and model not in OPENCV_MODELS:
+        raise InputError(f"DistModel {model!r} is not supported (plumb_bob or rational_polynomial: OpenCV's model)", path)
     return camera_from_values(path, w, h, K, dist)
 
 
@@ -100,7 +124,7 @@ def _read_ros(path: Path, data: dict) -> Camera:
         return m.get("data") if isinstance(m, dict) else m
 
     model = data.get("distortion_model", "plumb_bob")
-    if model not in ("plumb_bob", "rational_polynomial"):
+    if model not in OPENCV_MODELS:
         raise InputError(f"distortion_model {model!r} is not supported (plumb_bob or rational_polynomial: OpenCV's model)", path)
     try:
         K = np.array(matrix("camera_matrix"), float).reshape(3, 3)

@@ -43,7 +43,8 @@ def read_pose(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
     """Read a pose file. Returns (T_cam_from_scan (4, 4) float64, the other keys as a dict).
     A calibration text file (`io.calib_txt`: a T or Tr_velo_to_cam line, or only a matrix), a
     calib.json (`io.calib_json`: results.T_lidar_camera) or an OpenCV FileStorage file with an
-    `ExtrinsicMat` (livox_camera_calib's config) is read as a pose too."""
+    `ExtrinsicMat` (livox_camera_calib's config) or a `CameraExtrinsicMat` (Autoware's
+    calibration) is read as a pose too."""
     from rgbd_gt.io.calib_json import is_calib_json, read_json_pose
     from rgbd_gt.io.calib_txt import is_calib_txt, read_calib_pose
     from rgbd_gt.io.camera_file import is_opencv_file
@@ -63,19 +64,28 @@ def read_pose(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
     return T, data
 
 
+# OpenCV FileStorage nodes read as a pose; True where the node is the camera's pose in the LiDAR
+# frame (Autoware's CameraExtrinsicMat: its points2image projects with the inverse), so that
+# T_cam_from_scan is its inverse
+OPENCV_POSE_NODES = {"ExtrinsicMat": False, POSE_KEY: False, "CameraExtrinsicMat": True}
+
+
 def _read_opencv_pose(path: Path) -> np.ndarray:
     """T_cam_from_scan of an OpenCV FileStorage file: its `ExtrinsicMat` (4x4, LiDAR to camera;
-    livox_camera_calib's config) or `T_cam_from_scan` node."""
+    livox_camera_calib's config), `T_cam_from_scan`, or `CameraExtrinsicMat` (4x4, camera to
+    LiDAR; Autoware's calibration file) node."""
     from rgbd_gt.io.calib_txt import extrinsic
     from rgbd_gt.io.camera_file import opencv_nodes
+    from rgbd_gt.pose import invert
 
-    found = {k: m for k, m in opencv_nodes(path, ("ExtrinsicMat", POSE_KEY)).items() if isinstance(m, np.ndarray)}
+    found = {k: m for k, m in opencv_nodes(path, tuple(OPENCV_POSE_NODES)).items() if isinstance(m, np.ndarray)}
     if not found:
-        raise InputError(f"OpenCV file has no 'ExtrinsicMat' or '{POSE_KEY}' matrix", path)
+        raise InputError(f"OpenCV file has no {', '.join(repr(k) for k in OPENCV_POSE_NODES)} matrix", path)
     key, m = next(iter(found.items()))
     if m.shape not in ((3, 4), (4, 4)) or not np.isfinite(m).all():
         raise InputError(f"{key} must be a 3x4 or 4x4 matrix of finite numbers, got shape {m.shape}", path)
-    return check_rigid(extrinsic(m.astype(float).ravel(), key, path), path)
+    T = extrinsic(m.astype(float).ravel(), key, path)
+    return check_rigid(invert(T) if OPENCV_POSE_NODES[key] else T, path)
 
 
 def _plain(value):
