@@ -218,6 +218,55 @@ def test_autoware_calibration_file(tmp_path):
             depths.append(read_depth_exr(out)[0])
         assert (depths[0] > 0).sum() > 5000 and np.array_equal(depths[0], depths[1])
 
+
+def test_kalibr_camchain(tmp_path):
+    """Kalibr's camchain YAML of one camera (pinhole, radtan: OpenCV's k1 k2 p1 p2) reads as a
+    camera, and with a T_cam_lidar in its block (LiDAR to camera, as Oxford Spires' cam-lidar.yaml
+    writes it) as a pose; pjlab_3's rig drives export-depth where the data are present."""
+    import yaml
+    from conftest import DATA, run_cli
+    from rgbd_gt.io import read_pose
+    from rgbd_gt.io.depth_file import read_depth_exr
+
+    scene = DATA / "lidar_camera" / "pjlab_3"
+    cam, T = CAM, np.eye(4)
+    T[:3, :3], T[:3, 3] = [[0, -1, 0], [0, 0, -1], [1, 0, 0]], [0.05, -0.1, 0.02]
+    if scene.exists():
+        cam, T = read_camera(scene / "calib.txt", (1920, 1200)), read_pose(scene / "calib.txt")[0]
+    cam = Camera(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, cam.distortion[:4])
+
+    def camchain(**block):  # a key given None is left out
+        cam0 = {"camera_model": "pinhole", "intrinsics": [cam.fx, cam.fy, cam.cx, cam.cy], "distortion_model": "radtan",
+                "distortion_coeffs": list(cam.distortion), "resolution": [cam.width, cam.height],
+                "rostopic": "/cam0/image_raw", "T_cam_lidar": T.tolist()}
+        return yaml.safe_dump({"cam0": {k: v for k, v in {**cam0, **block}.items() if v is not None}}, default_flow_style=None)
+
+    path = tmp_path / "camchain.yaml"
+    path.write_text(camchain())
+    assert read_camera(path) == cam
+    np.testing.assert_allclose(read_pose(path)[0], T, atol=1e-12)
+    path.write_text(camchain(distortion_model="none", distortion_coeffs=[0.0] * 4))
+    assert read_camera(path) == without_distortion(cam)
+    for text, needle in ((camchain(camera_model="omni"), "camera_model 'omni'"),
+                         (camchain(distortion_model="equidistant"), "distortion_model 'equidistant'"),
+                         (camchain(intrinsics=[500.0, 500.0]), r"intrinsics must be \[fu, fv, pu, pv\]"),
+                         (camchain(resolution=640), r"resolution \[width, height\]"),
+                         (camchain() + "cam1:\n  camera_model: pinhole\n", r"2 cameras \(cam0, cam1\)")):
+        path.write_text(text)
+        with pytest.raises(InputError, match=needle):
+            read_camera(path)
+    for text, needle in ((camchain(T_cam_lidar=[[1, 0, 0], [0, 1, 0]]), "3 or 4 rows of 4 finite numbers"),
+                         (camchain(T_cam_lidar=(2 * T).tolist()), "not rigid|orthonormal|last row"),
+                         (camchain(T_cam_lidar=None), "no 'T_cam_from_scan'")):
+        path.write_text(text)
+        with pytest.raises(InputError, match=needle):
+            read_pose(path)
+    if scene.exists():
+        path.write_text(camchain())
+        proc = run_cli("export-depth", "--scan", scene / "calib.pcd", "--camera", path, "--pose", path, "-o", tmp_path / "d.exr")
+        assert proc.returncode == 0, proc.stderr
+        assert (read_depth_exr(tmp_path / "d.exr")[0] > 0).sum() > 5000
+
 @pytest.mark.parametrize(
     "text,needle",
     [

@@ -178,7 +178,12 @@ def make_seeds(folder: Path, data: Path | None) -> dict[str, Path]:
                                          for name, m in (("CameraExtrinsicMat", invert(T)), ("CameraMat", cam.K),
                                                          ("DistCoeff", np.array([cam.distortion])))) +
             f"ImageSize: [{cam.width}, {cam.height}]\nReprojectionError: 0.\nDistModel: plumb_bob\n")
-        seeds.update(livox_yaml=livox, extrinsic_txt=matrix, extrinsic_cv=opencv, autoware=autoware)
+        camchain = folder / "camchain.yaml"  # Kalibr's, with the extrinsic as Oxford Spires adds it
+        camchain.write_text(yaml.safe_dump({"cam0": {
+            "camera_model": "pinhole", "intrinsics": [cam.fx, cam.fy, cam.cx, cam.cy], "distortion_model": "radtan",
+            "distortion_coeffs": list(cam.distortion[:4]), "resolution": [cam.width, cam.height], "T_cam_lidar": T.tolist()}},
+            default_flow_style=None))
+        seeds.update(livox_yaml=livox, extrinsic_txt=matrix, extrinsic_cv=opencv, autoware=autoware, camchain=camchain)
     return seeds
 
 
@@ -400,6 +405,8 @@ def templates(seeds: dict[str, Path]) -> list[dict]:
                        "--pose", s["extrinsic_cv"], "-o", "{out}/ov.png"], outs=["ov.png", "ov_blend.png", "ov_points.png"]),
             dict(argv=["export-depth", "--scan", s["pcd"], "--camera", s["autoware"], "--pose", s["autoware"],
                        "-o", "{out}/d.exr"], outs=["d.exr"]),
+            dict(argv=["overlay", "--scan", s["pcd"], "--image", s["jpg"], "--camera", s["camchain"], "--pose", s["camchain"],
+                       "-o", "{out}/ov.png"], outs=["ov.png", "ov_blend.png", "ov_points.png"]),
             dict(argv=["ingest", s["e57_real"], "-o", "{out}/merged.ply"], outs=["merged.ply"]),
             dict(argv=["ingest", s["e57_images"], "-o", "{out}/merged.ply", "--extract-images", "{out}/imgs"],
                  outs=["merged.ply", "imgs"]),

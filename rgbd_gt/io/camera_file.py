@@ -1,10 +1,12 @@
-"""Camera files: the project's YAML, ROS camera_info YAML, OpenCV calibration files
-(cv2.FileStorage; Autoware's camera-LiDAR calibration YAML among them), and the calibration files of LiDAR-camera tools (`io.calib_txt`,
+"""Camera files: the project's YAML, ROS camera_info YAML, Kalibr's camchain YAML, OpenCV
+calibration files (cv2.FileStorage; Autoware's camera-LiDAR calibration YAML among them), and the
+calibration files of LiDAR-camera tools (`io.calib_txt`,
 `io.calib_json`, livox_camera_calib's calib.yaml), which hold no image size."""
 
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 from typing import Callable
 
@@ -134,6 +136,37 @@ def _read_ros(path: Path, data: dict) -> Camera:
                               matrix("distortion_coefficients"))
 
 
+def kalibr_camera(path: Path, data: dict) -> dict | None:
+    """The camera block (cam0) of a Kalibr camchain YAML; None when `data` is not one. A chain of
+    several cameras is an InputError: which of them took the photo is not in the file."""
+    cams = [k for k in data if isinstance(k, str) and re.fullmatch(r"cam\d+", k)]
+    if not cams:
+        return None
+    if len(cams) > 1:
+        raise InputError(f"a Kalibr camchain of {len(cams)} cameras ({', '.join(cams)}): keep only the block of the "
+                         "camera that took the photo", path)
+    if not isinstance(data[cams[0]], dict):
+        raise InputError(f"{cams[0]} must be a mapping (Kalibr's camchain)", path)
+    return data[cams[0]]
+
+
+def _read_kalibr(path: Path, cam: dict) -> Camera:
+    """Kalibr's camera block: camera_model pinhole, intrinsics [fu, fv, pu, pv], resolution
+    [width, height], distortion_model radtan (OpenCV's k1 k2 p1 p2) or none."""
+    model, distortion = cam.get("camera_model", "pinhole"), cam.get("distortion_model", "none")
+    if model != "pinhole":
+        raise InputError(f"camera_model {model!r} is not supported (pinhole: OpenCV's model)", path)
+    if distortion not in ("radtan", "none"):
+        raise InputError(f"distortion_model {distortion!r} is not supported (radtan or none: OpenCV's model)", path)
+    try:
+        fx, fy, cx, cy = (float(v) for v in cam.get("intrinsics"))
+        w, h = cam.get("resolution")
+    except (TypeError, ValueError):
+        raise InputError("intrinsics must be [fu, fv, pu, pv] and resolution [width, height]", path) from None
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+    return camera_from_values(path, w, h, K, cam.get("distortion_coeffs") if distortion == "radtan" else None)
+
+
 def _read_livox(path: Path, camera: dict, size: tuple[int, int]) -> Camera:
     """livox_camera_calib's calib.yaml: camera.camera_matrix (9 numbers, rows) and
     camera.dist_coeffs (OpenCV's); no image size."""
@@ -148,7 +181,7 @@ def read_camera(path: str | os.PathLike,
                 size: tuple[int, int] | Callable[[], tuple[int, int]] | None = None) -> Camera:
     """Read a camera file: the project's YAML (width, height, fx, fy, cx, cy[, distortion]),
     ROS camera_info YAML (image_width, image_height, camera_matrix.data, distortion_coefficients.data),
-    an OpenCV calibration file (camera_matrix, distortion_coefficients, image_width, image_height),
+    Kalibr's camchain YAML of one camera (cam0: intrinsics, resolution, distortion_coeffs), an OpenCV calibration file (camera_matrix, distortion_coefficients, image_width, image_height),
     or one without an image size: a calibration text file (`io.calib_txt`: K and D lines),
     koide3's calib.json (`io.calib_json`) or livox_camera_calib's calib.yaml (camera.camera_matrix,
     camera.dist_coeffs). size: the photo's (width, height), or a function that gives it, for the
@@ -182,6 +215,9 @@ def read_camera(path: str | os.PathLike,
         raise InputError("camera file must be a YAML mapping", path)
     if "camera_matrix" in data and "image_width" in data:
         return _read_ros(path, data)
+    kalibr = kalibr_camera(path, data)
+    if kalibr is not None:
+        return _read_kalibr(path, kalibr)
     if isinstance(data.get("camera"), dict) and "camera_matrix" in data["camera"]:
         return sized(lambda wh: _read_livox(path, data["camera"], wh))
     missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy") if k not in data]

@@ -44,10 +44,10 @@ def read_pose(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
     A calibration text file (`io.calib_txt`: a T or Tr_velo_to_cam line, or only a matrix), a
     calib.json (`io.calib_json`: results.T_lidar_camera) or an OpenCV FileStorage file with an
     `ExtrinsicMat` (livox_camera_calib's config) or a `CameraExtrinsicMat` (Autoware's
-    calibration) is read as a pose too."""
+    calibration), or a Kalibr-style camchain whose camera holds `T_cam_lidar`, is read as a pose too."""
     from rgbd_gt.io.calib_json import is_calib_json, read_json_pose
     from rgbd_gt.io.calib_txt import is_calib_txt, read_calib_pose
-    from rgbd_gt.io.camera_file import is_opencv_file
+    from rgbd_gt.io.camera_file import is_opencv_file, kalibr_camera
 
     path = require_file(path)
     if is_calib_txt(path):
@@ -58,6 +58,9 @@ def read_pose(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
     if is_opencv_file(path, text):
         return _read_opencv_pose(path), {}
     data = read_yaml(path, text)
+    kalibr = kalibr_camera(path, data) if isinstance(data, dict) and POSE_KEY not in data else None
+    if kalibr is not None and "T_cam_lidar" in kalibr:
+        return _read_kalibr_pose(path, kalibr["T_cam_lidar"]), {}
     if not isinstance(data, dict) or POSE_KEY not in data:
         raise InputError(f"pose file has no '{POSE_KEY}' key", path)
     T = check_rigid(data.pop(POSE_KEY), path)
@@ -86,6 +89,20 @@ def _read_opencv_pose(path: Path) -> np.ndarray:
         raise InputError(f"{key} must be a 3x4 or 4x4 matrix of finite numbers, got shape {m.shape}", path)
     T = extrinsic(m.astype(float).ravel(), key, path)
     return check_rigid(invert(T) if OPENCV_POSE_NODES[key] else T, path)
+
+
+def _read_kalibr_pose(path: Path, m) -> np.ndarray:
+    """T_cam_from_scan from a camchain camera's `T_cam_lidar` (4x4 rows, LiDAR to camera, as
+    Kalibr names T_cam_imu), its rotation projected onto SO(3) as a printed extrinsic's."""
+    from rgbd_gt.io.calib_txt import extrinsic
+
+    try:
+        values = np.asarray(m, float).ravel()
+    except (TypeError, ValueError):
+        values = np.zeros(0)
+    if values.size not in (12, 16) or not np.isfinite(values).all():
+        raise InputError("T_cam_lidar must be 3 or 4 rows of 4 finite numbers", path)
+    return check_rigid(extrinsic(values, "T_cam_lidar", path), path)
 
 
 def _plain(value):
