@@ -391,8 +391,8 @@ def pick(
 def refine(
     scan: Optional[Path] = typer.Option(None, "--scan", help="The scan (.ply, .e57, .pcd or KITTI .bin; colored, or with intensity only), in the scan/world frame. Required unless --pairs lists the pairs."),
     image: Optional[Path] = typer.Option(None, "--image", help="The photo (its size must match the camera file). Required with --scan."),
-    camera: Path = typer.Option(..., "--camera", help="Camera file: YAML, ROS camera_info YAML, OpenCV calibration, a calibration text file with K and D lines (PJLab, KITTI P2) or koide3's calib.json (docs/formats.md)."),
-    init: Path = typer.Option(..., "--init", help="Initial pose file (T_cam_from_scan), e.g. from init-pose, or a calibration text file with a T / Tr_velo_to_cam line, or koide3's calib.json (results.T_lidar_camera)."),
+    camera: Path = typer.Option(..., "--camera", help="Camera file: YAML, ROS camera_info YAML, OpenCV calibration (Autoware's too), Kalibr's camchain of one camera, a calibration text file with K and D lines (PJLab, KITTI P2) or koide3's calib.json (docs/formats.md)."),
+    init: Path = typer.Option(..., "--init", help="Initial pose file (T_cam_from_scan), e.g. from init-pose, or a calibration text file with a T / Tr_velo_to_cam line, koide3's calib.json (results.T_lidar_camera), Autoware's calibration YAML (CameraExtrinsicMat) or a camchain with T_cam_lidar (docs/formats.md)."),
     output: Path = typer.Option(..., "-o", "--output", help="Refined pose file to write."),
     objective: Optional[str] = typer.Option(None, "--objective", help="photometric (the colored-scan aligner), nid (normalised information distance of intensity or gray against the photo's gray, for scans whose values relate to the photo only statistically: intensity-only LiDAR and laser scans) or auto (default: nid for intensity-only scans)."),
     pairs: Optional[Path] = typer.Option(None, "--pairs", help="YAML listing further (scan, image[, camera]) pairs that share the one pose (a LiDAR-camera rig over several frames): `pairs: [{scan: a.pcd, image: a.jpg}, ...]`, paths relative to the file. Solved jointly (nid)."),
