@@ -81,6 +81,79 @@ def test_broken_pcd_files(tmp_path):
     assert not (tmp_path / "out.ply").exists()
 
 
+
+def write_pcd(path, fields: list[tuple[str, str, int]], values: dict[str, np.ndarray], data: str) -> None:
+    """A PCD file as PCL lays it out: fields (name, numpy type, COUNT) in order, each name's values
+    (N,) or (N, COUNT) (names not given, such as the padding `_`, are zeros); `binary_compressed`
+    as an LZF stream of literal runs (valid LZF, which any reader decodes)."""
+    n = len(next(iter(values.values())))
+    dtype = np.dtype([(f"f{i}", t, (c,) if c > 1 else ()) for i, (_, t, c) in enumerate(fields)])
+    rec = np.zeros(n, dtype)
+    for i, (name, _, _) in enumerate(fields):
+        if name in values:
+            rec[f"f{i}"] = values[name]
+    kinds = {"f": "F", "u": "U", "i": "I"}
+    header = (f"VERSION 0.7\nFIELDS {' '.join(f[0] for f in fields)}\n"
+              f"SIZE {' '.join(str(np.dtype(f[1]).itemsize) for f in fields)}\n"
+              f"TYPE {' '.join(kinds[np.dtype(f[1]).kind] for f in fields)}\nCOUNT {' '.join(str(f[2]) for f in fields)}\n"
+              f"WIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA {data}\n").encode()
+    if data == "ascii":
+        rows = [" ".join(" ".join(repr(v.item()) for v in np.ravel(r[k])) for k in dtype.names) for r in rec]
+        body = ("\n".join(rows) + "\n").encode()
+    elif data == "binary":
+        body = rec.tobytes()
+    else:  # one field after another, then LZF: a literal run is a length byte (L - 1) and L bytes
+        raw = b"".join(np.ascontiguousarray(rec[k]).tobytes() for k in dtype.names)
+        body = np.array([len(raw) + (len(raw) + 31) // 32, len(raw)], "<u4").tobytes()
+        body += b"".join(bytes([len(raw[i:i + 32]) - 1]) + raw[i:i + 32] for i in range(0, len(raw), 32))
+    path.write_bytes(header + body)
+
+
+@pytest.mark.parametrize("data", ["ascii", "binary", "binary_compressed"])
+def test_padding_and_field_names_that_open3d_cannot_take(tmp_path, data, monkeypatch):
+    """PCL writes each run of padding bytes as a field `_`, so that files from Ouster's and
+    Velodyne's drivers and PCL's own point types name `_` several times; Open3D's reader aborts
+    the process on that (a repeated name of COUNT > 1), on part of a normal, on a field named
+    `colors`, and reads a field named `positions` as the points. Each reads right here."""
+    import tempfile
+
+    (tmp_path / "tmp").mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))  # where the renamed copy goes
+    rng = np.random.default_rng(3)
+    n = 40
+    xyz = rng.uniform(-30, 30, (n, 3)).astype(np.float32)
+    raw = rng.integers(0, 255, n).astype(np.float32)
+    ring = rng.integers(0, 64, n).astype(np.uint16)
+    rgb = rng.integers(0, 256, (n, 3))
+    packed = (rgb[:, 0] << 16 | rgb[:, 1] << 8 | rgb[:, 2]).astype(np.uint32)
+    values = {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "intensity": raw, "ring": ring, "rgb": packed.view(np.float32),
+              "normal_x": np.ones(n), "colors": np.ones((n, 3)), "positions": np.ones((n, 3))}
+    xyz_f = [("x", "<f4", 1), ("y", "<f4", 1), ("z", "<f4", 1)]
+    layouts = {  # name: (fields, what the scan must hold)
+        "ouster": (xyz_f + [("_", "u1", 4), ("intensity", "<f4", 1), ("t", "<u4", 1), ("reflectivity", "<u2", 1),
+                            ("ring", "<u2", 1), ("ambient", "<u2", 1), ("_", "u1", 2), ("range", "<u4", 1), ("_", "u1", 12)],
+                   {"intensity", "ring"}),
+        "pcl_xyzrgb": (xyz_f + [("_", "u1", 4), ("rgb", "<f4", 1), ("_", "u1", 12)], {"rgb"}),
+        "normal_x_alone": (xyz_f + [("normal_x", "<f4", 1), ("intensity", "<f4", 1)], {"intensity"}),
+        "colors": (xyz_f + [("colors", "<f4", 3), ("intensity", "<f4", 1)], {"intensity"}),
+        "positions": (xyz_f + [("positions", "<f4", 3)], set()),
+    }
+    for name, (fields, holds) in layouts.items():
+        path = tmp_path / f"{name}.pcd"
+        write_pcd(path, fields, values, data)
+        scan = load_scan(path)
+        np.testing.assert_array_equal(scan.xyz, xyz.astype(np.float64), err_msg=name)
+        if "intensity" in holds:
+            np.testing.assert_allclose(scan.intensity, normalise_intensity(raw), atol=1e-6, err_msg=name)
+        if "ring" in holds:
+            np.testing.assert_array_equal(np.unique(scan.ring, return_inverse=True)[1], np.unique(ring, return_inverse=True)[1])
+        if "rgb" in holds:
+            np.testing.assert_array_equal(scan.rgb, rgb, err_msg=name)
+        assert not list((tmp_path / "tmp").iterdir()), "the renamed copy is removed"
+    write_pcd(tmp_path / "mixed.pcd", [("x", "<f4", 1), ("y", "<f8", 1), ("z", "<f4", 1)], values, data)
+    with pytest.raises(InputError, match="x, y and z differ in SIZE, TYPE or COUNT"):
+        load_scan(tmp_path / "mixed.pcd")
+
 def test_extra_fields_and_colors_are_read(tmp_path):
     """Fields as LiDAR drivers write them (ring uint16, timestamp float64) beside x y z, and colors."""
     import open3d as o3d

@@ -6,7 +6,10 @@ with a console warning and an empty cloud.
 
 from __future__ import annotations
 
+import os
 import re
+import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +47,10 @@ def read_header(path: Path) -> dict[str, list[str]]:
     if not {"x", "y", "z"} <= set(header["FIELDS"]):
         raise InputError(f"PCD has no x y z fields (fields: {' '.join(header['FIELDS'])})", path)
     _check_sizes(path, header, f_tell)
+    kinds = {key: [header[key][header["FIELDS"].index(a)] for a in "xyz"] for key in ("SIZE", "TYPE", "COUNT") if key in header}
+    if any(len(set(v)) > 1 for v in kinds.values()):
+        raise InputError("PCD fields x, y and z differ in SIZE, TYPE or COUNT ("
+                         + "; ".join(f"{k} {' '.join(v)}" for k, v in kinds.items()) + ")", path)
     try:
         view = [float(v) for v in header.get("VIEWPOINT", ["0"] * 7)]
     except ValueError:
@@ -121,6 +128,49 @@ def normalise_intensity(raw: np.ndarray) -> np.ndarray:
     return np.where(finite, np.clip(raw / np.float32(scale), 0, 1), raw).astype(np.float32)
 
 
+NORMAL_FIELDS = ("normal_x", "normal_y", "normal_z")
+OPEN3D_NAMES = ("positions", "colors", "normals")  # Open3D's own attributes: a field of that name replaces them
+
+
+def names_for_open3d(header: dict[str, list[str]]) -> list[str] | None:
+    """The FIELDS names to show Open3D, or None when the file's own are safe. Open3D's reader
+    overruns its buffers and the process aborts on a repeated name of COUNT > 1 (PCL names each
+    run of padding bytes `_`, and files from Ouster's and Velodyne's drivers hold several:
+    `x y z _ intensity _ ring _`), on some but not all of normal_x, normal_y, normal_z, and on a
+    field named `colors`; one named `positions` takes the points' place. Such names get a number;
+    the fields keep their bytes, and the names read here (x y z, intensity, rgb, ring) stay."""
+    fields = header["FIELDS"]
+    n = len(fields)
+    shape = list(zip(header.get("SIZE", ["4"] * n), header.get("TYPE", ["F"] * n), header.get("COUNT", ["1"] * n)))
+    normals = [shape[fields.index(f)] for f in NORMAL_FIELDS if f in fields]
+    odd = set(OPEN3D_NAMES)
+    if normals and (len(normals) < 3 or len(set(normals)) > 1 or normals[0][2] != "1"):
+        odd |= set(NORMAL_FIELDS)
+    if len(set(fields)) == n and not odd & set(fields):
+        return None
+    shown: list[str] = []
+    for name in fields:
+        new, k = name, 0
+        while new in shown or new in odd or (new != name and new in fields):
+            k += 1
+            new = f"{name}{k}"
+        shown.append(new)
+    return shown
+
+
+def _renamed_copy(path: Path, names: list[str]) -> Path:
+    """A temporary copy of a PCD file with another FIELDS line: the same data bytes."""
+    fd, tmp = tempfile.mkstemp(suffix=".pcd")
+    with open(path, "rb") as src, os.fdopen(fd, "wb") as dst:
+        for line in iter(src.readline, b""):  # the header: read_header found its DATA line
+            key = line.split()[:1]
+            dst.write(b"FIELDS " + " ".join(names).encode() + b"\n" if key == [b"FIELDS"] else line)
+            if key == [b"DATA"]:
+                break
+        shutil.copyfileobj(src, dst, 1 << 24)
+    return Path(tmp)
+
+
 def read_pcd(path: str | Path) -> Scan:
     """A PCD file as a Scan: xyz (float64), intensity (from `intensity` or `reflectivity`,
     normalised), rgb (when the file has colors); the origin from VIEWPOINT. Points with
@@ -129,12 +179,17 @@ def read_pcd(path: str | Path) -> Scan:
 
     path = Path(path)
     header = read_header(path)
+    names = names_for_open3d(header)
+    readable = _renamed_copy(path, names) if names else None
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error), native_output() as said:
         try:
-            cloud = o3d.t.io.read_point_cloud(str(path))
+            cloud = o3d.t.io.read_point_cloud(str(readable or path))
         except RuntimeError as exc:  # Open3D's error text carries its C++ function name and colour codes
             said.append(str(exc))
             cloud = None
+        finally:
+            if readable is not None:
+                readable.unlink()
     if cloud is None:
         lines = [re.sub(r"\x1b\[[0-9;]*m|.*\.cpp:\d+:\s*|\[[0-9;]*m", "", ln).strip() for ln in said if "Error" in ln]
         why = next((ln for ln in lines if ln), "unreadable")
