@@ -95,6 +95,20 @@ def make_seeds(folder: Path, data: Path | None) -> dict[str, Path]:
         gray = (s.intensity if s.intensity is not None else s.rgb.mean(axis=1) / 255.0)[keep]
         np.hstack([s.xyz[keep], np.asarray(gray, np.float64)[:, None]]).astype("<f4").tofile(velodyne)
     seeds["scan_bin"] = velodyne
+    ouster = folder / "ouster.pcd"  # as Ouster's driver saves a sweep through PCL: padding fields, all named `_`
+    if not ouster.is_file():
+        s = scan if scan is not None else load_scan(small)
+        keep = np.arange(0, len(s.xyz), 5)
+        rec = np.zeros(len(keep), [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("p0", "u1", 4), ("intensity", "<f4"),
+                                   ("ring", "<u2"), ("p1", "u1", 10)])
+        for i, a in enumerate("xyz"):
+            rec[a] = s.xyz[keep, i]
+        rec["intensity"] = 255 * (s.intensity if s.intensity is not None else s.rgb.mean(axis=1) / 255.0)[keep]
+        rec["ring"] = np.arange(len(keep)) % 16
+        ouster.write_bytes(
+            f"VERSION 0.7\nFIELDS x y z _ intensity ring _\nSIZE 4 4 4 1 4 2 1\nTYPE F F F U F U U\nCOUNT 1 1 1 4 1 1 10\n"
+            f"WIDTH {len(keep)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(keep)}\nDATA binary\n".encode() + rec.tobytes())
+    seeds["scan_ouster"] = ouster
     if not pairs.is_file():
         cam = read_camera(seeds["camera"])
         T, _ = read_pose(seeds["gt"])
@@ -357,6 +371,7 @@ def templates(seeds: dict[str, Path]) -> list[dict]:
     t = [
         dict(argv=["ingest", s["scan_small"], "-o", "{out}/merged.ply", "--voxel", "0.05"], outs=["merged.ply"]),
         dict(argv=["ingest", s["scan_ascii"], "-o", "{out}/merged.ply"], outs=["merged.ply"]),
+        dict(argv=["ingest", s["scan_ouster"], "-o", "{out}/merged.ply"], outs=["merged.ply"]),
         dict(argv=["ingest", s["scan_e57"], "-o", "{out}/merged.ply", "--voxel", "0.1", "--extract-images", "{out}/imgs"],
              outs=["merged.ply", "imgs"]),
         dict(argv=["init-pose", "--scan", s["scan_small"], "--image", s["photo"], "--camera", s["camera"],
