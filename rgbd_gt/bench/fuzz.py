@@ -185,13 +185,15 @@ def make_seeds(folder: Path, data: Path | None) -> dict[str, Path]:
         matrix.write_text("".join(",".join(f"{v:g}" for v in row) + "\n" for row in T))
         opencv = folder / "extrinsic.yaml"
         opencv.write_text(f"%YAML:1.0\nExtrinsicMat: !!opencv-matrix\n  rows: 4\n  cols: 4\n  dt: d\n  data: {T.ravel().tolist()}\n")
-        autoware = folder / "autoware.yaml"  # camera and pose in one file, the pose inverted (camera to LiDAR)
+        # camera and pose in one file, the pose inverted (camera to LiDAR); without Autoware's
+        # ReprojectionError, a number no command reads (a word there is no error)
+        autoware = folder / "autoware.yaml"
         autoware.write_text(
             "%YAML:1.0\n---\n" + "".join(f"{name}: !!opencv-matrix\n   rows: {m.shape[0]}\n   cols: {m.shape[1]}\n   dt: d\n"
                                          f"   data: {m.ravel().tolist()}\n"
                                          for name, m in (("CameraExtrinsicMat", invert(T)), ("CameraMat", cam.K),
                                                          ("DistCoeff", np.array([cam.distortion])))) +
-            f"ImageSize: [{cam.width}, {cam.height}]\nReprojectionError: 0.\nDistModel: plumb_bob\n")
+            f"ImageSize: [{cam.width}, {cam.height}]\nDistModel: plumb_bob\n")
         camchain = folder / "camchain.yaml"  # Kalibr's, with the extrinsic as Oxford Spires adds it
         camchain.write_text(yaml.safe_dump({"cam0": {
             "camera_model": "pinhole", "intrinsics": [cam.fx, cam.fy, cam.cx, cam.cy], "distortion_model": "radtan",
