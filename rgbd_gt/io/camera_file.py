@@ -1,7 +1,7 @@
 """Camera files: the project's YAML, ROS camera_info YAML, Kalibr's camchain YAML, OpenCV
 calibration files (cv2.FileStorage; Autoware's camera-LiDAR calibration YAML among them), and the
-calibration files of LiDAR-camera tools (`io.calib_txt`,
-`io.calib_json`, livox_camera_calib's calib.yaml), which hold no image size."""
+calibration files of LiDAR-camera tools (`io.calib_txt`, `io.calib_json`, livox_camera_calib's
+calib.yaml), which hold no image size."""
 
 from __future__ import annotations
 
@@ -181,8 +181,9 @@ def read_camera(path: str | os.PathLike,
                 size: tuple[int, int] | Callable[[], tuple[int, int]] | None = None) -> Camera:
     """Read a camera file: the project's YAML (width, height, fx, fy, cx, cy[, distortion]),
     ROS camera_info YAML (image_width, image_height, camera_matrix.data, distortion_coefficients.data),
-    Kalibr's camchain YAML of one camera (cam0: intrinsics, resolution, distortion_coeffs), an OpenCV calibration file (camera_matrix, distortion_coefficients, image_width, image_height),
-    or one without an image size: a calibration text file (`io.calib_txt`: K and D lines),
+    Kalibr's camchain YAML of one camera (cam0: intrinsics, resolution, distortion_coeffs), an
+    OpenCV calibration file (camera_matrix, distortion_coefficients, image_width, image_height; or
+    Autoware's CameraMat, DistCoeff, ImageSize), or one without an image size: a calibration text file (`io.calib_txt`: K and D lines),
     koide3's calib.json (`io.calib_json`) or livox_camera_calib's calib.yaml (camera.camera_matrix,
     camera.dist_coeffs). size: the photo's (width, height), or a function that gives it, for the
     files without one.
