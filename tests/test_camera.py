@@ -163,7 +163,6 @@ def test_livox_camera_calib_files(tmp_path):
         assert (depths[0] > 0).sum() > 5000 and np.array_equal(depths[0], depths[1])
 
 
-
 def _autoware_file(cam: Camera, T_lidar_from_cam: np.ndarray, model: str = "plumb_bob", size=None) -> str:
     """A calibration file as Autoware's camera-LiDAR calibrator writes it (cv::FileStorage of
     OpenCV 3/4, then ImageSize, ReprojectionError and DistModel appended as plain YAML)."""
@@ -266,6 +265,7 @@ def test_kalibr_camchain(tmp_path):
         proc = run_cli("export-depth", "--scan", scene / "calib.pcd", "--camera", path, "--pose", path, "-o", tmp_path / "d.exr")
         assert proc.returncode == 0, proc.stderr
         assert (read_depth_exr(tmp_path / "d.exr")[0] > 0).sum() > 5000
+
 
 @pytest.mark.parametrize(
     "text,needle",

@@ -81,7 +81,6 @@ def test_broken_pcd_files(tmp_path):
     assert not (tmp_path / "out.ply").exists()
 
 
-
 def write_pcd(path, fields: list[tuple[str, str, int]], values: dict[str, np.ndarray], data: str) -> None:
     """A PCD file as PCL lays it out: fields (name, numpy type, COUNT) in order, each name's values
     (N,) or (N, COUNT) (names not given, such as the padding `_`, are zeros); `binary_compressed`
@@ -153,6 +152,7 @@ def test_padding_and_field_names_that_open3d_cannot_take(tmp_path, data, monkeyp
     write_pcd(tmp_path / "mixed.pcd", [("x", "<f4", 1), ("y", "<f8", 1), ("z", "<f4", 1)], values, data)
     with pytest.raises(InputError, match="x, y and z differ in SIZE, TYPE or COUNT"):
         load_scan(tmp_path / "mixed.pcd")
+
 
 def test_extra_fields_and_colors_are_read(tmp_path):
     """Fields as LiDAR drivers write them (ring uint16, timestamp float64) beside x y z, and colors."""
