@@ -512,8 +512,9 @@ def refine(
         ("moved from init", f"{moved_mm:.2f} mm, {moved_deg:.4f} deg"),
         ("uncertainty (1 sigma)", f"{ev['uncertainty']['translation_mm']:.3f} mm, {ev['uncertainty']['rotation_deg']:.4f} deg, "
                                   f"{ev['uncertainty']['image_px']:.3f} px"),
-        ("edges vs chance", f"{ev['edges']['edge_ratio']:.2f} (1.0 = chance)" if ev["edges"]["edge_check_usable"]
-         else f"not usable: the scan is drawn with {ev['edges']['splat_radius_px']} px splats"),
+        ("edges vs chance", f"not usable: the scan is drawn with {ev['edges']['splat_radius_px']} px splats"
+         if not ev["edges"]["edge_check_usable"] else f"{ev['edges']['edge_ratio']:.2f} (1.0 = chance)"
+         if ev["edges"]["structural_edge_pixels"] else "not usable: no structural edges in view"),
     ]
     if "repeatability" in ev:
         rows.append(("repeat runs", f"{ev['repeatability']['starts']} starts, spread {ev['repeatability']['spread_px']:.3f} px"))
