@@ -372,3 +372,31 @@ def test_distort_is_opencvs_model(coefficients):
     expected = cv2.projectPoints(np.c_[xn, np.ones(len(xn))], np.zeros(3), np.zeros(3), camera.K,
                                  np.array(coefficients))[0].reshape(-1, 2)
     np.testing.assert_allclose(distort(camera, xn), expected, atol=1e-6)
+
+
+def test_points_beyond_the_lens_fold_are_not_imaged():
+    """KITTI's raw camera 2 (2011_09_26: a barrel lens, its coefficients fitted inside the photo):
+    the radial model turns back 50 deg off the axis (normalised radius 1.21), so that points 53-58
+    deg off the axis would land inside the photo again, ghosts in a sweep's depth map. They are
+    not imaged; within the fold the projection is OpenCV's."""
+    import cv2
+
+    from rgbd_gt.camera import fold_radius
+    from rgbd_gt.io.scan import Scan
+    from rgbd_gt.render.points import seen_points
+
+    cam = Camera(1392, 512, 959.791, 956.9251, 696.0217, 224.1806,
+                 (-0.3691481, 0.1968681, 1.353473e-3, 5.677587e-4, -6.770705e-2))
+    assert 1.20 < fold_radius(cam.distortion) < 1.22
+    assert fold_radius(()) == fold_radius((0.0, 0.0, 1e-3, 1e-3)) == fold_radius((-0.10, -0.04, 6e-4, -4e-3, 0.43)) == np.inf
+    assert 1.65 < fold_radius(CAM.distortion) < 1.75  # far beyond its photo's corners (0.77)
+    az = np.radians(np.arange(-89.5, 90, 0.25))
+    ring = np.c_[10 * np.sin(az), np.full_like(az, 0.5), 10 * np.cos(az)]  # a ring of returns 10 m round the camera
+    uv, z = project(cam, ring)
+    r = np.abs(np.tan(az))
+    within = r < fold_radius(cam.distortion)
+    assert np.isnan(uv[~within]).all() and np.isfinite(uv[within]).all()
+    expected = cv2.projectPoints(ring[within], np.zeros(3), np.zeros(3), cam.K, np.array(cam.distortion))[0].reshape(-1, 2)
+    np.testing.assert_allclose(uv[within], expected, atol=1e-6)
+    idx, _, _ = seen_points(Scan(xyz=ring), cam, np.eye(4))
+    assert len(idx) > 50 and r[idx].max() < 0.95  # the photo's edge: 0.93; the ghosts lay at 1.4-1.8
