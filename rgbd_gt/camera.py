@@ -83,6 +83,17 @@ def fold_radius(distortion: tuple[float, ...]) -> float:
     return float(r[falls[0]]) if len(falls) else float("inf")
 
 
+def lens_reach(camera: Camera) -> tuple[float, float]:
+    """(reach, corner): the farthest normalised distorted radius the lens model maps to (at its
+    `fold_radius`; inf without a fold) and that of the photo's farthest corner. reach < corner:
+    the model turns back inside the photo, and its outer pixels have no ray."""
+    fold = fold_radius(camera.distortion)
+    reach = fold * float(_radial(list(camera.distortion), np.float64(fold * fold))) if np.isfinite(fold) else np.inf
+    u = max(camera.cx + 0.5, camera.width - 0.5 - camera.cx) / camera.fx  # the outer edges of the corner pixels
+    v = max(camera.cy + 0.5, camera.height - 0.5 - camera.cy) / camera.fy
+    return float(reach), float(np.hypot(u, v))
+
+
 def distort(camera: Camera, xn: np.ndarray) -> np.ndarray:
     """Normalised image coordinates (N, 2) (x/z, y/z) -> distorted pixels (N, 2) float64, OpenCV's
     model: radial (k1, k2, k3 over k4, k5, k6), tangential (p1, p2) and thin prism (s1..s4), the

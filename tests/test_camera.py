@@ -284,6 +284,9 @@ def test_kalibr_camchain(tmp_path):
         ("width: 640\nheight: 480\nfx: 500\nfy: 500\ncx: 320\ncy: 240\ndistortion: [1, 2, 3]\n", "coefficients"),
         ("width: 640\nheight: 480\nfx: -5\nfy: 500\ncx: 320\ncy: 240\n", "fx must lie between 1 and"),
         ("width: [640\n", "invalid YAML"),
+        # a model that turns back 39 deg off the axis, short of the corners (45 deg): they would have no ray
+        ("width: 640\nheight: 480\nfx: 400\nfy: 400\ncx: 320\ncy: 240\ndistortion: [-0.6, 0.1, 0, 0]\n",
+         r"the lens model turns back inside the 640x480 image .*corners lie at 1\.00"),
         ("- 1\n- 2\n", "mapping"),
         ("%YAML:1.0\ncamera_matrix: !!opencv-matrix\n  rows: 3\n  cols: 3\n  dt: d\n  data: [1, 2, 3]\n",
          r"OpenCV calibration file \(a matrix's data does not hold rows x cols values\)$"),
@@ -381,13 +384,14 @@ def test_points_beyond_the_lens_fold_are_not_imaged():
     not imaged; within the fold the projection is OpenCV's."""
     import cv2
 
-    from rgbd_gt.camera import fold_radius
+    from rgbd_gt.camera import fold_radius, lens_reach
     from rgbd_gt.io.scan import Scan
     from rgbd_gt.render.points import seen_points
 
     cam = Camera(1392, 512, 959.791, 956.9251, 696.0217, 224.1806,
                  (-0.3691481, 0.1968681, 1.353473e-3, 5.677587e-4, -6.770705e-2))
     assert 1.20 < fold_radius(cam.distortion) < 1.22
+    assert lens_reach(cam)[1] < lens_reach(cam)[0] < 0.82  # it reaches past the photo's corners, just
     assert fold_radius(()) == fold_radius((0.0, 0.0, 1e-3, 1e-3)) == fold_radius((-0.10, -0.04, 6e-4, -4e-3, 0.43)) == np.inf
     assert 1.65 < fold_radius(CAM.distortion) < 1.75  # far beyond its photo's corners (0.77)
     az = np.radians(np.arange(-89.5, 90, 0.25))

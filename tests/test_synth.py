@@ -128,3 +128,21 @@ def test_bad_size_and_config(tmp_path):
     assert_one_line_error(run_cli("synth", tmp_path, "--size", "huge"), "unknown size")
     (tmp_path / "c.yaml").write_text("board_colz: 9\n")
     assert_one_line_error(run_cli("synth", tmp_path / "o", "--config", tmp_path / "c.yaml"), "c.yaml", "board_colz")
+
+
+def test_wide_synthetic_cameras_keep_a_lens_that_covers_the_photo():
+    """A wide field (hfov_deg up to 170 in the config) with the drawn barrel distortion would turn
+    back inside the photo, which a camera file may not do; the radial terms are weakened until the
+    lens covers it. The default field keeps its draws as they were."""
+    from rgbd_gt.camera import lens_reach
+    from rgbd_gt.synth.generate import SynthConfig, random_camera
+
+    preset = SynthConfig().sizes["small"]
+    for seed in range(20):
+        for hfov in ([55.0, 70.0], [110.0, 120.0], [150.0, 165.0]):
+            reach, corner = lens_reach(random_camera(np.random.default_rng(seed), preset, hfov))
+            assert reach >= corner, (seed, hfov)
+    draws = np.random.default_rng(0)
+    draws.uniform(55.0, 70.0)  # the field, then k1 and k2
+    k1, k2 = draws.uniform(-0.15, -0.03), draws.uniform(-0.02, 0.06)
+    assert random_camera(np.random.default_rng(0), preset, [55.0, 70.0]).distortion[:2] == (k1, k2)

@@ -13,7 +13,7 @@ from typing import Callable
 import numpy as np
 import yaml
 
-from rgbd_gt.camera import Camera
+from rgbd_gt.camera import Camera, lens_reach
 from rgbd_gt.errors import InputError, read_yaml, require_file
 from rgbd_gt.io.atomic import atomic_output
 
@@ -49,6 +49,12 @@ def camera_from_values(path: Path, width, height, K: np.ndarray, dist) -> Camera
             raise InputError(f"{name} must lie between 1 and 1000 x the image size, got {f}", path)
     if not (-w < cam.cx < 2 * w and -h < cam.cy < 2 * h):
         raise InputError(f"the principal point ({cam.cx}, {cam.cy}) is far outside the {w}x{h} image", path)
+    reach, corner = lens_reach(cam)
+    if reach < corner:
+        raise InputError(f"the lens model turns back inside the {w}x{h} image (its distortion reaches a radius of "
+                         f"{reach:.3f} in x/z, y/z; the corners lie at {corner:.3f}), so its outer pixels have no ray: "
+                         "coefficients fitted for another image size, or a fisheye lens, which this model does not describe",
+                         path)
     return cam
 
 

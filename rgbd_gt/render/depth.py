@@ -229,7 +229,8 @@ def _corner_pixels(xyz: np.ndarray, camera: Camera, T_cam_from_scan: np.ndarray)
     """(uv (N, 2) float32 distorted pixels, out (N,) uint8) of the points xyz (N, 3). out is 0
     where the point is in front of the camera and within the lens model's reliable reach
     (`view_bounds` with a 10% margin: beyond it distortion may fold back), else a bit per side
-    it lies beyond (1, 2: x/z below, above; 4, 8: y/z; 16: behind the camera); uv 0 there."""
+    it lies beyond (1, 2: x/z below, above; 4, 8: y/z; 16: behind the camera, or past the lens
+    model's fold); uv 0 there."""
     from rgbd_gt.render.blocks import view_bounds
 
     x0, x1, y0, y1 = view_bounds(camera, 0.1)
@@ -242,9 +243,12 @@ def _corner_pixels(xyz: np.ndarray, camera: Camera, T_cam_from_scan: np.ndarray)
         with np.errstate(divide="ignore", invalid="ignore"):
             xn = p[:, :2] / z[:, None]
         o = np.where(front, (xn[:, 0] < x0) * 1 + (xn[:, 0] > x1) * 2 + (xn[:, 1] < y0) * 4 + (xn[:, 1] > y1) * 8, 16)
-        sure = o == 0
+        sure = np.flatnonzero(o == 0)
+        d = distort(camera, xn[sure])
+        imaged = np.isfinite(d).all(axis=1)  # within the reach, but past a lens model folding inside it
+        o[sure[~imaged]] = 16
         out[a:a + len(p)] = o
-        uv[a:a + len(p)][sure] = distort(camera, xn[sure])
+        uv[a + sure[imaged]] = d[imaged]
     return uv, out
 
 

@@ -11,7 +11,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from rgbd_gt.camera import Camera, project
+from rgbd_gt.camera import Camera, lens_reach, project
 from rgbd_gt.errors import InputError
 from rgbd_gt.io import Scan, atomic_output, save_scan, write_camera, write_pose
 from rgbd_gt.io.e57 import write_e57
@@ -85,8 +85,11 @@ def random_camera(rng: np.random.Generator, preset: SizePreset, hfov_deg: list[f
     w, h = preset.width, preset.height
     f = w / 2 / np.tan(np.deg2rad(rng.uniform(*hfov_deg)) / 2)
     dist = (rng.uniform(-0.15, -0.03), rng.uniform(-0.02, 0.06), rng.uniform(-8e-4, 8e-4), rng.uniform(-8e-4, 8e-4), 0.0)
-    return Camera(w, h, float(f), float(f * rng.uniform(0.998, 1.002)), float((w - 1) / 2 + rng.normal(0, 0.01 * w)),
-                  float((h - 1) / 2 + rng.normal(0, 0.01 * h)), tuple(float(d) for d in dist))
+    cam = Camera(w, h, float(f), float(f * rng.uniform(0.998, 1.002)), float((w - 1) / 2 + rng.normal(0, 0.01 * w)),
+                 float((h - 1) / 2 + rng.normal(0, 0.01 * h)), tuple(float(d) for d in dist))
+    while lens_reach(cam)[0] < lens_reach(cam)[1]:  # a wide field: weaker radial terms, so that the lens covers it
+        cam = dataclasses.replace(cam, distortion=(cam.distortion[0] / 2, cam.distortion[1] / 2) + cam.distortion[2:])
+    return cam
 
 
 def _board_visible(scene: Scene, rc, camera: Camera) -> bool:
