@@ -143,16 +143,17 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[list[ScanJob], Path]:
     workers elsewhere (Ray) do not share this process's working folder."""
     base = config_path.absolute().parent
 
-    def norm(p: Path) -> Path:
-        return Path(os.path.normpath(p))
+    def at(p: str) -> Path:
+        """A path of the config: relative to its folder, `~` the user's home."""
+        return Path(os.path.normpath(base / os.path.expanduser(p)))
 
     def photos_of(patterns: list[str]) -> list[Path]:
         found: dict[Path, None] = {}  # in order, once each: patterns may overlap
         for pattern in patterns:
-            hits = sorted(glob.glob(str(base / pattern)))
+            hits = sorted(glob.glob(str(at(pattern))))
             if not hits:
                 raise InputError(f"no photo matches '{pattern}'", config_path)
-            found.update((norm(Path(h)), None) for h in hits)
+            found.update((Path(h), None) for h in hits)
         stems: dict[str, Path] = {}
         for photo in found:  # a photo's outputs are OUTPUT/<stem>/: a second one there would resume the first's pose
             if photo.stem in stems:
@@ -163,7 +164,7 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[list[ScanJob], Path]:
 
     def existing(path: str, key: str, kind: str) -> Path:
         """The config's file `path`, checked before any scan is prepared."""
-        found = norm(base / path)
+        found = at(path)
         if not found.is_file():
             raise InputError(f"{key}: no {kind} file {found}", config_path)
         return found
@@ -174,12 +175,12 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[list[ScanJob], Path]:
     def board_of(board: BoardConfig) -> BoardConfig:
         return board if board.points is None else replace(board, points=str(existing(board.points, "board.points", "corners")))
 
-    output = norm(base / cfg.output)
+    output = at(cfg.output)
     if not cfg.scans:
         if not cfg.scan or not cfg.camera or not cfg.photos:
             raise InputError("the config needs scan, camera and photos (or scans: a list of them)", config_path)
         scan = existing(cfg.scan, "scan", "scan")
-        return [ScanJob(scan.stem, scan, norm(base / cfg.camera), photos_of(cfg.photos), output, board_of(cfg.board),
+        return [ScanJob(scan.stem, scan, at(cfg.camera), photos_of(cfg.photos), output, board_of(cfg.board),
                         init_of(cfg.init))], output
     jobs = []
     for k, s in enumerate(cfg.scans):
@@ -188,7 +189,7 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[list[ScanJob], Path]:
             raise InputError(f"scans[{k}] needs scan, photos and a camera (its own or the config's)", config_path)
         scan = existing(s.scan, "scan", "scan")
         name = s.name or scan.stem
-        jobs.append(ScanJob(name, scan, norm(base / camera), photos_of(s.photos), output / name, board_of(s.board or cfg.board),
+        jobs.append(ScanJob(name, scan, at(camera), photos_of(s.photos), output / name, board_of(s.board or cfg.board),
                             init_of(s.init or cfg.init)))
     names = [j.name for j in jobs]
     if len(set(names)) < len(names):

@@ -293,6 +293,15 @@ def test_pairs_and_scan_arguments_are_checked(tmp_path):
     assert_one_line_error(run_cli(*base), "--pairs")
     assert_one_line_error(run_cli(*base, "--scan", "a.pcd", "--image", "a.png", "--objective", "mi"), "objective")
     assert not (tmp_path / "out.yaml").exists()
+    from pathlib import Path
+
+    from rgbd_gt.align.refine import read_pairs  # paths relative to the file, `~` the user's home
+
+    (tmp_path / "rig.yaml").write_text("pairs: [{scan: a.pcd, image: ~/b.png, camera: ~/c.yaml}]\n")
+    with pytest.MonkeyPatch.context() as env:
+        env.setenv("HOME", "/home/someone")
+        assert read_pairs(tmp_path / "rig.yaml", cam) == [
+            {"scan": tmp_path / "a.pcd", "image": Path("/home/someone/b.png"), "camera": Path("/home/someone/c.yaml")}]
 
 
 def test_nothing_to_align_by_is_an_input_error(tmp_path):

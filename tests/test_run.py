@@ -132,6 +132,18 @@ def test_run_bad_config(tmp_path):
     (tmp_path / "corners.csv").write_text("x,y,z\n")
     jobs, _ = resolve(tmp_path / "nocorners.yaml", load_config(RunConfig, tmp_path / "nocorners.yaml"))
     assert jobs[0].board.points == str(tmp_path / "corners.csv")
+    # and `~` is the user's home, in every path of a config
+    home = tmp_path / "home"
+    (home / "photos").mkdir(parents=True)
+    (home / "photos" / "a.png").write_bytes(b"")
+    (tmp_path / "home.yaml").write_text("scan: ~/../x.ply\ncamera: ~/../c.yaml\nphotos: [~/photos/*.png]\noutput: ~/out\n"
+                                        "init: ~/../rig.yaml\n")
+    (tmp_path / "rig.yaml").write_bytes(b"")
+    with pytest.MonkeyPatch.context() as env:
+        env.setenv("HOME", str(home))
+        jobs, output = resolve(tmp_path / "home.yaml", load_config(RunConfig, tmp_path / "home.yaml"))
+    assert (jobs[0].scan, jobs[0].photos, jobs[0].init, output) == (
+        tmp_path / "x.ply", [home / "photos" / "a.png"], tmp_path / "rig.yaml", home / "out")
     # a second run on an output folder that a run is writing is refused before any work
     import fcntl
 

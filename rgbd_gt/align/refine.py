@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
@@ -96,7 +97,8 @@ def camera_disagreement(camera, init_meta: dict, camera_path) -> str | None:
 
 def read_pairs(path: Path, camera: Path) -> list[dict[str, Path]]:
     """The (scan, image, camera) paths of a --pairs YAML (`pairs:` a list of mappings with scan,
-    image and optionally camera, which defaults to `camera`), relative to the file's folder."""
+    image and optionally camera, which defaults to `camera`), relative to the file's folder (`~`:
+    the user's home)."""
     from rgbd_gt.errors import read_yaml, require_file
 
     path = require_file(path)
@@ -110,7 +112,7 @@ def read_pairs(path: Path, camera: Path) -> list[dict[str, Path]]:
             raise InputError(f"pair {k}: needs scan and image paths", path)
         if "camera" in item and not isinstance(item["camera"], str):
             raise InputError(f"pair {k}: camera must be a path", path)
-        out.append({key: path.parent / item[key] for key in ("scan", "image", "camera") if key in item})
+        out.append({key: path.parent / os.path.expanduser(item[key]) for key in ("scan", "image", "camera") if key in item})
         out[-1].setdefault("camera", Path(camera))
     return out
 
