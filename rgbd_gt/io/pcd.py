@@ -161,13 +161,18 @@ def names_for_open3d(header: dict[str, list[str]]) -> list[str] | None:
 def _renamed_copy(path: Path, names: list[str]) -> Path:
     """A temporary copy of a PCD file with another FIELDS line: the same data bytes."""
     fd, tmp = tempfile.mkstemp(suffix=".pcd")
-    with open(path, "rb") as src, os.fdopen(fd, "wb") as dst:
-        for line in iter(src.readline, b""):  # the header: read_header found its DATA line
-            key = line.split()[:1]
-            dst.write(b"FIELDS " + " ".join(names).encode() + b"\n" if key == [b"FIELDS"] else line)
-            if key == [b"DATA"]:
-                break
-        shutil.copyfileobj(src, dst, 1 << 24)
+    try:
+        with open(path, "rb") as src, os.fdopen(fd, "wb") as dst:
+            for line in iter(src.readline, b""):  # the header: read_header found its DATA line
+                key = line.split()[:1]
+                dst.write(b"FIELDS " + " ".join(names).encode() + b"\n" if key == [b"FIELDS"] else line)
+                if key == [b"DATA"]:
+                    break
+            shutil.copyfileobj(src, dst, 1 << 24)
+    except OSError as exc:  # a full temporary folder is no bug of the file's
+        Path(tmp).unlink(missing_ok=True)
+        raise InputError(f"its field names make Open3D read a copy, which {tempfile.gettempdir()} has no room for "
+                         f"({exc.strerror}): set TMPDIR to a folder with room", path) from None
     return Path(tmp)
 
 
