@@ -233,10 +233,9 @@ def init_pose(
     from rgbd_gt.init.pnp import check_spread
     from rgbd_gt.init.run import (board_in_scan, check_picks, detect_photo_board, init_from_board,
                                   init_from_correspondences, read_correspondences, read_csv_rows, write_report)
-    from rgbd_gt.io import read_camera, write_pose
-    from rgbd_gt.io.camera_file import check_image_matches
-    from rgbd_gt.io.image import read_image
+    from rgbd_gt.io import write_pose
     from rgbd_gt.io.outputs import Outputs
+    from rgbd_gt.steps import open_photo
 
     outs = Outputs([scan, image, camera, board_points, correspondences])
     pose_out = outs.file(output, "-o", POSE_SUFFIXES)
@@ -257,9 +256,8 @@ def init_pose(
             raise InputError(f"--charuco: unknown ArUco dictionary '{charuco}' (e.g. DICT_5X5_100)")
     if estimate_focal and correspondences is None:
         raise InputError("--estimate-focal needs --correspondences")
-    photo = read_image(image)
-    cam = read_camera(camera, (photo.shape[1], photo.shape[0]))
-    check_image_matches(cam, photo.shape, image, camera)
+    opened = open_photo(image, camera)
+    photo, cam = opened.image, opened.camera
     with _progress() as bar:
         bar.add_task("init-pose", total=None)
         from rgbd_gt.prepared import prepare_scan, whole_scan
@@ -333,10 +331,10 @@ def pick(
     from rgbd_gt.init.pick import click_view
     from rgbd_gt.init.pick_server import PickSession, serve
     from rgbd_gt.init.run import read_correspondences
-    from rgbd_gt.io import read_camera, read_pose
-    from rgbd_gt.io.camera_file import check_image_matches
+    from rgbd_gt.io import read_pose
     from rgbd_gt.io.image import read_image
     from rgbd_gt.io.outputs import Outputs
+    from rgbd_gt.steps import open_photo
 
     # checked only: the page saves the file itself (atomically) each time it is asked to
     outs = Outputs([scan, image, camera, init])
@@ -345,11 +343,11 @@ def pick(
     _check_ransac_px(ransac_px)
     if estimate_focal and camera is None:
         raise InputError("--estimate-focal needs --camera (for the image size and principal point)")
-    photo = read_image(image)
-    cam = None
-    if camera is not None:
-        cam = read_camera(camera, (photo.shape[1], photo.shape[0]))
-        check_image_matches(cam, photo.shape, image, camera)
+    if camera is None:
+        photo, cam = read_image(image), None
+    else:
+        opened = open_photo(image, camera)
+        photo, cam = opened.image, opened.camera
     T_init = read_pose(init)[0] if init is not None else None
     if T_init is not None and cam is None:
         raise InputError("--init needs --camera (the view is rendered with the photo's camera)")
@@ -423,14 +421,11 @@ def refine(
     one rig: --pairs. The verdict: the pose file gets `verdict` (ok | suspect | failed), `reasons` and
     `evidence` (uncertainty, convergence, repeatability, sharpness, a structural edge check
     against chance, and the --check pairs). See docs/trust.md."""
-    import dataclasses
-
-    from rgbd_gt.align.config import RefineConfig
-    from rgbd_gt.align.refine import camera_disagreement, load_inputs, read_pairs, refine_meta, refine_verified
-    from rgbd_gt.config import load_config
+    from rgbd_gt.align.refine import load_inputs, read_pairs
     from rgbd_gt.init.run import check_picks, read_correspondences
     from rgbd_gt.io import write_pose
     from rgbd_gt.io.outputs import Outputs
+    from rgbd_gt.steps import refine_config, refine_step
 
     start = time.perf_counter()
     if (scan is None) != (image is None):
@@ -446,28 +441,13 @@ def refine(
         staged_camera = outs.file(camera_out, "--camera-out", POSE_SUFFIXES)
     report_dir = outs.folder(report, "--report") if report is not None else None
     outs.checked_folder(cache, "--cache")
-    cfg = load_config(RefineConfig, config, "refine.yaml")
-    flags = dict(color_model=color_model, gradient=gradient, optimizer=optimizer, levels=levels,
-                 upsample=upsample, iterations=iterations, max_points=max_points, beta_max=beta_max,
-                 objective=objective, max_depth=max_depth, search_starts=search_starts,
-                 refine_intrinsics=refine_intrinsics)
-    cfg = dataclasses.replace(cfg, **{k: v for k, v in flags.items() if v is not None})
-    if optimizer == "adam" and iterations is not None:
-        cfg = dataclasses.replace(cfg, adam_iterations=iterations)
-    if repeats is not None:
-        cfg = dataclasses.replace(cfg, verify=dataclasses.replace(cfg.verify, repeats=repeats))
-    try:
-        cfg.check()
-    except ValueError as exc:  # the config file was checked as it was read: an option made it wrong
-        given = {**flags, "repeats": repeats}
-        options = ", ".join(f"--{k.replace('_', '-')} {v}" for k, v in given.items() if v is not None)
-        raise InputError(f"{exc} (options given: {options})") from None
+    cfg = refine_config(config, repeats, color_model=color_model, gradient=gradient, optimizer=optimizer, levels=levels,
+                        upsample=upsample, iterations=iterations, max_points=max_points, beta_max=beta_max,
+                        objective=objective, max_depth=max_depth, search_starts=search_starts,
+                        refine_intrinsics=refine_intrinsics)
     everything = ([dict(scan=scan, image=image, camera=camera)] if scan is not None else []) + listed
     inputs = [load_inputs(p["scan"], p["image"], p["camera"], init, mask if k == 0 else None, cache)
               for k, p in enumerate(everything)]
-    warnings = [w for w in [camera_disagreement(inputs[0].camera, inputs[0].init_meta, camera)] if w]
-    for w in warnings:
-        _warn(w)
     held_out = None
     if check is not None:
         picks = read_correspondences(check, minimum=1)
@@ -481,23 +461,17 @@ def refine(
             bar.update(task, description=f"level {rec['level']} iteration {rec['iteration']}",
                        info=f"loss {rec['loss']:.4f}  step {rec['rotation_update_deg']:.1e} deg {rec['translation_update_m'] * 1e3:.1e} mm")
 
-        result, verification = refine_verified(inputs[0], cfg, device, progress, keep_residuals=report is not None,
-                                               check=held_out, more=inputs[1:])
-    meta = refine_meta(result, cfg, inputs[0].T_init, init, verification, pairs=len(inputs), camera=inputs[0].camera)
-    from rgbd_gt.align.refine import refined_camera
-    from rgbd_gt.qa.verticals import verticals_qa
-
-    # geometry alone, outside the verdict (one of six parameters): the one check a sweep's pose has
-    upright, upright_init = verticals_qa(inputs[0].around, inputs[0].photo, refined_camera(inputs[0].camera, result),
-                                         [result.T_cam_from_scan, inputs[0].T_init])
-    meta |= upright.as_dict() | upright_init.as_dict("init_")
-    if warnings:
-        meta["warnings"] = warnings
+        refined = refine_step(inputs[0], cfg, init, device, camera, progress, keep_residuals=report is not None,
+                              check=held_out, more=inputs[1:])
+    for w in refined.warnings:
+        _warn(w)
+    result, verification, meta = refined.result, refined.verification, refined.meta
+    upright, upright_init = refined.verticals, refined.init_verticals
     with outs:
         if camera_out is not None:
             from rgbd_gt.io.camera_file import write_camera
 
-            write_camera(staged_camera, refined_camera(inputs[0].camera, result))
+            write_camera(staged_camera, refined.camera)
             meta["camera_out"] = str(camera_out)
         write_pose(pose_out, result.T_cam_from_scan, **meta)
         if report is not None:
@@ -557,50 +531,31 @@ def export_depth(
     z-depth in metres, occlusion-correct (a grid mesh ray-cast, or surfels for unstructured scans;
     a LiDAR sweep's own points, sparse)."""
     from rgbd_gt.io import read_camera, read_pose
-    from rgbd_gt.io.camera_file import check_image_matches
-    from rgbd_gt.io.depth_file import write_depth_exr, write_depth_png16
-    from rgbd_gt.io.image import read_image, write_image
     from rgbd_gt.io.outputs import Outputs
-    from rgbd_gt.render.depth import back_facing_fraction, back_facing_warning, point_depth, render_depth
-    from rgbd_gt.render.points import as_points
+    from rgbd_gt.prepared import scan_in_view
+    from rgbd_gt.render.depth import back_facing_fraction, back_facing_warning
+    from rgbd_gt.steps import depth_step, open_photo, write_depth
 
     outs = Outputs([scan, camera, pose] + ([image] if image else []))
     staged = {name: outs.file(p, option, suffixes) for name, p, option, suffixes in [
-        ("depth", output, "-o", (".exr",)), ("png16", png16, "--png16", (".png",)),
+        ("exr", output, "-o", (".exr",)), ("png16", png16, "--png16", (".png",)),
         ("normals", normals, "--normals", (".exr",)), ("mask", mask, "--mask", (".png",))] if p is not None}
     outs.checked_folder(cache, "--cache")
     if max_depth is not None and max_depth < 0:
         raise InputError(f"--max-depth must be positive (0: no limit), got {max_depth}")
     start = time.perf_counter()
-    photo_shape = read_image(image).shape if image else None
-    cam = read_camera(camera, photo_shape and (photo_shape[1], photo_shape[0]))
-    if photo_shape:
-        check_image_matches(cam, photo_shape, image, camera)
+    cam = open_photo(image, camera).camera if image else read_camera(camera)
     T, _ = read_pose(pose)
-    from rgbd_gt.prepared import scan_in_view
-
     the_scan = scan_in_view(scan, cam, [T], cache)
     with _progress() as bar:
         bar.add_task("rendering depth", total=None)
-        sparse = as_points(the_scan, points)
-        depth = (point_depth if sparse else render_depth)(the_scan, cam, T, max_depth, normals=normals is not None)
+        depth = depth_step(the_scan, cam, T, max_depth, points, normals is not None, pose)
     valid = depth.z > 0
-    if not valid.any():
-        if depth.back_facing:
-            raise InputError("the camera sees only the back of the scan's surfaces at this pose: the depth map "
-                             "would be empty", pose)
-        raise InputError("no scan points in view of this pose: the depth map would be empty", pose)
     warning = back_facing_warning(depth)
     if warning:
         _warn(warning)
     with outs:
-        write_depth_exr(staged["depth"], depth.z, cam, T, scan.name)
-        if png16:
-            write_depth_png16(staged["png16"], depth.z)
-        if normals:
-            write_depth_exr(staged["normals"], depth.z, cam, T, scan.name, normals=depth.normals)
-        if mask:
-            write_image(staged["mask"], valid.astype(np.uint8) * 255)
+        write_depth(depth, cam, T, scan.name, **staged)
     zs = depth.z[valid]
     _summary("export-depth", [
         ("method", depth.method),
@@ -634,64 +589,34 @@ def qa_edges(
     far the pose is rolled about the optical axis off the scan's vertical: the photo's vertical
     lines (poles, building and door edges, within 12 deg of the image's vertical) against the
     scan's own (its pole-like columns, with z roughly up); null where either has too few."""
-    from rgbd_gt.io.scan import scan_colors
-    from rgbd_gt.io import read_camera, read_pose
-    from rgbd_gt.io.camera_file import check_image_matches
-    from rgbd_gt.io.image import IMAGE_SUFFIXES, read_image, write_image
+    from rgbd_gt.io import read_pose
+    from rgbd_gt.io.image import IMAGE_SUFFIXES, write_image
     from rgbd_gt.io.outputs import Outputs
-    from rgbd_gt.qa.edges import as_json, qa, side_by_side, structural_qa, working_view
-    from rgbd_gt.qa.verticals import verticals_qa
+    from rgbd_gt.io.scan import scan_colors
+    from rgbd_gt.prepared import view_and_around
+    from rgbd_gt.qa.edges import as_json
+    from rgbd_gt.qa.verticals import MAX_POINTS, REACH
+    from rgbd_gt.render.depth import expect_poses
+    from rgbd_gt.steps import open_photo, qa_step
 
     outs = Outputs([scan, image, camera, pose, before])
     staged = outs.file(output, "-o", IMAGE_SUFFIXES)
     staged_json = outs.file(json_out, "--json", (".json",)) if json_out else None
     outs.checked_folder(cache, "--cache")
-    photo = read_image(image)
-    cam = read_camera(camera, (photo.shape[1], photo.shape[0]))
-    check_image_matches(cam, photo.shape, image, camera)
+    photo = open_photo(image, camera)
     T, _ = read_pose(pose)
-    T_before = read_pose(before)[0] if before else None
-    from rgbd_gt.prepared import view_and_around
-    from rgbd_gt.qa.verticals import MAX_POINTS, REACH
-
-    the_scan, around = view_and_around(scan, cam, [T] if T_before is None else [T, T_before], REACH, MAX_POINTS, cache)
-    if T_before is not None:
-        from rgbd_gt.render.depth import expect_poses
-
-        expect_poses(the_scan, [T_before])  # one ray-casting scene for both renders
-    colors = scan_colors(the_scan, scan)
+    poses = [T] + ([read_pose(before)[0]] if before else [])
+    the_scan, around = view_and_around(scan, photo.camera, poses, REACH, MAX_POINTS, cache)
+    expect_poses(the_scan, poses)  # one ray-casting scene for both renders
     with _progress() as bar:
         bar.add_task("edges", total=None)
-        view = working_view(the_scan, colors, photo, cam, T)
-        _, score = qa(the_scan, colors, photo, cam, T, view=view)
-        if score.scan_edge_pixels == 0:
-            raise InputError("no scan edges in view of this pose (no scan points in view?)", pose)
-        img, structural = structural_qa(the_scan, colors, photo, cam, T, view=view)
-        upright, *upright_before = verticals_qa(around, photo, cam, [T] + ([T_before] if T_before is not None else []))
-        result = {**structural.as_dict(), **score.as_dict(), **upright.as_dict()}
-
-        def row(structural, score, upright) -> str:
-            return f"{structural.summary()}; Canny {score.summary()}; verticals {upright.summary()}"
-
-        rows = [("after" if before else "score", row(structural, score, upright))]
-        if T_before is not None:
-            view_b = working_view(the_scan, colors, photo, cam, T_before)
-            _, score_b = qa(the_scan, colors, photo, cam, T_before, view=view_b)
-            img_b, structural_b = structural_qa(the_scan, colors, photo, cam, T_before, view=view_b)
-            img = side_by_side(img_b, img)
-            result.update({**structural_b.as_dict("before_"), **score_b.as_dict("before_"), **upright_before[0].as_dict("before_")})
-            rows.insert(0, ("before", row(structural_b, score_b, upright_before[0])))
+        result = qa_step(the_scan, scan_colors(the_scan, scan), photo.image, photo.camera, T, around,
+                         poses[1] if before else None, pose, before)
     with outs:
-        write_image(staged, img)
+        write_image(staged, result.image)
         if json_out:
-            staged_json.write_text(as_json(result))
-    _summary("qa-edges", rows, output, None)
-
-
-def beside(output: Path, kind: str) -> Path:
-    """Where overlay writes its other pictures, beside the checkerboard: OVERLAY_blend.png,
-    OVERLAY_points.png."""
-    return output.with_name(f"{output.stem}_{kind}{output.suffix}")
+            staged_json.write_text(as_json(result.scores))
+    _summary("qa-edges", result.rows, output, None)
 
 
 @app.command()
@@ -708,51 +633,40 @@ def overlay(
     """The scan rendered at the pose over the photo, as a checkerboard, as a 50% blend and (for
     sweeps, or with --points) as dots of the visible points, full resolution (crop to inspect):
     the most direct check of a pose. Surfaces the camera would see from behind are not drawn."""
-    from rgbd_gt.io import read_camera, read_pose
-    from rgbd_gt.io.camera_file import check_image_matches
-    from rgbd_gt.io.image import read_image, write_image
+    from concurrent.futures import ThreadPoolExecutor
+
+    from rgbd_gt.io import read_pose
+    from rgbd_gt.io.image import write_image
     from rgbd_gt.io.outputs import Outputs
-    from rgbd_gt.qa.overlay import overlay as make_overlay, points_image
-    from rgbd_gt.render.points import as_points
+    from rgbd_gt.prepared import scan_in_view
+    from rgbd_gt.render.normals import with_normals
+    from rgbd_gt.steps import open_photo, overlay_paths, overlay_step
 
     start = time.perf_counter()
-    blend, points_png = beside(output, "blend"), beside(output, "points")
+    paths = overlay_paths(output)
     outs = Outputs([scan, image, camera, pose])
-    staged = [outs.file(output, "-o", (".png",)), outs.file(blend, "-o (its blend)", (".png",)),
-              outs.file(points_png, "-o (its points)", (".png",))]
+    staged = {k: outs.file(p, "-o" if k == "checker" else f"-o (its {k})", (".png",)) for k, p in paths.items()}
     outs.checked_folder(cache, "--cache")
     if max_depth is not None and max_depth < 0:
         raise InputError(f"--max-depth must be positive, got {max_depth}")
-    photo = read_image(image)
-    cam = read_camera(camera, (photo.shape[1], photo.shape[0]))
-    check_image_matches(cam, photo.shape, image, camera)
+    photo = open_photo(image, camera)
     T, _ = read_pose(pose)
-    from rgbd_gt.prepared import scan_in_view
-    from rgbd_gt.render.normals import with_normals
-
-    the_scan = with_normals(scan_in_view(scan, cam, [T], cache))  # once, for both pictures
+    the_scan = with_normals(scan_in_view(scan, photo.camera, [T], cache))  # once, for both pictures
     with _progress() as bar:
         bar.add_task("rendering the scan", total=None)
-        checker, mixed, covered = make_overlay(the_scan, photo, cam, T, max_depth)
-        if covered == 0:
-            raise InputError("no scan surface in view of this pose (or only surfaces seen from behind)", pose)
-        draw_points = as_points(the_scan, points)
-        images = [checker, mixed]
-        if draw_points:
-            dots, drawn = points_image(the_scan, photo, cam, T, max_depth)
-            images.append(dots)
-    from concurrent.futures import ThreadPoolExecutor
-
+        pictures = overlay_step(the_scan, photo.image, photo.camera, T, max_depth, points, pose)
+    images = {k: getattr(pictures, k) for k in paths if getattr(pictures, k) is not None}
     with outs, ThreadPoolExecutor(3) as pool:  # PNG encoding releases the GIL: the images at once
-        list(pool.map(lambda job: write_image(*job), zip(staged, images)))
-    rows = [("size", f"{cam.width} x {cam.height}"), ("scan covers", f"{covered:.1%} of the photo")]
-    if draw_points:
-        rows.append(("points drawn", f"{drawn:,}"))
+        list(pool.map(lambda k: write_image(staged[k], images[k]), images))
+    rows = [("size", f"{photo.camera.width} x {photo.camera.height}"), ("scan covers", f"{pictures.covered:.1%} of the photo")]
+    if pictures.points is not None:
+        rows.append(("points drawn", f"{pictures.drawn:,}"))
     _summary("overlay", rows + [("time", f"{time.perf_counter() - start:.1f} s")], output, None)
-    for path in [blend, points_png] if draw_points else [blend]:
-        out.print(f"wrote {path}")
-    if not draw_points and points_png.exists():
-        _warn(f"{points_png} is left from an earlier run and may show another pose (--points redraws it)")
+    for k in images:
+        if k != "checker":
+            out.print(f"wrote {paths[k]}")
+    if pictures.points is None and paths["points"].exists():
+        _warn(f"{paths['points']} is left from an earlier run and may show another pose (--points redraws it)")
 
 
 @app.command("run")
@@ -819,6 +733,8 @@ def run_workflow(
 
         def report(p) -> None:
             prepared.append(p)
+            if p.unreadable:  # bad input of the run, not of its photos: one error, as every command gives
+                raise InputError(p.error)
             if p.error:
                 err.print(f"{p.job.scan}: failed: {p.error}", markup=False, highlight=False)
             else:
@@ -956,27 +872,30 @@ def main(argv: list[str] | None = None) -> None:
 
     args = sys.argv[1:] if argv is None else argv
     debug = "--debug" in args
-    if not debug:  # library warnings are noise to a user; the error line says what matters
-        warnings.simplefilter("ignore")
-        np.seterr(all="ignore")
     click_error, click_exit, click_abort = _click_exceptions()
     command = typer.main.get_command(app)
-    try:
-        code = command.main(args=args, prog_name="rgbd-gt", standalone_mode=False)
-        sys.exit(code if isinstance(code, int) else 0)
-    except InputError as exc:
-        if debug:
-            raise
-        err.print(f"error: {exc}", markup=False, highlight=False, soft_wrap=True)
-        sys.exit(2)
-    except click_error as exc:
-        exc.show()
-        sys.exit(exc.exit_code)
-    except click_exit as exc:
-        sys.exit(exc.exit_code)
-    except (*click_abort, KeyboardInterrupt):
-        err.print("aborted", markup=False)
-        sys.exit(130)
-    except MemoryError:
-        err.print("error: out of memory (try --voxel or --crop to reduce the scan)", markup=False)
-        sys.exit(1)
+    # warnings (numpy's floating-point ones too) are kept, not dropped: shown as they come with
+    # --debug, else held off the terminal, where a library's remarks are noise; what they may
+    # lead to, a NaN or inf in an output, is an error of the step that made it (`steps.finite`)
+    with warnings.catch_warnings(record=not debug) as held:
+        warnings.simplefilter("default")
+        try:
+            code = command.main(args=args, prog_name="rgbd-gt", standalone_mode=False)
+            sys.exit(code if isinstance(code, int) else 0)
+        except InputError as exc:
+            if debug:
+                raise
+            more = f" ({len(held)} warning(s) before it: --debug shows them)" if held and "NaN or inf" in str(exc) else ""
+            err.print(f"error: {exc}{more}", markup=False, highlight=False, soft_wrap=True)
+            sys.exit(2)
+        except click_error as exc:
+            exc.show()
+            sys.exit(exc.exit_code)
+        except click_exit as exc:
+            sys.exit(exc.exit_code)
+        except (*click_abort, KeyboardInterrupt):
+            err.print("aborted", markup=False)
+            sys.exit(130)
+        except MemoryError:
+            err.print("error: out of memory (try --voxel or --crop to reduce the scan)", markup=False)
+            sys.exit(1)

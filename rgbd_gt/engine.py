@@ -39,6 +39,7 @@ class Prepared:
     job: ScanJob
     folder: Path | None = None
     error: str = ""
+    unreadable: bool = False  # the error is the scan's own (unreadable, empty, non-finite): bad input of the run
     seconds: float = 0.0
     cached: bool = False
     points: int = 0
@@ -47,7 +48,7 @@ class Prepared:
 
 def prepare_job(job: ScanJob, cache_root: Path, progress: Callable[[str], None] = lambda m: None) -> Prepared:
     """Prepare a scan (or reopen its cache) and find its board when a photo still needs an
-    initial pose; an InputError becomes the result's error (its photos then fail with it)."""
+    initial pose; an InputError becomes the result's error (`unreadable` when the scan's own)."""
     from rgbd_gt.prepared import prepare_scan
     from rgbd_gt.workflow import scan_board
 
@@ -55,7 +56,11 @@ def prepare_job(job: ScanJob, cache_root: Path, progress: Callable[[str], None] 
     out = Prepared(job)
     try:
         before = {p.name for p in cache_root.glob("*")} if cache_root.exists() else set()
-        prepared = prepare_scan(job.scan, cache_root, progress)
+        try:
+            prepared = prepare_scan(job.scan, cache_root, progress)
+        except InputError:
+            out.unreadable = True
+            raise
         out.cached = prepared.folder.name in before
         out.folder, out.points = prepared.folder, len(prepared)
         out.steps["scan"] = round(time.perf_counter() - start, 3)

@@ -18,10 +18,6 @@ import numpy as np
 from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.errors import InputError
 
-# of the photo's extent: the points the refined pose sees within it must be in the view (a render
-# near the border needs the triangles and splats a little beyond it)
-REFINED_VIEW_SLACK = 0.01
-
 
 @dataclass
 class BoardConfig:
@@ -219,18 +215,16 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     scan (`prepared.PreparedScan`) its view can reach; the initial pose from job.init (a pose file)
     when given, else from the board. The depth map is written only for a pose whose verdict is ok or
     suspect, unless export_failed."""
-    from rgbd_gt.align.refine import RefineInputs, refine_meta, refine_verified
+    from rgbd_gt.align.refine import RefineInputs
     from rgbd_gt.io import read_pose, write_pose
     from rgbd_gt.io.atomic import atomic_output
-    from rgbd_gt.io.camera_file import check_image_matches
-    from rgbd_gt.io.depth_file import write_depth_exr, write_depth_png16
-    from rgbd_gt.io.image import read_image, write_image
+    from rgbd_gt.io.image import write_image
+    from rgbd_gt.io.scan import scan_colors
     from rgbd_gt.pose import camera_centre
     from rgbd_gt.qa import verticals
-    from rgbd_gt.qa.edges import as_json, qa, side_by_side
-    from rgbd_gt.qa.overlay import overlay, points_image
-    from rgbd_gt.render.depth import back_facing_fraction, point_depth, render_depth
-    from rgbd_gt.render.points import as_points, is_sweep
+    from rgbd_gt.qa.edges import as_json
+    from rgbd_gt.render.depth import back_facing_fraction, expect_poses
+    from rgbd_gt.steps import depth_step, open_photo, overlay_paths, overlay_step, qa_step, refine_step, write_depth
 
     start = time.perf_counter()
     res = PhotoResult(photo.name)
@@ -241,12 +235,14 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
         res.steps[step] = round(now - clock[0], 3)
         clock[0] = now
 
+    def around(T: np.ndarray) -> np.ndarray:
+        return prepared.xyz_around(camera_centre(T), verticals.REACH, verticals.MAX_POINTS)
+
     d = job.out / photo.stem
     d.mkdir(parents=True, exist_ok=True)
     files = {"init": d / "init.yaml", "refine": d / "pose.yaml", "depth": d / "depth.exr", "qa": d / "qa.json",
              "overlay": d / "overlay.png"}
-    image = read_image(photo, to_align=True)
-    check_image_matches(camera, image.shape, photo, job.camera)
+    image = open_photo(photo, camera, to_align=True, camera_path=job.camera).image
 
     progress("init-pose")
     if files["init"].exists():
@@ -257,26 +253,25 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     seen = prepared.view_index(camera, T_init)
     if len(seen) == 0:
         raise InputError("no scan points in view of the initial pose", files["init"])
-    scan, colors = _view(prepared, seen, T_init)
+    scan = prepared.subset(seen)
     lap("view")
 
     progress("refine")
     if files["refine"].exists():
         res.skipped.append("refine")
     else:
-        inputs = RefineInputs(scan.xyz, colors, image, camera, T_init, None, scan, init_meta)
-        r, verification = refine_verified(inputs, cfg.refine, cfg.device)
-        write_pose(files["refine"], r.T_cam_from_scan, **refine_meta(r, cfg.refine, T_init, files["init"], verification,
-                                                                     camera=camera))
-        res.steps["aligner"] = round(r.seconds, 3)
+        inputs = RefineInputs(scan.xyz, scan_colors(scan, prepared.source, to_align=True), image, camera, T_init, None,
+                              scan, init_meta, around(T_init))
+        refined = refine_step(inputs, cfg.refine, files["init"], cfg.device, job.camera)
+        write_pose(files["refine"], refined.T, **refined.meta)
+        res.steps["aligner"] = round(refined.result.seconds, 3)
         lap("refine")
     T, meta = read_pose(files["refine"])
-    # a poor init: the refined pose may see beyond the initial view's margin, and the depth map,
-    # qa and overlay must have all that the photo sees (a rare second view and ray-casting scene)
-    at_T = prepared.view_index(camera, T, margin=REFINED_VIEW_SLACK)
-    if not np.isin(at_T, seen).all():
-        seen = np.union1d(seen, prepared.view_index(camera, T))
-        scan, colors = _view(prepared, seen, T_init)
+    # the renders of the result (depth, qa with its init beside it, overlay) see what both poses
+    # see, as qa-edges --before does: one view, one ray-casting scene for both poses
+    scan = prepared.subset(np.union1d(seen, prepared.view_index(camera, T)))
+    expect_poses(scan, [T, T_init])
+    colors = scan_colors(scan, prepared.source)
     lap("refined_view")
     res.view_points = len(scan)
     res.refine_loss, res.inlier_fraction = meta.get("final_loss"), meta.get("inlier_fraction")
@@ -294,35 +289,29 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     elif res.verdict == "failed" and not export_failed:
         res.skipped.append("depth (failed)")
     else:
-        points = as_points(scan, cfg.depth_points)
-        depth = (point_depth if points else render_depth)(scan, camera, T, cfg.max_depth, normals=False)
+        depth = depth_step(scan, camera, T, cfg.max_depth, cfg.depth_points, pose_path=files["refine"])
         res.seen_from_behind = back_facing_fraction(depth)
-        write_depth_png16(d / "depth.png", depth.z)
-        write_depth_exr(files["depth"], depth.z, camera, T, prepared.source.name, seen_from_behind=res.seen_from_behind)
+        write_depth(depth, camera, T, prepared.source.name, files["depth"], png16=d / "depth.png")
         lap("depth")
 
     progress("qa-edges")
     if files["qa"].exists():
         res.skipped.append("qa")
     else:
-        img_b, before = qa(scan, colors, image, camera, T_init)
-        img_a, after = qa(scan, colors, image, camera, T)
-        around = prepared.xyz_around(camera_centre(T), verticals.REACH, verticals.MAX_POINTS)
-        upright, upright_before = verticals.verticals_qa(around, image, camera, [T, T_init])
-        write_image(d / "qa.png", side_by_side(img_b, img_a))
+        checked = qa_step(scan, colors, image, camera, T, around(T), T_init, files["refine"], files["init"])
+        write_image(d / "qa.png", checked.image)
         with atomic_output(files["qa"]) as tmp:
-            tmp.write_text(as_json({**after.as_dict(), **before.as_dict("before_"), **upright.as_dict(),
-                                    **upright_before.as_dict("before_")}))
+            tmp.write_text(as_json(checked.scores))
         lap("qa")
     progress("overlay")
     if files["overlay"].exists():
         res.skipped.append("overlay")
     else:  # the others first: overlay.png's presence says they are all there
-        checker, mixed, _ = overlay(scan, image, camera, T, cfg.max_depth)
-        write_image(d / "overlay_blend.png", mixed)
-        if is_sweep(scan):
-            write_image(d / "overlay_points.png", points_image(scan, image, camera, T, cfg.max_depth)[0])
-        write_image(files["overlay"], checker)
+        pictures = overlay_step(scan, image, camera, T, cfg.max_depth, pose_path=files["refine"])
+        paths = overlay_paths(files["overlay"])
+        for k in ("blend", "points", "checker"):
+            if getattr(pictures, k) is not None:
+                write_image(paths[k], getattr(pictures, k))
         lap("overlay")
     score = json.loads(files["qa"].read_text())
     res.edge_before_px, res.edge_after_px = score["before_mean_distance_px"], score["mean_distance_px"]
@@ -331,16 +320,6 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     res.steps["mesh"] = round(scan.derived.get("mesh_seconds", 0.0), 3)  # within the steps that rendered first
     res.seconds = time.perf_counter() - start
     return res
-
-
-def _view(prepared, index: np.ndarray, T_init: np.ndarray):
-    """(scan, colors): the prepared scan's points `index` and their colors for aligning."""
-    from rgbd_gt.io.scan import scan_colors
-    from rgbd_gt.render.depth import expect_poses
-
-    scan = prepared.subset(index)
-    expect_poses(scan, [T_init])  # qa renders it beside the refined pose: one ray-casting scene for both
-    return scan, scan_colors(scan, prepared.source, to_align=True)
 
 
 def made_from(prepared, files: dict[str, Path]) -> dict:
@@ -422,9 +401,9 @@ def shared_camera(job: ScanJob, prepared, camera, cfg: RunConfig, progress: Call
     from rgbd_gt.camera import corrected
     from rgbd_gt.io import read_camera
     from rgbd_gt.io.atomic import atomic_output
-    from rgbd_gt.io.camera_file import check_image_matches, write_camera
-    from rgbd_gt.io.image import read_image
+    from rgbd_gt.io.camera_file import write_camera
     from rgbd_gt.io.scan import scan_colors
+    from rgbd_gt.steps import open_photo
 
     out = job.out
     made = made_from(prepared, {"camera": job.camera})
@@ -434,8 +413,7 @@ def shared_camera(job: ScanJob, prepared, camera, cfg: RunConfig, progress: Call
     for photo in job.photos:
         progress(f"{photo.name}: camera")
         try:
-            image = read_image(photo, to_align=True)
-            check_image_matches(camera, image.shape, photo, job.camera)
+            image = open_photo(photo, camera, to_align=True, camera_path=job.camera).image
             (out / photo.stem).mkdir(parents=True, exist_ok=True)
             T_init, init_meta = initial_pose(photo, image, prepared, camera, job, out / photo.stem / "init.yaml")
             scan = prepared.view(camera, T_init)

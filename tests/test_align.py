@@ -322,3 +322,20 @@ def test_refine_bad_inputs(scene, tmp_path):
     assert_one_line_error(run_cli("refine", *swap("--scan", tmp_path / "empty.ply")), "empty.ply", "no points")
     assert_one_line_error(run_cli("refine", *args, "--color-model", "cubic"), "color_model")
     assert not (tmp_path / "o.yaml").exists()
+
+
+def test_no_state_survives_between_two_refines(tmp_path, synth_scene):
+    """One aligner refined twice (the camera freed too) gives the same result both times, and
+    its batched repeat runs work before any refine."""
+    from rgbd_gt.align.refine import make_aligner
+
+    synth_scene(tmp_path, 3)
+    inputs = load_inputs(tmp_path / "scan.ply", tmp_path / "photo.png", tmp_path / "camera.yaml", tmp_path / "init_pose.yaml")
+    cfg = dataclasses.replace(RefineConfig(), refine_intrinsics="focal", max_points=20000, levels=3)
+    aligner = make_aligner(inputs, cfg, "cpu")
+    fresh = make_aligner(inputs, cfg, "cpu").refine_many([inputs.T_init], coarsest=2, finest=2, iterations=3)
+    assert fresh[0] is not None and fresh[0].shape == (4, 4)
+    first, second = aligner.refine(inputs.T_init), aligner.refine(inputs.T_init)
+    np.testing.assert_array_equal(first.T_cam_from_scan, second.T_cam_from_scan)
+    np.testing.assert_array_equal(first.intrinsics, second.intrinsics)
+    assert first.intrinsics[0] != 0  # the focal was refined: the second run started from the file again

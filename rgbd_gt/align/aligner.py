@@ -433,6 +433,9 @@ class Aligner:
         cfg = self.cfg
         T_init = np.asarray(T_init, np.float64)
         levels = self.prepared_levels(T_init)
+        # the camera corrections start from the camera file every time: two refines of one aligner
+        # start alike (the repeat runs of `refine_many` keep the ones this run ends with)
+        self.q = torch.zeros(5, dtype=self.dtype, device=self.device)
         T = self._to_local(T_init)
         history: list[dict] = []
         start_res = None
@@ -480,7 +483,7 @@ class Aligner:
         (The paper's Adam has no batched form here: one run after another.)"""
         if self.cfg.optimizer != "lm":
             return refine_each(self, starts, finest=finest, coarsest=coarsest, iterations=iterations)
-        levels = self._prepared[1]
+        levels = self.prepared_levels(starts[0])  # prepared by an earlier refine, else around the first start
         Ts = [self._to_local(np.asarray(T, np.float64)) for T in starts]
         lost = np.zeros(len(Ts), bool)
         top = len(levels) - 1 if coarsest is None else min(coarsest, len(levels) - 1)

@@ -60,18 +60,15 @@ def load_inputs(scan_path: Path, image_path: Path, camera_path: Path, init_path:
     """The refine command's inputs; the scan's points in view of the init (and around its
     camera) from the prepared scan under `cache` when given (`prepared.view_and_around`), else
     from the file."""
-    from rgbd_gt.io import read_camera, read_pose
-    from rgbd_gt.io.camera_file import check_image_matches
-    from rgbd_gt.io.image import read_image, read_mask
+    from rgbd_gt.io import read_pose
     from rgbd_gt.prepared import view_and_around
     from rgbd_gt.qa.verticals import MAX_POINTS, REACH
     from rgbd_gt.render.normals import with_normals
+    from rgbd_gt.steps import open_photo
 
-    photo = read_image(image_path, to_align=True)
-    camera = read_camera(camera_path, (photo.shape[1], photo.shape[0]))
-    check_image_matches(camera, photo.shape, image_path, camera_path)
+    opened = open_photo(image_path, camera_path, mask_path, to_align=True)
+    photo, camera, ignore = opened.image, opened.camera, opened.ignore
     T_init, init_meta = read_pose(init_path)
-    ignore = read_mask(mask_path, photo.shape[:2]) if mask_path is not None else None
     # what the photo can see from poses around T_init: a big scan's renders, and its normals
     # (minutes for tens of millions of points without a grid), then cost what the photo sees.
     # The view `run` takes (render.blocks.VIEW_MARGIN), as its cache holds it: both hand the

@@ -23,10 +23,20 @@ def _imread(path: Path, flags: int) -> np.ndarray:
     import cv2
 
     try:
+        import warnings
+
         from PIL import Image
 
-        with Image.open(path) as im:
-            w, h = im.size
+        # Pillow's own guard, at this limit: it warns past MAX_IMAGE_PIXELS (the check below says
+        # it in one line) and refuses past twice that before it gives the size
+        Image.MAX_IMAGE_PIXELS = MAX_PIXELS
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            try:
+                with Image.open(path) as im:
+                    w, h = im.size
+            except Image.DecompressionBombError:
+                raise InputError(f"image header claims more than {2 * MAX_PIXELS:,} pixels", path) from None
         if w * h > MAX_PIXELS:
             raise InputError(f"image header claims {w}x{h} pixels (more than {MAX_PIXELS:,})", path)
     except (ImportError, OSError, SyntaxError, ValueError):

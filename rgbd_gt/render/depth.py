@@ -201,7 +201,9 @@ def grid_mesh(scan: Scan, camera: Camera, T_cam_from_scan: np.ndarray) -> GridMe
         sid = scan.scan_id[tris[:, 0]] if scan.scan_id is not None else np.zeros(len(tris), np.int64)
         origin = np.minimum(sid, len(scan.origins) - 1)
     if "local_xyz" not in scan.derived:  # float32 about the centre: exact for georeferenced coordinates
-        centre = scan.xyz.mean(axis=0) if len(scan) else np.zeros(3)
+        # the scanner where known: every view of one scan then renders to the same bits, whatever
+        # else it holds (run's view of a result and its init, export-depth's of the result alone)
+        centre = scan.origins[0] if len(scan.origins) else scan.xyz.mean(axis=0) if len(scan) else np.zeros(3)
         scan.derived["local_xyz"] = centre, (scan.xyz - centre).astype(np.float32)
     centre, local = scan.derived["local_xyz"]
     scene = o3d.t.geometry.RaycastingScene()

@@ -1,0 +1,238 @@
+"""The workflow's steps, each written once: the commands (`cli.py`) and `run` (`workflow.py`)
+call these, so that a file of one name holds one content whoever wrote it.
+
+Each step takes plain data (arrays, `Camera`, 4x4 poses, `Scan`) and returns plain data; the
+callers read files, choose what to write and print. A step raises `InputError` naming the pose
+file (when given) for what makes its output meaningless (no scan in view).
+
+    open_photo    photo + camera (+ mask), checked against each other
+    refine_step   the aligner, the verdict and the verticals check -> the pose file's keys
+    depth_step    the depth map (surfaces or points), and write_depth for its files
+    qa_step       structural, Canny and verticals scores (and a before pose) -> qa.png, qa.json
+    overlay_step  checkerboard, blend and points pictures
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from rgbd_gt.camera import Camera
+from rgbd_gt.errors import InputError
+
+PathLike = str | os.PathLike
+
+
+def finite(step: str, what: str, values) -> None:
+    """InputError naming the step unless every number of `values` (an array) is finite: a NaN or
+    inf that would reach an output is said, not written."""
+    bad = int(np.size(values) - np.isfinite(values).sum())
+    if bad:
+        raise InputError(f"{step}: {what} holds {bad} NaN or inf value(s); nothing was written")
+
+
+@dataclass
+class Photo:
+    """A photo (H, W, 3) uint8 RGB with its camera, checked to match; `ignore` (H, W) bool: pixels
+    to leave out (a mask), or None."""
+
+    image: np.ndarray
+    camera: Camera
+    ignore: np.ndarray | None = None
+
+
+def open_photo(image: PathLike, camera: PathLike | Camera, mask: PathLike | None = None,
+               to_align: bool = False, camera_path: PathLike | None = None) -> Photo:
+    """Read the photo and its camera (a camera file without an image size takes the photo's) and
+    check that they match; `mask`: a mask image of the photo's size. `to_align`: a photo of one
+    value is an error (nothing to align a scan to). camera_path: the file a `Camera` given was
+    read from, for the messages."""
+    from rgbd_gt.io import read_camera
+    from rgbd_gt.io.camera_file import check_image_matches
+    from rgbd_gt.io.image import read_image, read_mask
+
+    photo = read_image(image, to_align=to_align)
+    cam = camera if isinstance(camera, Camera) else read_camera(camera, (photo.shape[1], photo.shape[0]))
+    check_image_matches(cam, photo.shape, image, camera_path if isinstance(camera, Camera) else camera)
+    ignore = read_mask(mask, photo.shape[:2]) if mask is not None else None
+    return Photo(photo, cam, ignore)
+
+
+def refine_config(config: PathLike | None = None, repeats: int | None = None, **flags):
+    """The aligner's settings: configs/refine.yaml (or `config`) with the options given (None:
+    as the file says); InputError naming them when they make it inconsistent."""
+    import dataclasses
+
+    from rgbd_gt.align.config import RefineConfig
+    from rgbd_gt.config import load_config
+
+    cfg = load_config(RefineConfig, config, "refine.yaml")
+    cfg = dataclasses.replace(cfg, **{k: v for k, v in flags.items() if v is not None})
+    if flags.get("optimizer") == "adam" and flags.get("iterations") is not None:
+        cfg = dataclasses.replace(cfg, adam_iterations=flags["iterations"])
+    if repeats is not None:
+        cfg = dataclasses.replace(cfg, verify=dataclasses.replace(cfg.verify, repeats=repeats))
+    try:
+        cfg.check()
+    except ValueError as exc:  # the config file was checked as it was read: an option made it wrong
+        options = ", ".join(f"--{k.replace('_', '-')} {v}" for k, v in {**flags, "repeats": repeats}.items() if v is not None)
+        raise InputError(f"{exc} (options given: {options})") from None
+    return cfg
+
+
+@dataclass
+class Refined:
+    """A refined pose and what the pose file records of it: `meta` (verdict, reasons, evidence,
+    the aligner's figures, the verticals check of the result and the init, warnings); `camera`:
+    the camera the pose goes with (refined when the intrinsics were)."""
+
+    result: object  # align.aligner.RefineResult
+    verification: object  # align.verify.Verification
+    camera: Camera
+    meta: dict
+    verticals: object  # qa.verticals.VerticalsScore of the result
+    init_verticals: object  # ... and of the init
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def T(self) -> np.ndarray:
+        return self.result.T_cam_from_scan
+
+
+def refine_step(inputs, cfg, init_path: PathLike, device: str = "auto", camera_path: PathLike | None = None,
+                progress: Callable[[dict], None] | None = None, keep_residuals: bool = False,
+                check: tuple[np.ndarray, np.ndarray] | None = None, more: list = ()) -> Refined:
+    """Refine inputs.T_init (`align.refine.RefineInputs`), judge the result and measure it and
+    the init against the scan's vertical (around: inputs.around). check: held-out pairs (img (n, 2)
+    px, scan points (n, 3)); more: further pairs that share the pose (solved jointly)."""
+    from rgbd_gt.align.refine import camera_disagreement, refine_meta, refine_verified, refined_camera
+    from rgbd_gt.qa.verticals import verticals_qa
+
+    warnings = [w for w in [camera_disagreement(inputs.camera, inputs.init_meta, camera_path or "camera")] if w]
+    result, verification = refine_verified(inputs, cfg, device, progress, keep_residuals=keep_residuals, check=check,
+                                           more=more)
+    camera = refined_camera(inputs.camera, result)
+    finite("refine", "the refined pose", result.T_cam_from_scan)
+    finite("refine", "the refined camera", np.r_[camera.K.ravel(), camera.distortion])
+    meta = refine_meta(result, cfg, inputs.T_init, init_path, verification, pairs=1 + len(more), camera=inputs.camera)
+    # geometry alone, outside the verdict (one of six parameters): the one check a sweep's pose has
+    upright, upright_init = verticals_qa(inputs.around, inputs.photo, camera, [result.T_cam_from_scan, inputs.T_init])
+    meta |= upright.as_dict() | upright_init.as_dict("init_")
+    if warnings:
+        meta["warnings"] = warnings
+    return Refined(result, verification, camera, meta, upright, upright_init, warnings)
+
+
+def depth_step(scan, camera: Camera, T: np.ndarray, max_depth: float | None = None, points: bool | None = None,
+               normals: bool = False, pose_path: PathLike | None = None):
+    """The depth map (`render.depth.DepthMap`) of `scan` (`Scan`, the view) at T: of its points
+    alone (sparse) or of the surfaces rendered from them; points=None chooses points for LiDAR
+    sweeps (`render.points.as_points`). An empty map is an error naming the pose."""
+    from rgbd_gt.render.depth import point_depth, render_depth
+    from rgbd_gt.render.points import as_points
+
+    sparse = as_points(scan, points)
+    depth = (point_depth if sparse else render_depth)(scan, camera, T, max_depth, normals=normals)
+    finite("depth", "the depth map", depth.z)
+    if not (depth.z > 0).any():
+        if depth.back_facing:
+            raise InputError("the camera sees only the back of the scan's surfaces at this pose: the depth map "
+                             "would be empty", pose_path)
+        raise InputError("no scan points in view of this pose: the depth map would be empty", pose_path)
+    return depth
+
+
+def write_depth(depth, camera: Camera, T: np.ndarray, scan_name: str, exr: PathLike, png16: PathLike | None = None,
+                normals: PathLike | None = None, mask: PathLike | None = None) -> None:
+    """The depth map's files: EXR (z, metres, with the camera, pose, scan name and the fraction
+    seen from behind in its header), and optionally a 16-bit PNG in millimetres, the normals as
+    EXR and a validity mask PNG (255 where there is depth)."""
+    from rgbd_gt.io.depth_file import write_depth_exr, write_depth_png16
+    from rgbd_gt.io.image import write_image
+    from rgbd_gt.render.depth import back_facing_fraction
+
+    behind = back_facing_fraction(depth)
+    write_depth_exr(exr, depth.z, camera, T, scan_name, seen_from_behind=behind)
+    if png16 is not None:
+        write_depth_png16(png16, depth.z)
+    if normals is not None:
+        write_depth_exr(normals, depth.z, camera, T, scan_name, normals=depth.normals, seen_from_behind=behind)
+    if mask is not None:
+        write_image(mask, (depth.z > 0).astype(np.uint8) * 255)
+
+
+@dataclass
+class QA:
+    """qa_step's result: the picture (H, W, 3) uint8 (before | after when a before pose was given),
+    the scores as qa.json holds them, and a line per pose for the user."""
+
+    image: np.ndarray
+    scores: dict
+    rows: list[tuple[str, str]]
+
+
+def qa_step(scan, colors: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray, around: np.ndarray,
+            T_before: np.ndarray | None = None, pose_path: PathLike | None = None,
+            before_path: PathLike | None = None) -> QA:
+    """How well the scan (`Scan`, the view; colors its `scan_colors`) rendered at T lines up with
+    the photo: the structural edges against chance, the Canny distances (`qa.edges`) and the
+    verticals check (`qa.verticals`, on `around`: (n, 3) scan points around the camera); the same
+    for T_before with keys prefixed before_. A pose that sees no scan edge is an error naming it."""
+    from rgbd_gt.qa.edges import qa, side_by_side, structural_qa, working_view
+    from rgbd_gt.qa.verticals import verticals_qa
+
+    poses = [(T, pose_path, "")] + ([(T_before, before_path, "before_")] if T_before is not None else [])
+    uprights = verticals_qa(around, photo, camera, [p[0] for p in poses])
+    images, scores, rows = [], {}, []
+    for (pose, path, prefix), upright in zip(poses, uprights):
+        view = working_view(scan, colors, photo, camera, pose)
+        _, canny = qa(scan, colors, photo, camera, pose, view=view)
+        if canny.scan_edge_pixels == 0:
+            raise InputError("no scan edges in view of this pose (no scan points in view?)", path)
+        img, structural = structural_qa(scan, colors, photo, camera, pose, view=view)
+        images.append(img)
+        scores |= structural.as_dict(prefix) | canny.as_dict(prefix) | upright.as_dict(prefix)
+        rows.append((prefix.rstrip("_") or ("after" if T_before is not None else "score"),
+                     f"{structural.summary()}; Canny {canny.summary()}; verticals {upright.summary()}"))
+    if T_before is not None:
+        return QA(side_by_side(images[1], images[0]), scores, rows[::-1])
+    return QA(images[0], scores, rows)
+
+
+@dataclass
+class Overlay:
+    """overlay_step's pictures (H, W, 3) uint8 at the photo's resolution: `checker`, `blend` and,
+    for sweeps or when asked, `points` (None otherwise); the fraction of the photo the scan
+    covers and the points drawn."""
+
+    checker: np.ndarray
+    blend: np.ndarray
+    points: np.ndarray | None
+    covered: float
+    drawn: int = 0
+
+
+def overlay_step(scan, photo: np.ndarray, camera: Camera, T: np.ndarray, max_depth: float | None = None,
+                 points: bool | None = None, pose_path: PathLike | None = None) -> Overlay:
+    """The scan (`Scan`, the view) rendered at T over the photo; points=None draws the points
+    picture for LiDAR sweeps (`render.points.as_points`). Nothing of the scan in view is an error
+    naming the pose."""
+    from rgbd_gt.qa.overlay import overlay, points_image
+    from rgbd_gt.render.points import as_points
+
+    checker, mixed, covered = overlay(scan, photo, camera, T, max_depth)
+    if covered == 0:
+        raise InputError("no scan surface in view of this pose (or only surfaces seen from behind)", pose_path)
+    if not as_points(scan, points):
+        return Overlay(checker, mixed, None, covered)
+    dots, drawn = points_image(scan, photo, camera, T, max_depth)
+    return Overlay(checker, mixed, dots, covered, drawn)
+
+
+def overlay_paths(output: Path) -> dict[str, Path]:
+    """Where the overlay's pictures go: OVERLAY.png, OVERLAY_blend.png, OVERLAY_points.png."""
+    return {"checker": output, **{k: output.with_name(f"{output.stem}_{k}{output.suffix}") for k in ("blend", "points")}}
