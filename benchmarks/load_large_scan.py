@@ -18,7 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbd_gt.io import Scan, save_scan
+from rgbd_gt.io import save_scan
+
+from rgbd_gt.scan import Scan
 from rgbd_gt.io.e57 import write_e57
 
 MEASURE = r"""

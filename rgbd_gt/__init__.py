@@ -19,12 +19,13 @@ except PackageNotFoundError:  # running from a source tree that was never instal
     __version__ = "0.0.0+unknown"
 
 _API = {
-    "rgbd_gt.steps": ("open_photo", "refine_config", "refine_step", "depth_step", "write_depth", "qa_step",
+    "rgbd_gt.steps": ("open_photo", "load_inputs", "refine_config", "refine_step", "depth_step", "write_depth", "qa_step",
                       "overlay_step", "Photo", "Refined", "QA", "Overlay"),
-    "rgbd_gt.align.refine": ("load_inputs", "RefineInputs"),
+    "rgbd_gt.align.refine": ("RefineInputs",),
     "rgbd_gt.prepared": ("prepare_scan", "scan_in_view", "view_and_around"),
     "rgbd_gt.camera": ("Camera",),
-    "rgbd_gt.io": ("Scan", "load_scan", "read_camera", "read_pose", "write_pose"),
+    "rgbd_gt.scan": ("Scan", "scan_colors"),
+    "rgbd_gt.io": ("load_scan", "read_camera", "read_pose", "write_pose"),
     "rgbd_gt.errors": ("InputError",),
 }
 _WHERE = {name: module for module, names in _API.items() for name in names}

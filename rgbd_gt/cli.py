@@ -421,11 +421,11 @@ def refine(
     one rig: --pairs. The verdict: the pose file gets `verdict` (ok | suspect | failed), `reasons` and
     `evidence` (uncertainty, convergence, repeatability, sharpness, a structural edge check
     against chance, and the --check pairs). See docs/trust.md."""
-    from rgbd_gt.align.refine import load_inputs, read_pairs
+    from rgbd_gt.align.refine import read_pairs
     from rgbd_gt.init.run import check_picks, read_correspondences
     from rgbd_gt.io import write_pose
     from rgbd_gt.io.outputs import Outputs
-    from rgbd_gt.steps import refine_config, refine_step
+    from rgbd_gt.steps import load_inputs, refine_config, refine_step
 
     start = time.perf_counter()
     if (scan is None) != (image is None):
@@ -592,7 +592,7 @@ def qa_edges(
     from rgbd_gt.io import read_pose
     from rgbd_gt.io.image import IMAGE_SUFFIXES, write_image
     from rgbd_gt.io.outputs import Outputs
-    from rgbd_gt.io.scan import scan_colors
+    from rgbd_gt.scan import scan_colors
     from rgbd_gt.prepared import view_and_around
     from rgbd_gt.qa.edges import as_json
     from rgbd_gt.qa.verticals import MAX_POINTS, REACH

@@ -12,7 +12,8 @@ import yaml
 
 from rgbd_gt.errors import InputError
 from rgbd_gt.io.atomic import atomic_output
-from rgbd_gt.io.scan import Scan, load_scan, merge_scans, save_scan
+from rgbd_gt.io.scan import load_scan, merge_scans, save_scan
+from rgbd_gt.scan import Scan
 from rgbd_gt.scan_ops import crop, median_spacing, voxel_downsample
 
 IMAGE_MAGIC = {"jpeg": b"\xff\xd8", "png": b"\x89PNG"}

@@ -26,7 +26,7 @@ import numpy as np
 from rgbd_gt.camera import Camera
 from rgbd_gt.errors import require_file
 from rgbd_gt.io.atomic import atomic_output
-from rgbd_gt.io.scan import Scan
+from rgbd_gt.scan import Scan
 from rgbd_gt.render.blocks import VIEW_MARGIN, Blocks, block_order, block_points, blocks_in_view, points_in_view, thinning_step
 
 CACHE_VERSION = 4
@@ -113,7 +113,7 @@ class PreparedScan:
         the cache folder."""
         from rgbd_gt.init.run import BoardInScan, board_in_scan, board_neighbourhood
         from rgbd_gt.init.scan_board import find_board_in_scan
-        from rgbd_gt.io.scan import colors_to_gray, scan_colors
+        from rgbd_gt.scan import colors_to_gray, scan_colors
 
         name = f"board-{spec.cols}x{spec.rows}-{spec.square:g}-{spec.charuco or 'chess'}-{spec.marker or 0:g}.npz"
         path = self.folder / name
@@ -232,9 +232,9 @@ def view_as_stored(scan: Scan, camera: Camera, poses: list[np.ndarray]) -> Scan:
     (`as_stored`). A grid scan's normals and grid mesh are made first on the whole scan
     (`whole_scan_geometry`), as the prepared scan makes them."""
     from rgbd_gt.render.blocks import view_of
+    from rgbd_gt.render.normals import oriented
 
-    if scan.has_grid:
-        scan = whole_scan_geometry(scan)
+    scan = whole_scan_geometry(scan) if scan.has_grid else oriented(scan)
     view = view_of(scan, camera, poses)
     view.xyz = as_stored(view.xyz, storage_centre(scan))
     return view
@@ -247,9 +247,9 @@ def whole_scan_geometry(read: Scan) -> Scan:
     step, which a view's own grid gives a few percent off (pumpA: 4%; normals of 1% of the points
     in a view more than 5 deg apart, 167 pixels of its depth map up to 5 m apart)."""
     from rgbd_gt.render.mesh import grid_cell_bits
-    from rgbd_gt.render.normals import with_normals
+    from rgbd_gt.render.normals import oriented, with_normals
 
-    scan = with_normals(read)
+    scan = with_normals(oriented(read))
     if scan.has_grid:  # a by-product of the normals' pass when they came from the grid (on `read`)
         scan.derived["cell_bits"] = grid_cell_bits(read)
     return scan
@@ -260,8 +260,9 @@ def whole_scan(scan_path: Path, cache: Path | None = None) -> Scan:
     is not yet), else read from the file."""
     if cache is None:
         from rgbd_gt.io.scan import load_scan
+        from rgbd_gt.render.normals import oriented
 
-        return load_scan(scan_path, require_points=True)
+        return oriented(load_scan(scan_path, require_points=True))
     return prepare_scan(scan_path, cache).whole()
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rgbd_gt.io.scan import Scan
+from rgbd_gt.scan import Scan
 
 
 def crop(scan: Scan, box_min: np.ndarray, box_max: np.ndarray) -> Scan:

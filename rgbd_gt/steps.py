@@ -6,6 +6,7 @@ callers read files, choose what to write and print. A step raises `InputError` n
 file (when given) for what makes its output meaningless (no scan in view).
 
     open_photo    photo + camera (+ mask), checked against each other
+    load_inputs   what refine works on: the photo, the init and the scan in view of it
     refine_step   the aligner, the verdict and the verticals check -> the pose file's keys
     depth_step    the depth map (surfaces or points), and write_depth for its files
     qa_step       structural, Canny and verticals scores (and a before pose) -> qa.png, qa.json
@@ -60,6 +61,35 @@ def open_photo(image: PathLike, camera: PathLike | Camera, mask: PathLike | None
     check_image_matches(cam, photo.shape, image, camera_path if isinstance(camera, Camera) else camera)
     ignore = read_mask(mask, photo.shape[:2]) if mask is not None else None
     return Photo(photo, cam, ignore)
+
+
+def load_inputs(scan_path: PathLike, image_path: PathLike, camera_path: PathLike, init_path: PathLike,
+                mask_path: PathLike | None = None, cache: PathLike | None = None):
+    """The refine step's inputs (`align.refine.RefineInputs`): the photo and its camera
+    (`open_photo`), the init, and the scan's points in view of the init and around its camera,
+    from the prepared scan under `cache` when given (`prepared.view_and_around`), else from the
+    file."""
+    from rgbd_gt.align.refine import RefineInputs
+    from rgbd_gt.io import read_pose
+    from rgbd_gt.prepared import view_and_around
+    from rgbd_gt.qa.verticals import MAX_POINTS, REACH
+    from rgbd_gt.render.normals import with_normals
+    from rgbd_gt.scan import scan_colors
+
+    opened = open_photo(image_path, camera_path, mask_path, to_align=True)
+    photo, camera, ignore = opened.image, opened.camera, opened.ignore
+    T_init, init_meta = read_pose(init_path)
+    # what the photo can see from poses around T_init: a big scan's renders, and its normals
+    # (minutes for tens of millions of points without a grid), then cost what the photo sees.
+    # The view `run` takes (render.blocks.VIEW_MARGIN), as its cache holds it: both hand the
+    # aligner the same points and get the same pose.
+    scan, around = view_and_around(scan_path, camera, [T_init], REACH, MAX_POINTS, cache)
+    if len(scan) == 0:
+        raise InputError("no scan points in view of the initial pose (nor near it): check the pose, the camera file "
+                         "and the scan", init_path)
+    scan = with_normals(scan)
+    return RefineInputs(scan.xyz, scan_colors(scan, scan_path, to_align=True), photo, camera, T_init, ignore, scan, init_meta,
+                        around)
 
 
 def refine_config(config: PathLike | None = None, repeats: int | None = None, **flags):

@@ -219,7 +219,7 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     from rgbd_gt.io import read_pose, write_pose
     from rgbd_gt.io.atomic import atomic_output
     from rgbd_gt.io.image import write_image
-    from rgbd_gt.io.scan import scan_colors
+    from rgbd_gt.scan import scan_colors
     from rgbd_gt.pose import camera_centre
     from rgbd_gt.qa import verticals
     from rgbd_gt.qa.edges import as_json
@@ -402,7 +402,7 @@ def shared_camera(job: ScanJob, prepared, camera, cfg: RunConfig, progress: Call
     from rgbd_gt.io import read_camera
     from rgbd_gt.io.atomic import atomic_output
     from rgbd_gt.io.camera_file import write_camera
-    from rgbd_gt.io.scan import scan_colors
+    from rgbd_gt.scan import scan_colors
     from rgbd_gt.steps import open_photo
 
     out = job.out

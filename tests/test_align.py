@@ -11,10 +11,12 @@ from conftest import assert_one_line_error, run_cli
 from rgbd_gt.align.color_models import ColorModel, fit_transform, fit_with_inliers, unclipped
 from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.align.pyramid import photo_pyramid, upsample_factor
-from rgbd_gt.align.refine import load_inputs, run_refine
+from rgbd_gt.align.refine import run_refine
+from rgbd_gt.steps import load_inputs
 from rgbd_gt.align.sampling import bilinear, bilinear_with_gradient
 from rgbd_gt.camera import Camera
-from rgbd_gt.io import Scan, load_scan, read_pose, save_scan, write_pose
+from rgbd_gt.io import load_scan, read_pose, save_scan, write_pose
+from rgbd_gt.scan import Scan
 from rgbd_gt.pose import rotation_error_deg, translation_error_m
 from rgbd_gt.render.project import project_pinhole
 

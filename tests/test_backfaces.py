@@ -14,7 +14,7 @@ from rgbd_gt.io import read_pose, save_scan, write_pose
 from rgbd_gt.io.camera_file import write_camera
 from rgbd_gt.io.depth_file import read_depth_exr
 from rgbd_gt.io.image import write_image
-from rgbd_gt.io.scan import Scan
+from rgbd_gt.scan import Scan
 from rgbd_gt.render.depth import render_depth
 from rgbd_gt.render.normals import knn_normals, scan_normals, with_normals
 from rgbd_gt.synth.scene import look_at

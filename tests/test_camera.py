@@ -385,7 +385,7 @@ def test_points_beyond_the_lens_fold_are_not_imaged():
     import cv2
 
     from rgbd_gt.camera import fold_radius, lens_reach
-    from rgbd_gt.io.scan import Scan
+    from rgbd_gt.scan import Scan
     from rgbd_gt.render.points import seen_points
 
     cam = Camera(1392, 512, 959.791, 956.9251, 696.0217, 224.1806,

@@ -11,7 +11,7 @@ from rgbd_gt.bench.icl import ICL_CAMERA, read_depth, read_trajectory
 from rgbd_gt.camera import Camera
 from rgbd_gt.io import read_pose, save_scan, write_camera, write_pose
 from rgbd_gt.io.depth_file import read_depth_exr
-from rgbd_gt.io.scan import Scan
+from rgbd_gt.scan import Scan
 from rgbd_gt.pose import invert
 from rgbd_gt.render.depth import render_depth
 from rgbd_gt.render.mesh import grid_triangles

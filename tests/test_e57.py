@@ -3,7 +3,8 @@ import pytest
 
 from conftest import assert_one_line_error, run_cli
 from rgbd_gt.errors import InputError
-from rgbd_gt.io import Scan, load_scan
+from rgbd_gt.io import load_scan
+from rgbd_gt.scan import Scan
 from rgbd_gt.io.e57 import list_e57_images, read_e57, read_e57_images, write_e57
 
 

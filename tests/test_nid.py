@@ -16,7 +16,7 @@ from rgbd_gt.align.pyramid import photo_pyramid
 from rgbd_gt.errors import InputError
 from rgbd_gt.io import load_scan, read_camera, read_pose, save_scan
 from rgbd_gt.io.image import read_image
-from rgbd_gt.io.scan import Scan, colors_to_gray
+from rgbd_gt.scan import Scan, colors_to_gray
 from rgbd_gt.pose import apply_update, rotation_error_deg, so3_exp as so3_exp_np, translated, translation_error_m
 from rgbd_gt.render.zbuffer import cell_for_density, depth_edges
 
@@ -151,7 +151,7 @@ def test_closed_form_pose_gradient_on_real_sweeps_with_their_sky():
     """pjlab_1 and pjlab_2 as one rig on level 2, where the sky is charged, at an update with a
     rotation of 1 deg (whose Jacobian the closed form carries) and 10 cm."""
     from rgbd_gt.align.refine import RefineInputs, make_aligner
-    from rgbd_gt.io.scan import scan_colors
+    from rgbd_gt.scan import scan_colors
 
     inputs = []
     for k in (1, 2):
@@ -486,7 +486,7 @@ def test_the_sky_is_charged_on_the_coarse_levels_only():
     from dataclasses import replace
 
     from rgbd_gt.align.refine import RefineInputs, make_aligner
-    from rgbd_gt.io.scan import scan_colors
+    from rgbd_gt.scan import scan_colors
 
     d = _pjlab(1)
     photo = read_image(d / "calib.jpg")

@@ -51,7 +51,7 @@ def test_overlay_at_the_true_pose_agrees_with_the_photo(tmp_path, synth_scene):
     assert dots["true"] > 0.8 and dots["true"] > dots["off"] + 0.1, dots
     # a scan without a grid (surfels) gives the same kind of picture
     from rgbd_gt.io import load_scan, save_scan
-    from rgbd_gt.io.scan import Scan
+    from rgbd_gt.scan import Scan
 
     scan = load_scan(scene / "scan.ply")
     save_scan(tmp_path / "loose.ply", Scan(xyz=scan.xyz, rgb=scan.rgb, origins=scan.origins))

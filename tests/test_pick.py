@@ -224,7 +224,7 @@ def test_click_views_know_their_points(tmp_path, synth_scene):
     """Each scan image (grid, panorama from the origin, view at a pose) gives, under a pixel, a
     scan point that the view itself put there (no browser needed)."""
     from rgbd_gt.init.pick import click_view
-    from rgbd_gt.io.scan import Scan
+    from rgbd_gt.scan import Scan
 
     scene = tmp_path / "scene"
     synth_scene(scene, 9)

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from rgbd_gt.errors import InputError
-from rgbd_gt.io import Scan, load_scan, save_scan
+from rgbd_gt.io import load_scan, save_scan
+from rgbd_gt.scan import Scan
 from rgbd_gt.io.ply import read_ply, write_ply
 from rgbd_gt.io.scan import check_values
 

@@ -115,7 +115,7 @@ def test_stored_coordinates_keep_microns_whatever_the_file_says():
     """The cache's float32 coordinates are measured from the scanner when it stands among its
     points, else from their median: a stray point or a wrong origin in a header far away must not
     take the precision of the others (a fuzzed header origin of 1e20 once emptied every view)."""
-    from rgbd_gt.io.scan import Scan
+    from rgbd_gt.scan import Scan
     from rgbd_gt.prepared import as_stored, storage_centre
 
     rng = np.random.default_rng(0)

@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import torch
 
 from rgbd_gt.align.config import MODELS
+from rgbd_gt.scan import LUMA
 
-LUMA = (0.299, 0.587, 0.114)
 
 
 @dataclass(frozen=True)

@@ -39,8 +39,8 @@ from rgbd_gt.pose import apply_update, random_starts, rotation_error_deg, transl
 from rgbd_gt.render.project import project_pinhole, projection_jacobian
 from rgbd_gt.render.normals import facing_camera
 from rgbd_gt.render.zbuffer import cell_for_density, check_spread_in_view, depth_edges, visible_points
+from rgbd_gt.scan import LUMA
 
-GRAY = (0.299, 0.587, 0.114)
 # A level moves each pose parameter by at most this many of its pixels and at most the search
 # size (smoothly, through tanh): NID has spurious minima far away, where other structure lines
 # up by chance, and a line search reaches them in one step; in a street scene one pixel of a
@@ -135,7 +135,7 @@ def _pose_gradient(d_u: torch.Tensor, d_v: torch.Tensor, p: torch.Tensor, q: tor
 def _channels(image: torch.Tensor, edges: bool) -> torch.Tensor:
     """(H, W, 3) photo -> (H, W, C): its luma and, with edges, the luma's gradient magnitude
     scaled by its 99th percentile into [0, 1]."""
-    gray = (image * torch.tensor(GRAY, dtype=image.dtype, device=image.device)).sum(2, keepdim=True)
+    gray = (image * torch.tensor(LUMA, dtype=image.dtype, device=image.device)).sum(2, keepdim=True)
     if not edges:
         return gray
     gu, gv = central_gradients(gray)

@@ -1,4 +1,5 @@
-"""`rgbd-gt refine` on files: read the inputs, check them against each other, run the aligner."""
+"""Running an aligner: its inputs, the aligner of the objective, the refine with its verdict, and
+the pose file's keys of a result (`steps.refine_step` calls these)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,6 @@ import numpy as np
 
 from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.errors import InputError
-from rgbd_gt.io.scan import scan_colors
 
 if TYPE_CHECKING:  # the aligners import torch: loaded where they run, so that bad arguments fail fast
     from rgbd_gt.align.aligner import RefineResult
@@ -36,12 +36,12 @@ def resolve_device(name: str, objective: str = "photometric"):
 @dataclass
 class RefineInputs:
     points: np.ndarray  # (N, 3) scan frame, metres
-    colors: np.ndarray  # `io.scan.scan_colors`
+    colors: np.ndarray  # `scan.scan_colors`
     photo: np.ndarray  # (H, W, 3) uint8
     camera: object
     T_init: np.ndarray
     ignore: np.ndarray | None
-    scan: object = None  # the `io.Scan` (its grid renders the verification's edge check); points only when None
+    scan: object = None  # the `Scan` (its grid renders the verification's edge check); points only when None
     init_meta: dict = field(default_factory=dict)  # the init pose file's other keys (its `uncertainty`)
     around: np.ndarray | None = None  # (M, 3) the scan around the init's camera, for the verticals check
 
@@ -50,36 +50,9 @@ class RefineInputs:
         return self.scan.normals if self.scan is not None else None
 
     def the_scan(self):
-        from rgbd_gt.io.scan import Scan
+        from rgbd_gt.scan import Scan
 
         return self.scan if self.scan is not None else Scan(xyz=self.points)
-
-
-def load_inputs(scan_path: Path, image_path: Path, camera_path: Path, init_path: Path,
-                mask_path: Path | None = None, cache: Path | None = None) -> RefineInputs:
-    """The refine command's inputs; the scan's points in view of the init (and around its
-    camera) from the prepared scan under `cache` when given (`prepared.view_and_around`), else
-    from the file."""
-    from rgbd_gt.io import read_pose
-    from rgbd_gt.prepared import view_and_around
-    from rgbd_gt.qa.verticals import MAX_POINTS, REACH
-    from rgbd_gt.render.normals import with_normals
-    from rgbd_gt.steps import open_photo
-
-    opened = open_photo(image_path, camera_path, mask_path, to_align=True)
-    photo, camera, ignore = opened.image, opened.camera, opened.ignore
-    T_init, init_meta = read_pose(init_path)
-    # what the photo can see from poses around T_init: a big scan's renders, and its normals
-    # (minutes for tens of millions of points without a grid), then cost what the photo sees.
-    # The view `run` takes (render.blocks.VIEW_MARGIN), as its cache holds it: both hand the
-    # aligner the same points and get the same pose.
-    scan, around = view_and_around(scan_path, camera, [T_init], REACH, MAX_POINTS, cache)
-    if len(scan) == 0:
-        raise InputError("no scan points in view of the initial pose (nor near it): check the pose, the camera file "
-                         "and the scan", init_path)
-    scan = with_normals(scan)
-    return RefineInputs(scan.xyz, scan_colors(scan, scan_path, to_align=True), photo, camera, T_init, ignore, scan, init_meta,
-                        around)
 
 
 def camera_disagreement(camera, init_meta: dict, camera_path) -> str | None:
@@ -156,7 +129,7 @@ def make_aligner(inputs: RefineInputs, cfg: RefineConfig, device: str, more: lis
     from rgbd_gt.align.aligner import Aligner
     from rgbd_gt.align.nid_aligner import Frame, NidAligner
     from rgbd_gt.align.pyramid import photo_pyramid
-    from rgbd_gt.io.scan import colors_to_gray
+    from rgbd_gt.scan import colors_to_gray
 
     objective = objective_of(cfg, inputs.colors)
     dev = resolve_device(device, objective)

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from rgbd_gt.scan import LUMA
+
 SCALE = 8  # the photo is examined at 1/SCALE
 SMOOTH = 0.08  # Sobel gradient magnitude (gray in [0, 1], at 1/SCALE) below which a pixel is smooth
 TOP = 0.15  # a sky region reaches into this top fraction of the photo ...
@@ -33,7 +35,7 @@ def sky_mask(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     h, w = image.shape[:2]
     sw, sh = max(1, w // SCALE), max(1, h // SCALE)
     small = cv2.resize(np.ascontiguousarray(image, dtype=np.float32), (sw, sh), interpolation=cv2.INTER_AREA)
-    gray = small @ np.array([0.299, 0.587, 0.114], np.float32)
+    gray = small @ np.array(LUMA, np.float32)
     smooth = np.hypot(cv2.Sobel(gray, cv2.CV_32F, 1, 0), cv2.Sobel(gray, cv2.CV_32F, 0, 1)) < SMOOTH
     candidate = smooth & (gray >= np.percentile(gray, 40)) & (small[..., 2] >= small[..., 0])
     n, label = cv2.connectedComponents(candidate.astype(np.uint8), connectivity=4)

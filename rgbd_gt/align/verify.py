@@ -214,7 +214,7 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
     """The evidence on `result` (refined from T_init by `aligner`) and the verdict.
 
     camera, photo: the photo's own (distorted) camera and image (H, W, 3) uint8; scan, colors:
-    the scan (`io.Scan`) and its `scan_colors`, for the structural image check; init_meta: the
+    the scan (`Scan`) and its `scan_colors`, for the structural image check; init_meta: the
     init pose file's other keys (its `uncertainty`, when it states one); check: held-out pairs
     (img (n, 2) px, scan points (n, 3)).
     """

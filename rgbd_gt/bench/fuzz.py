@@ -67,7 +67,7 @@ def make_seeds(folder: Path, data: Path | None) -> dict[str, Path]:
     from rgbd_gt.camera import project
     from rgbd_gt.pose import transform_points
     from rgbd_gt.io.ply import write_ply
-    from rgbd_gt.io.scan import Scan
+    from rgbd_gt.scan import Scan
 
     folder.mkdir(parents=True, exist_ok=True)
     scene = folder / "scene"

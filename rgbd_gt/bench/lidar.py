@@ -21,7 +21,7 @@ import numpy as np
 from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.bench.run import machine
 from rgbd_gt.camera import Camera
-from rgbd_gt.io.scan import Scan
+from rgbd_gt.scan import Scan
 from rgbd_gt.pose import apply_update, camera_centre, rotation_error_deg, translation_error_m
 
 SIZES = ((1.0, 0.10), (3.0, 0.20))  # init error: degrees about a random axis, metres in a random direction
@@ -51,7 +51,7 @@ def pjlab_scene(d: Path) -> Scene:
     """One scene folder of ../shared/data/lidar_camera (calib.pcd, calib.jpg|png, calib.txt)."""
     from rgbd_gt.io import load_scan, read_camera, read_pose
     from rgbd_gt.io.image import read_image
-    from rgbd_gt.io.scan import scan_colors
+    from rgbd_gt.scan import scan_colors
     from rgbd_gt.render.normals import with_normals
 
     scan = with_normals(load_scan(d / "calib.pcd"))
@@ -88,7 +88,7 @@ def refine_inputs(s: Scene, T_init: np.ndarray, init_meta: dict | None = None):
     """The refine command's inputs for scene s from T_init: the points in view, as `run` and
     `refine` take them (`view_as_stored`)."""
     from rgbd_gt.align.refine import RefineInputs
-    from rgbd_gt.io.scan import scan_colors
+    from rgbd_gt.scan import scan_colors
     from rgbd_gt.prepared import view_as_stored
 
     view = view_as_stored(s.scan, s.camera, [T_init])

@@ -76,7 +76,9 @@ def time_refine_command(case: Case, repeats: int = 3, device: str = "auto") -> t
     aligner and verification times it records (the medians of `repeats` runs)."""
     import yaml
 
-    from rgbd_gt.io import Scan, save_scan, write_camera, write_pose
+    from rgbd_gt.io import save_scan, write_camera, write_pose
+
+    from rgbd_gt.scan import Scan
     from rgbd_gt.io.image import write_image
 
     with tempfile.TemporaryDirectory() as tmp:

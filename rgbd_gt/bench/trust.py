@@ -22,7 +22,7 @@ import numpy as np
 
 from rgbd_gt.align.config import RefineConfig, VerifyConfig
 from rgbd_gt.camera import Camera, project
-from rgbd_gt.io.scan import Scan
+from rgbd_gt.scan import Scan
 from rgbd_gt.pose import apply_update, rotation_error_deg, transform_points, translation_error_m
 from rgbd_gt.render.normals import with_normals
 

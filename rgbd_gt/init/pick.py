@@ -14,7 +14,7 @@ import numpy as np
 
 from rgbd_gt.camera import Camera, rescale
 from rgbd_gt.errors import InputError
-from rgbd_gt.io.scan import Scan, scan_colors
+from rgbd_gt.scan import Scan, scan_colors
 
 VIEW_SIDE = 4096  # the scan image's longer side at most (pixels): what a browser shows smoothly
 DOT_PX = 2  # a sweep's points in the pose view: squares of 5 x 5 pixels, easy to hit, rarely overlapping

@@ -21,7 +21,7 @@ import numpy as np
 from rgbd_gt.camera import Camera
 from rgbd_gt.errors import InputError
 from rgbd_gt.init.pick import ClickView, solve, write_pairs
-from rgbd_gt.io.scan import Scan
+from rgbd_gt.scan import Scan
 
 PAGE_FILES = {"/": ("index.html", "text/html"), "/pick.js": ("pick.js", "text/javascript"),
               "/pick.css": ("pick.css", "text/css")}

@@ -14,7 +14,7 @@ from rgbd_gt.errors import InputError, require_file
 from rgbd_gt.init.detect import BoardSpec, detect_corners
 from rgbd_gt.init.pnp import board_pose, check_spread, estimate_focal, pnp_ransac, pose_uncertainty, reprojection_rms
 from rgbd_gt.init.scan_board import ScanBoard, find_board_in_scan, in_convex_polygon, scan_step
-from rgbd_gt.io.scan import Scan, colors_to_gray, scan_colors
+from rgbd_gt.scan import Scan, colors_to_gray, scan_colors
 from rgbd_gt.pose import transform_points
 
 

@@ -9,7 +9,7 @@ import numpy as np
 
 from rgbd_gt.errors import InputError
 from rgbd_gt.init.detect import BoardSpec, detect_corners
-from rgbd_gt.io.scan import colors_to_gray
+from rgbd_gt.scan import colors_to_gray
 from rgbd_gt.pose import rigid, transform_points
 
 VIEW_FOV_DEG = (70.0, 55.0)  # horizontal, vertical
@@ -224,7 +224,7 @@ def rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
 
 def scan_step(scan) -> float:
     """The angular spacing (radians) of a scan's points seen from its first scanner position: its
-    grid's, or the median point spacing over the median range (`io.Scan` with origins)."""
+    grid's, or the median point spacing over the median range (`Scan` with origins)."""
     from rgbd_gt.render.mesh import row_step, scan_grids
 
     origin = scan.origins[0]

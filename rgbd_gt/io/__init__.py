@@ -3,10 +3,9 @@
 from rgbd_gt.io.atomic import atomic_output
 from rgbd_gt.io.camera_file import read_camera, write_camera
 from rgbd_gt.io.pose_file import read_pose, write_pose
-from rgbd_gt.io.scan import Scan, load_scan, save_scan
+from rgbd_gt.io.scan import load_scan, save_scan
 
 __all__ = [
-    "Scan",
     "atomic_output",
     "load_scan",
     "read_camera",

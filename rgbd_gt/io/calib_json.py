@@ -46,7 +46,7 @@ def read_calib_json(path: str | Path) -> dict:
 
 def read_json_camera(path: str | Path, size: tuple[int, int]) -> Camera:
     """The camera of a calib.json, for a photo of `size` (width, height)."""
-    from rgbd_gt.io.camera_file import camera_from_values
+    from rgbd_gt.io.checked import camera_from_values
 
     path = Path(path)
     cam = read_calib_json(path).get("camera")
@@ -63,7 +63,7 @@ def read_json_camera(path: str | Path, size: tuple[int, int]) -> Camera:
 def read_json_pose(path: str | Path) -> np.ndarray:
     """T_cam_from_scan (4, 4): the inverse of results.T_lidar_camera (else init_T_lidar_camera).
     The quaternion is normalised when within 1e-3 of unit length (printed digits), else refused."""
-    from rgbd_gt.io.pose_file import check_rigid
+    from rgbd_gt.io.checked import check_rigid
     from rgbd_gt.pose import invert, quat_to_matrix, rigid
 
     path = Path(path)

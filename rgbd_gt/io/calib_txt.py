@@ -63,7 +63,7 @@ def _first(rows: dict, keys: tuple[str, ...]) -> str | None:
 
 def read_calib_camera(path: str | Path, size: tuple[int, int]) -> Camera:
     """The camera of a calibration text file, for a photo of `size` (width, height)."""
-    from rgbd_gt.io.camera_file import camera_from_values
+    from rgbd_gt.io.checked import camera_from_values
 
     path = Path(path)
     rows = read_calib_txt(path)
@@ -79,7 +79,7 @@ def read_calib_pose(path: str | Path) -> np.ndarray:
     """T_cam_from_scan (4, 4) of a calibration text file. Rotations printed with 6 digits are
     orthonormal to about 1e-6 only: they are projected onto SO(3) (a change far below any
     calibration's accuracy); beyond 1e-3 it is not a rotation and is refused."""
-    from rgbd_gt.io.pose_file import check_rigid
+    from rgbd_gt.io.checked import check_rigid
 
     path = Path(path)
     rows = read_calib_txt(path)

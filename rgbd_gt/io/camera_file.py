@@ -13,50 +13,10 @@ from typing import Callable
 import numpy as np
 import yaml
 
-from rgbd_gt.camera import Camera, lens_reach
+from rgbd_gt.camera import Camera
 from rgbd_gt.errors import InputError, read_yaml, require_file
 from rgbd_gt.io.atomic import atomic_output
-
-VALID_DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
-
-
-def camera_from_values(path: Path, width, height, K: np.ndarray, dist) -> Camera:
-    """A Camera from a file's values, each checked: whole positive sizes, finite numbers, a focal
-    length between 1 px and 1000 x the image size, the principal point near the image."""
-    try:
-        dist = tuple(float(d) for d in np.asarray(dist if dist is not None else [], float).ravel())
-        K = np.asarray(K, float)
-    except (TypeError, ValueError):
-        raise InputError("fx, fy, cx, cy and distortion must be numbers", path) from None
-    if len(dist) not in VALID_DISTORTION_LENGTHS:
-        raise InputError(f"distortion must have 4, 5, 8, 12 or 14 coefficients, got {len(dist)}", path)
-    if not (np.isfinite(dist).all() and np.isfinite(K).all()):
-        raise InputError("camera values must be finite numbers", path)
-    if K.shape != (3, 3) or np.abs(K[2] - [0, 0, 1]).max() > 1e-9 or K[1, 0] != 0 or abs(K[0, 1]) > 1e-6 * abs(K[0, 0]):
-        raise InputError(f"the camera matrix must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew), got {K.tolist()}", path)
-    if np.abs(dist).max(initial=0) > 1000:  # even fisheye rational models stay far below
-        raise InputError(f"distortion coefficients must lie within +-1000, got {max(dist, key=abs)}", path)
-    sizes = []
-    for name, v in (("width", width), ("height", height)):
-        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not float(v).is_integer() \
-                or not 1 <= v <= 100_000:
-            raise InputError(f"{name} must be a whole number of pixels (1..100000), got {v!r}", path)
-        sizes.append(int(v))
-    w, h = sizes
-    cam = Camera(w, h, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), dist)
-    for name, f in (("fx", cam.fx), ("fy", cam.fy)):
-        if not 1 <= f <= 1000 * max(w, h):
-            raise InputError(f"{name} must lie between 1 and 1000 x the image size, got {f}", path)
-    if not (-w < cam.cx < 2 * w and -h < cam.cy < 2 * h):
-        raise InputError(f"the principal point ({cam.cx}, {cam.cy}) is far outside the {w}x{h} image", path)
-    reach, corner = lens_reach(cam)
-    if reach < corner:
-        raise InputError(f"the lens model turns back inside the {w}x{h} image (its distortion reaches a radius of "
-                         f"{reach:.3f} in x/z, y/z; the corners lie at {corner:.3f}), so its outer pixels have no ray: "
-                         "coefficients fitted for another image size, or a fisheye lens, which this model does not describe",
-                         path)
-    return cam
-
+from rgbd_gt.io.checked import camera_from_values
 
 def is_opencv_file(path: Path, text: str) -> bool:
     """Whether a file (its text given) is OpenCV FileStorage YAML or XML, not plain YAML."""

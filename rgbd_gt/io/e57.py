@@ -19,7 +19,7 @@ import numpy as np
 
 from rgbd_gt.errors import InputError
 from rgbd_gt.io.atomic import atomic_output
-from rgbd_gt.io.scan import Scan
+from rgbd_gt.scan import Scan
 from rgbd_gt.io.native import native_output
 from rgbd_gt.pose import matrix_to_quat, quat_to_matrix
 

@@ -16,7 +16,7 @@ import numpy as np
 
 from rgbd_gt.errors import InputError
 from rgbd_gt.io.native import native_output
-from rgbd_gt.io.scan import Scan, ring_ids
+from rgbd_gt.scan import Scan, ring_ids
 
 INTENSITY_FIELDS = ("intensity", "reflectivity")
 RING_FIELDS = ("ring", "channel", "laser_id")  # the laser of each return, as LiDAR drivers name it

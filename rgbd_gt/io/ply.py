@@ -14,7 +14,7 @@ import numpy as np
 
 from rgbd_gt.errors import InputError
 from rgbd_gt.io.atomic import atomic_output
-from rgbd_gt.io.scan import Scan, ring_ids
+from rgbd_gt.scan import Scan, ring_ids
 
 PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -212,13 +212,10 @@ def read_ply(path: str | os.PathLike) -> Scan:
         origins=origins,
         ring=ring_ids(table["ring"]) if "ring" in names else None,
     )
-    if all(c in names for c in ("nx", "ny", "nz")):
-        from rgbd_gt.render.normals import scan_normals
-
+    if all(c in names for c in ("nx", "ny", "nz")):  # as the file has them: preparing orients them (`oriented`)
         n = np.stack([table[c] for c in ("nx", "ny", "nz")], 1).astype(np.float32)
         length = np.linalg.norm(n, axis=1, keepdims=True)
         scan.normals = np.where(np.isfinite(length) & (length > 0), n / np.where(length > 0, length, 1), 0).astype(np.float32)
-        scan.normals = scan_normals(scan)
     del table
     return scan
 

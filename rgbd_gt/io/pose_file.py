@@ -11,33 +11,7 @@ import yaml
 
 from rgbd_gt.errors import InputError, read_yaml, require_file
 from rgbd_gt.io.atomic import atomic_output
-
-POSE_KEY = "T_cam_from_scan"
-MAX_TRANSLATION_M = 1e8  # georeferenced scans lie up to ~1e7 m from their origin; beyond is corruption
-
-
-def check_rigid(T: np.ndarray, path: object = None, tol: float = 1e-6) -> np.ndarray:
-    """Validate a 4x4 rigid transform; returns it as float64 or raises InputError."""
-    try:
-        T = np.asarray(T, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise InputError(f"{POSE_KEY} must be a 4x4 list of numbers", path) from None
-    if T.shape != (4, 4):
-        raise InputError(f"{POSE_KEY} must be 4x4, got shape {T.shape}", path)
-    if not np.isfinite(T).all():
-        raise InputError(f"{POSE_KEY} has non-finite values", path)
-    if np.abs(T[:3, 3]).max() > MAX_TRANSLATION_M:
-        raise InputError(f"{POSE_KEY} translation {T[:3, 3].tolist()} is beyond {MAX_TRANSLATION_M:g} m", path)
-    if not np.allclose(T[3], [0, 0, 0, 1], atol=tol, rtol=0):
-        raise InputError(f"{POSE_KEY} last row must be 0 0 0 1, got {T[3].tolist()}", path)
-    R = T[:3, :3]
-    err = np.abs(R @ R.T - np.eye(3)).max()
-    if err > tol:
-        raise InputError(f"{POSE_KEY} is not rigid: rotation is not orthonormal (|R Rt - I| = {err:.2e})", path)
-    if np.linalg.det(R) < 0:
-        raise InputError(f"{POSE_KEY} is not rigid: rotation is a reflection (det < 0)", path)
-    return T
-
+from rgbd_gt.io.checked import POSE_KEY, check_rigid
 
 def read_pose(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
     """Read a pose file. Returns (T_cam_from_scan (4, 4) float64, the other keys as a dict).

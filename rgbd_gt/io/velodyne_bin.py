@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from rgbd_gt.errors import InputError
-from rgbd_gt.io.scan import Scan
+from rgbd_gt.scan import Scan
 
 RETURN_BYTES = 16
 MAX_RANGE_M = 1000.0  # automotive LiDARs reach 100-300 m

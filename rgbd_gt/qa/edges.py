@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from rgbd_gt.camera import Camera, rescale
-from rgbd_gt.io.scan import Scan, colors_to_gray
+from rgbd_gt.scan import Scan, colors_to_gray
 from rgbd_gt.render.depth import render_depth
 
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from rgbd_gt.camera import Camera, rescale
-from rgbd_gt.io.scan import Scan, scan_colors
+from rgbd_gt.scan import Scan, scan_colors
 
 
 def render_scale(scan: Scan, camera: Camera, T: np.ndarray, per_step: float = 2.0) -> float:

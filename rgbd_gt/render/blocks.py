@@ -114,7 +114,7 @@ def points_in_view(xyz: np.ndarray, camera: Camera, T_cam_from_scan: np.ndarray,
 
 
 def view_of(scan, camera: Camera, poses: list[np.ndarray], margin: float = VIEW_MARGIN):
-    """The `io.Scan`'s points in view of any of the poses (`points_in_view`): all that a photo's
+    """The `Scan`'s points in view of any of the poses (`points_in_view`): all that a photo's
     renders at those poses can show, so that they cost what the photo sees."""
     keep = np.zeros(len(scan), bool)
     for T in poses:

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rgbd_gt.camera import Camera, distort, project, undistort_points
-from rgbd_gt.io.scan import Scan
+from rgbd_gt.scan import Scan
 from rgbd_gt.pose import invert, transform_points
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rgbd_gt.io.scan import Scan
+from rgbd_gt.scan import Scan
 
 
 def grid_triangles(scan: Scan, max_stretch: float = 8.0) -> np.ndarray:

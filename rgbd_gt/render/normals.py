@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rgbd_gt.io.scan import Scan
+from rgbd_gt.scan import Scan
 
 if TYPE_CHECKING:
     import torch
@@ -64,6 +64,14 @@ def scan_normals(scan: Scan) -> np.ndarray | None:
     if origin is not None:
         n = np.where((np.einsum("ij,ij->i", n, origin - scan.xyz) < 0)[:, None], -n, n).astype(np.float32)
     return n
+
+
+def oriented(scan: Scan) -> Scan:
+    """The scan with the normals it was read with (a PLY's nx ny nz, which may point either way)
+    turned to face the scanner that saw each point (`scan_normals`); as it is without normals."""
+    import dataclasses
+
+    return scan if scan.normals is None else dataclasses.replace(scan, normals=scan_normals(scan))
 
 
 def with_normals(scan: Scan) -> Scan:

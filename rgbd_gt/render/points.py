@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from rgbd_gt.camera import Camera
-from rgbd_gt.io.scan import Scan
+from rgbd_gt.scan import Scan
 
 
 RING_BIN_DEG = 0.02  # finer than a spinning LiDAR's ring spacing (0.1-2 deg), coarser than its ring's spread

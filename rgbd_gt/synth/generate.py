@@ -13,7 +13,8 @@ import numpy as np
 
 from rgbd_gt.camera import Camera, lens_reach, project
 from rgbd_gt.errors import InputError
-from rgbd_gt.io import Scan, atomic_output, save_scan, write_camera, write_pose
+from rgbd_gt.io import atomic_output, save_scan, write_camera, write_pose
+from rgbd_gt.scan import Scan
 from rgbd_gt.io.e57 import write_e57
 from rgbd_gt.io.image import write_image
 from rgbd_gt.pose import rigid, transform_points
