@@ -3,7 +3,7 @@
 whole process (issue targets on a 2-core CPU: refine <= 5 s of aligner time, qa-edges and
 overlay <= 5 s and 1 GB each, export-depth <= 10 s and 1.5 GB). Writes docs/big_photo.md.
 
-    python benchmarks/big_photo.py [--megapixels 24]
+    python -m benchmarks.big_photo [--megapixels 24]
 """
 
 from __future__ import annotations
@@ -14,10 +14,10 @@ import sys
 import tempfile
 from pathlib import Path
 
-from rgbd_gt.bench.peak import run_measured as run
+from benchmarks.peak import run_measured as run
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     import cv2
     import numpy as np
 
@@ -28,7 +28,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--megapixels", type=float, default=24.0)
     ap.add_argument("--out", type=Path, default=Path("docs/big_photo.md"))
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
         subprocess.run([sys.executable, "-m", "rgbd_gt", "synth", str(d / "scene"), "--size", "small", "--seed", "1"],
@@ -57,7 +57,7 @@ def main() -> None:
             rows.append((name, "", wall, mem, target))
             print(rows[-1], flush=True)
     lines = ["# Big photos", "",
-             f"Made by `python benchmarks/big_photo.py`: a small synthetic scene ({points:,} scan points on a grid) with its photo",
+             f"Made by `python -m benchmarks.big_photo`: a small synthetic scene ({points:,} scan points on a grid) with its photo",
              f"enlarged to {w} x {h} ({w * h / 1e6:.1f} MP) and its camera scaled; each command alone in a fresh process",
              "on this 2-core CPU, wall time (imports and file reading and writing included) and peak resident memory.", "",
              "| command | | wall s | peak memory GB | target |", "|---|---|---|---|---|"]

@@ -2,7 +2,7 @@
 0.5% of pixels off by more than 5 cm, at least 95% filled, over the pixels both frames see), and
 on the real pumpA scan: its surfels without the grid against its grid mesh.
 
-    python benchmarks/export_depth.py [--data ../shared/data/icl_nuim_livingroom1] [--e57 ../shared/data/e57]
+    python -m benchmarks.export_depth [--data ../shared/data/icl_nuim_livingroom1] [--e57 ../shared/data/e57]
 
 Writes docs/depth_benchmark.md.
 """
@@ -17,8 +17,8 @@ import dataclasses
 
 import numpy as np
 
-from rgbd_gt.bench.depth import depth_errors
-from rgbd_gt.bench.icl import frame_count
+from benchmarks.depth import depth_errors
+from benchmarks.icl import frame_count
 from rgbd_gt.camera import Camera
 from rgbd_gt.io import atomic_output, load_scan
 from rgbd_gt.render.depth import render_depth
@@ -54,18 +54,18 @@ def pumpa_rows(e57_dir: Path) -> list[str]:
     return rows
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=Path("../shared/data/icl_nuim_livingroom1"))
     ap.add_argument("--e57", type=Path, default=Path("../shared/data/e57"))
     ap.add_argument("--out", type=Path, default=Path("docs/depth_benchmark.md"))
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     n = frame_count(args.data)
     pairs = [(i, j) for off in (1, 3) for i in range(n) for j in (i - off, i + off) if 0 <= j < n]
     lines = [
         "# export-depth benchmark: ICL-NUIM livingroom1",
         "",
-        "Made by `python benchmarks/export_depth.py`. Frame i's clean depth as a scan (camera i as the",
+        "Made by `python -m benchmarks.export_depth`. Frame i's clean depth as a scan (camera i as the",
         "scanner) rendered at frame j's true pose, against frame j's clean depth, over the pixels that both",
         "frames see. Targets: median absolute error <= 2 mm, at most 0.5% of pixels off by more than 5 cm.",
     ]

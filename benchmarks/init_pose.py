@@ -1,7 +1,7 @@
 """Benchmark of `rgbd-gt init-pose` on synthetic scenes (issue targets: within 10 mm and 0.3 deg
 on every seed, median within 5 mm and 0.15 deg, under 20 s per scene).
 
-    python benchmarks/init_pose.py [--seeds 10] [--size default]
+    python -m benchmarks.init_pose [--seeds 10] [--size default]
 
 Writes docs/init_benchmark.md.
 """
@@ -20,14 +20,14 @@ from rgbd_gt.io import atomic_output, read_pose
 from rgbd_gt.pose import rotation_error_deg, translation_error_m
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--first", type=int, default=0, help="first seed")
     ap.add_argument("--size", default="default")
     ap.add_argument("--dir", type=Path, default=Path("bench_out/init"))
     ap.add_argument("--out", type=Path, default=Path("docs/init_benchmark.md"))
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     rows = []
     for seed in range(args.first, args.first + args.seeds):
         d = args.dir / f"{args.size}_{seed}"
@@ -52,7 +52,7 @@ def main() -> None:
     lines = [
         f"# init-pose benchmark: {args.seeds} synthetic scenes (`--size {args.size}`, seeds {args.first}-{args.first + args.seeds - 1})",
         "",
-        "Made by `python benchmarks/init_pose.py`. Automatic mode: the 9x6 board is found in the photo and in",
+        "Made by `python -m benchmarks.init_pose`. Automatic mode: the 9x6 board is found in the photo and in",
         "virtual views of the scan, then PnP. Errors against `gt_pose.yaml`; time is the whole command.",
         "",
         "| seed | translation error (mm) | rotation error (deg) | reprojection RMS (px) | time (s) |",

@@ -4,7 +4,7 @@ Writes a synthetic scan with colors, intensity and a row/column grid once (cache
 bench_out/), then measures load time and peak resident memory of `load_scan` in a fresh
 process, relative to the size of the loaded arrays ("copies").
 
-    python benchmarks/load_large_scan.py [--points 40000000]
+    python -m benchmarks.load_large_scan [--points 40000000]
 """
 
 from __future__ import annotations
@@ -52,11 +52,11 @@ def make_scan(n: int) -> Scan:
                 origins=np.zeros((1, 3)))
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--points", type=int, default=40_000_000)
     ap.add_argument("--dir", type=Path, default=Path("bench_out"))
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     args.dir.mkdir(exist_ok=True)
     paths = [args.dir / f"large_{args.points}.e57", args.dir / f"large_{args.points}.ply"]
     if not all(p.exists() for p in paths):

@@ -4,7 +4,7 @@ machine. Measures: preparing the scan (fresh cache), reopening the cache, every 
 (from summary.csv), the run's peak memory against the scan's arrays, and the speed-up of
 --workers 2 over one worker. Writes the tables to docs/scale.md's results section.
 
-    python benchmarks/scale.py [--points 40.8e6] [--photos 10] [--skip-workers]
+    python -m benchmarks.scale [--points 40.8e6] [--photos 10] [--skip-workers]
 """
 
 from __future__ import annotations
@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbd_gt.bench.peak import run_measured
-from rgbd_gt.bench.run import machine
-from rgbd_gt.bench.scale import dome_scene
+from benchmarks.peak import run_measured
+from benchmarks.icl_bench import machine
+from benchmarks.dome import dome_scene
 
 RELOAD = r"""
 import sys, time
@@ -76,14 +76,15 @@ def pose_errors(scene: Path, out: Path, photo: str) -> tuple[float, float, float
             translation_error_m(T0, truth) * 1e3, rotation_error_deg(T0, truth))
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--points", type=float, default=40.8e6)
     ap.add_argument("--photos", type=int, default=10)
     ap.add_argument("--dir", type=Path, default=Path("bench_out/scale"))
+    ap.add_argument("--out", type=Path, default=Path("docs/scale.md"), help="The document whose results section gets the tables.")
     ap.add_argument("--skip-workers", action="store_true")
     ap.add_argument("--skip-ray", action="store_true", help="Leave out the run on a local Ray cluster of 1 and of 2 CPUs.")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     scene = dome_scene(args.dir / f"dome_{args.points:.3g}_{args.photos}", args.points, args.photos)
     out = args.dir / "out"
     config = args.dir / "run.yaml"
@@ -143,7 +144,7 @@ def main() -> None:
     text = "\n".join(lines)
     print(text)
     (args.dir / "results.md").write_text(text + "\n")
-    doc = Path("docs/scale.md")
+    doc = args.out
     if doc.exists():
         body = doc.read_text()
         start, end = "<!-- results -->", "<!-- /results -->"

@@ -804,34 +804,6 @@ def run_workflow(
         raise typer.Exit(1)
 
 
-@app.command()
-def bench(
-    data: Path = typer.Option(Path("../shared/data/icl_nuim_livingroom1"), "--data", help="The ICL-NUIM livingroom1 folder."),
-    out_dir: Path = typer.Option(Path("docs"), "--out", help="Where benchmark.md and benchmark_cumulative.png go."),
-    device: str = typer.Option("cpu", "--device", help="cpu, cuda or auto."),
-    quick: bool = typer.Option(False, "--quick", help="One effect per frame pair and only our method and SIFT (a smoke run)."),
-) -> None:
-    """Reproduce the paper's Sec. 4.1 on ICL-NUIM: every color model, both gradients and the ORB/SIFT
-    baselines on the same cases; writes a Markdown table and a cumulative error plot."""
-    from rgbd_gt.align.refine import resolve_device
-    from rgbd_gt.bench.run import run_benchmark, summary_rows
-
-    if not data.is_dir():
-        raise InputError("benchmark data folder not found", data)
-    dev = str(resolve_device(device))
-    kw = dict(effects_near=1, effects_far=1, methods=["quadratic (ours)", "SIFT"], other_seeds=()) if quick else {}
-    report = run_benchmark(data, out_dir, dev, log=lambda line: err.print(line, highlight=False), **kw)
-    table = Table(title="ICL-NUIM benchmark")
-    for col in ["method"] + [f"{g} {c}" for g in report["groups"] for c in ("t mm", "R deg", "ok", "s")]:
-        table.add_column(col)
-    for row in summary_rows(report):
-        table.add_row(*row)
-    out.print(table)
-    out.print(f"refine command: {report['refine_command_s']:.2f} s wall, aligner {report['refine_aligner_s']:.2f} s, "
-              f"verdict {report['refine_verify_s']:.2f} s")
-    out.print(f"wrote {out_dir / 'benchmark.md'} and {out_dir / 'benchmark_cumulative.png'}")
-
-
 def _click_exceptions() -> tuple[tuple, tuple, tuple]:
     """(ClickException, Exit, Abort) classes of click and of the copy of click that Typer may carry:
     Typer >= 0.20 raises its own, which `except click.ClickException` does not catch."""

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from conftest import assert_one_line_error, run_cli
-from rgbd_gt.bench.depth import depth_errors, frame_grid_scan, seen_by_both
-from rgbd_gt.bench.icl import ICL_CAMERA, read_depth, read_trajectory
+from benchmarks.depth import depth_errors, frame_grid_scan, seen_by_both
+from benchmarks.icl import ICL_CAMERA, read_depth, read_trajectory
 from rgbd_gt.camera import Camera
 from rgbd_gt.io import read_pose, save_scan, write_camera, write_pose
 from rgbd_gt.io.depth_file import read_depth_exr

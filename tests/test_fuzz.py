@@ -1,4 +1,4 @@
-"""A short seeded fuzz of every command (rgbd_gt/bench/fuzz.py; `make bench` runs a long one):
+"""A short seeded fuzz of every command (benchmarks/fuzz.py; `make bench` runs a long one):
 mutated real and synthetic inputs, odd arguments and output paths. Every trial must end with
 exit 0 or 2, no traceback, nothing half-written, no input changed, and exit 2 (never 0) for
 input that is certainly invalid."""
@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-from conftest import DATA
+from conftest import DATA, ROOT
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "fork"), reason="the fuzz runs each trial in a forked child")
 
@@ -18,9 +18,9 @@ pytestmark = pytest.mark.skipif(not hasattr(os, "fork"), reason="the fuzz runs e
 def test_fuzz_every_command(tmp_path):
     # a fresh process: the forked trials must not inherit thread pools this one has started
     report = tmp_path / "trials.json"
-    proc = subprocess.run([sys.executable, "-m", "rgbd_gt.bench.fuzz", "--trials", "110", "--seed", "7", "--quiet",
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.fuzz", "--trials", "110", "--seed", "7", "--quiet",
                            "--root", str(tmp_path / "fuzz"), "--data", str(DATA), "--json", str(report)],
-                          capture_output=True, text=True, timeout=600)
+                          capture_output=True, text=True, timeout=600, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-3000:]
     trials = json.loads(report.read_text())
     failures = [f"{t['problems']} exit {t['code']}: {t['name']}\n{t['stderr'][-600:]}" for t in trials if t["problems"]]

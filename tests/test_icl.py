@@ -7,7 +7,7 @@ import numpy as np
 
 from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.align.refine import RefineInputs, run_refine
-from rgbd_gt.bench.icl import ICL_CAMERA, frame_cloud, make_cases, read_depth, read_trajectory
+from benchmarks.icl import ICL_CAMERA, frame_cloud, make_cases, read_depth, read_trajectory
 from rgbd_gt.pose import invert, rotation_error_deg, transform_points, translation_error_m
 
 
@@ -43,9 +43,10 @@ def test_refine_path_does_not_import_open3d():
 
 
 def test_bench_quick(icl_dir, tmp_path):
-    from conftest import run_cli
+    from conftest import ROOT
 
-    proc = run_cli("bench", "--quick", "--data", icl_dir, "--out", tmp_path)
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.icl_bench", "--quick", "--data", icl_dir, "--out", tmp_path],
+                          capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     text = (tmp_path / "benchmark.md").read_text()
     assert "| quadratic (ours) |" in text and "| SIFT |" in text
@@ -60,7 +61,7 @@ def test_bench_quick(icl_dir, tmp_path):
 def test_cases_without_effects_use_the_photo_and_depth_asked_for(icl_dir):
     cases = make_cases(icl_dir, offsets=(3,), effects=False, depth="clean")
     assert [c.name for c in cases] == ["0->3#0", "1->4#0", "3->0#0", "4->1#0"]
-    from rgbd_gt.bench.icl import read_color
+    from benchmarks.icl import read_color
 
     assert np.array_equal(cases[0].photo, read_color(icl_dir, 3)) and cases[0].effects == {}
     pts, _, _ = frame_cloud(icl_dir, 0, "clean")

@@ -249,7 +249,7 @@ def test_search_results_are_judged_on_a_finer_level():
     scale). With the best three carried down to level 1 and judged there, both end at NID's
     minimum near the reference (docs/lidar-method.md, "Which search result goes on")."""
     from rgbd_gt.align.refine import RefineInputs, make_aligner
-    from rgbd_gt.bench.lidar import init_poses, pjlab_scene
+    from benchmarks.lidar import init_poses, pjlab_scene
 
     s = pjlab_scene(_pjlab(3))
     inits = init_poses(s.T_ref, 1.0, 0.10, 10, seed=sum(map(ord, "pjlab_3")))
@@ -519,7 +519,7 @@ def test_auto_device_runs_nid_on_the_cpu():
 
 
 def test_gpu_benchmark_compares_each_case_with_its_twin_on_the_cpu():
-    from rgbd_gt.bench.gpu import compare
+    from benchmarks.gpu import compare
 
     T = np.eye(4)
     moved = T.copy()

@@ -124,7 +124,7 @@ def test_pick_on_a_real_sweep(tmp_path):
     reference back."""
     import yaml
 
-    from rgbd_gt.bench.lidar import init_poses
+    from benchmarks.lidar import init_poses
     from rgbd_gt.init.pick import click_view
     from rgbd_gt.prepared import whole_scan
 

@@ -7,8 +7,8 @@ import numpy as np
 from conftest import assert_one_line_error, run_cli
 from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.align.refine import RefineInputs, run_refine
-from rgbd_gt.bench.depth import frame_grid_scan
-from rgbd_gt.bench.icl import ICL_CAMERA, make_cases
+from benchmarks.depth import frame_grid_scan
+from benchmarks.icl import ICL_CAMERA, make_cases
 from rgbd_gt.qa.edges import edge_score, qa
 
 

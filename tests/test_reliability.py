@@ -9,7 +9,7 @@ import pytest
 import yaml
 
 from conftest import assert_one_line_error, run_cli
-from rgbd_gt.bench.fuzz import crc32c
+from benchmarks.fuzz import crc32c
 from rgbd_gt.errors import InputError
 from rgbd_gt.io.ply import write_ply
 from rgbd_gt.scan import Scan

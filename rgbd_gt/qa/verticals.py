@@ -20,7 +20,7 @@ MIN_SEGMENTS, MIN_POLES = 8, 10  # fewer say nothing: the interval of a few segm
 GRID_OFFSETS = (0.0, 0.25, 0.5, 0.75)
 # added to both ends of the bootstrap interval: on synthetic scenes with exact truth the
 # bootstrap alone missed 0 in 5 of 31 cases, by at most 0.06 deg (LSD's angles on rendered
-# edges; the roll's linearisation away from the principal point). `python -m rgbd_gt.bench.verticals`
+# edges; the roll's linearisation away from the principal point). `python -m benchmarks.verticals`
 SYSTEMATIC_DEG = 0.1
 REACH = 40.0  # metres around the camera that the scan's poles are taken from
 # of those, every k-th beyond this: on a 40.8M-point scan (docs/scale.md) 500k give the rolls of

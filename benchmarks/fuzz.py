@@ -392,7 +392,6 @@ def templates(seeds: dict[str, Path]) -> list[dict]:
         dict(argv=["export-depth", "--scan", s["scan_bin"], "--camera", s["camera"], "--pose", s["gt"],
                    "-o", "{out}/d.exr"], outs=["d.exr"]),
         dict(argv=["ingest", s["scan_bin"], "-o", "{out}/merged.ply"], outs=["merged.ply"]),
-        dict(argv=["bench", "--data", "{out}/no_data", "--quick", "--out", "{out}/docs"], outs=["docs"]),
         dict(argv=["export-depth", "--scan", s["scan_small"], "--camera", s["camera"], "--pose", s["gt"],
                    "-o", "{out}/d.exr", "--png16", "{out}/d.png", "--mask", "{out}/m.png"], outs=["d.exr", "d.png", "m.png"]),
         dict(argv=["qa-edges", "--scan", s["scan_small"], "--image", s["photo"], "--camera", s["camera"], "--pose", s["gt"],
@@ -690,9 +689,9 @@ def write_report(path: Path, results: list[Result], seed: int, seconds: float) -
 
     c = counts(results)
     lines = ["# Reliability: fuzzing every command", "",
-             f"`make bench` runs `python -m rgbd_gt.bench.fuzz` ({len(results)} trials, seed {seed}, {seconds / 60:.1f} min "
+             f"`make bench` runs `python -m benchmarks.fuzz` ({len(results)} trials, seed {seed}, {seconds / 60:.1f} min "
              "on this machine); tests/test_fuzz.py runs a shorter one in CI. How a trial is made and judged: "
-             "rgbd_gt/bench/fuzz.py.", "",
+             "benchmarks/fuzz.py.", "",
              "| outcome | trials | target |", "|---|---|---|"]
     lines += [f"| {o} | {c[o]} | 0 |" for o in OUTCOMES]
     exits = collections.Counter(("pick serving (stopped)" if r.trial.serves and "hang" not in r.problems else "hang")
@@ -732,7 +731,7 @@ def write_report(path: Path, results: list[Result], seed: int, seconds: float) -
 
 
 def main(argv: list[str] | None = None) -> int:
-    """python -m rgbd_gt.bench.fuzz --trials N [--seed S] [--root DIR] [--data DIR] [--json F] [--report F]"""
+    """python -m benchmarks.fuzz --trials N [--seed S] [--root DIR] [--data DIR] [--json F] [--report F]"""
     import argparse
     import json
 

@@ -3,7 +3,7 @@ extrinsic, and the LiDAR benchmark's nid results, are rolled off the sweep's ver
 synthetic scenes with exact truth, how often its interval at the true pose holds 0. Prints
 Markdown tables (docs/lidar-method.md, "What the vertical lines say about the references").
 
-    python -m rgbd_gt.bench.verticals [--data ../shared/data] [--cases bench_out/lidar/cases.json] [--synthetic 42]
+    python -m benchmarks.verticals [--data ../shared/data] [--cases bench_out/lidar/cases.json] [--synthetic 42]
 """
 
 from __future__ import annotations

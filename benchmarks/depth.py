@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbd_gt.bench.icl import ICL_CAMERA, depth_points, frame_cloud, read_depth, read_trajectory
+from benchmarks.icl import ICL_CAMERA, depth_points, frame_cloud, read_depth, read_trajectory
 from rgbd_gt.scan import Scan
 from rgbd_gt.pose import invert, transform_points
 from rgbd_gt.render.depth import render_depth
