@@ -207,19 +207,24 @@ class QA:
 
 def qa_step(scan, colors: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray, around: np.ndarray,
             T_before: np.ndarray | None = None, pose_path: PathLike | None = None,
-            before_path: PathLike | None = None) -> QA:
+            before_path: PathLike | None = None, drawn=None) -> QA:
     """How well the scan (`Scan`, the view; colors its `scan_colors`) rendered at T lines up with
     the photo: the structural edges against chance, the Canny distances (`qa.edges`) and the
     verticals check (`qa.verticals`, on `around`: (n, 3) scan points around the camera); the same
-    for T_before with keys prefixed before_. A pose that sees no scan edge is an error naming it."""
-    from rgbd_gt.qa.edges import qa, side_by_side, structural_qa, working_view
+    for T_before with keys prefixed before_. A pose that sees no scan edge is an error naming it.
+    drawn: the verdict's render at T (`Refined.verification.view`), used when it is the one qa
+    would make (the same working size, the splats drawn)."""
+    from rgbd_gt.qa.edges import SHIFT_PX, qa, side_by_side, structural_qa, working_camera, working_view
     from rgbd_gt.qa.verticals import verticals_qa
 
     poses = [(T, pose_path, "")] + ([(T_before, before_path, "before_")] if T_before is not None else [])
     uprights = verticals_qa(around, photo, camera, [p[0] for p in poses])
+    if drawn is not None and not (drawn.camera == working_camera(camera, 1280) and drawn.radius <= SHIFT_PX
+                                  and np.array_equal(drawn.T, T)):
+        drawn = None
     images, scores, rows = [], {}, []
     for (pose, path, prefix), upright in zip(poses, uprights):
-        view = working_view(scan, colors, photo, camera, pose)
+        view = drawn if drawn is not None and pose is T else working_view(scan, colors, photo, camera, pose)
         _, canny = qa(scan, colors, photo, camera, pose, view=view)
         if canny.scan_edge_pixels == 0:
             raise InputError("no scan edges in view of this pose (no scan points in view?)", path)

@@ -257,6 +257,7 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     lap("view")
 
     progress("refine")
+    drawn = None  # the verdict's render of the result, which qa's would repeat
     if files["refine"].exists():
         res.skipped.append("refine")
     else:
@@ -265,6 +266,7 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
         refined = refine_step(inputs, cfg.refine, files["init"], cfg.device, job.camera)
         write_pose(files["refine"], refined.T, **refined.meta)
         res.steps["aligner"] = round(refined.result.seconds, 3)
+        drawn = refined.verification.view
         lap("refine")
     T, meta = read_pose(files["refine"])
     # the renders of the result (depth, qa with its init beside it, overlay) see what both poses
@@ -298,7 +300,7 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     if files["qa"].exists():
         res.skipped.append("qa")
     else:
-        checked = qa_step(scan, colors, image, camera, T, around(T), T_init, files["refine"], files["init"])
+        checked = qa_step(scan, colors, image, camera, T, around(T), T_init, files["refine"], files["init"], drawn)
         write_image(d / "qa.png", checked.image)
         with atomic_output(files["qa"]) as tmp:
             tmp.write_text(as_json(checked.scores))

@@ -269,3 +269,24 @@ def test_a_scanners_unequal_rows_and_columns_leave_no_stripes():
     inner = out.z[40:-40, 40:-40]
     assert np.mean(inner == 0) < 0.005  # measured 0
     assert np.median(np.abs(inner - truth[40:-40, 40:-40])[inner > 0]) < 0.003  # measured 1.5 mm
+
+
+@pytest.mark.parametrize("n, radius", [(60_000, 2), (3_000, 7), (20_000, 0)])
+def test_square_splats_by_centre_image_equal_the_per_point_footprints(monkeypatch, n, radius):
+    """`render.splat` draws flat squares either point by point or as a minimum filter over the
+    image of each centre pixel's nearest point: the same pixels, depths and owners."""
+    import torch
+
+    from rgbd_gt.render import splat as splat_module
+
+    g = torch.Generator().manual_seed(n)
+    uv = torch.rand(n, 2, generator=g, dtype=torch.float64) * torch.tensor([220.0, 170.0]) - 10
+    z = torch.rand(n, generator=g, dtype=torch.float64) * 5 + 0.5
+    values = torch.rand(n, 2, generator=g)
+    drawn = {}
+    for name, density in (("centres", 10**9), ("footprints", 0)):
+        monkeypatch.setattr(splat_module, "SQUARES_DENSITY", density)
+        drawn[name] = splat_module.splat(uv, z, values, (200, 150), radius)
+    for a, b in zip(drawn["centres"], drawn["footprints"]):
+        assert torch.equal(a, b)
+    assert (drawn["centres"][2] >= 0).float().mean() > 0.2

@@ -17,7 +17,7 @@ so that one threshold serves a room 3 m across and a street 50 m deep.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -35,6 +35,9 @@ class Verification:
     reasons: list[str]  # short sentences, empty when ok
     evidence: dict  # the numbers (docs/trust.md says what each means)
     seconds: float = 0.0
+    # the scan and photo at the result as the edge check rendered them (`qa.edges.WorkingView`):
+    # qa's render of the same pose, when it is drawn at the same working size
+    view: object = field(default=None, repr=False, compare=False)
 
 
 @dataclass
@@ -218,7 +221,7 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
     init pose file's other keys (its `uncertainty`, when it states one); check: held-out pairs
     (img (n, 2) px, scan points (n, 3)).
     """
-    from rgbd_gt.qa.edges import structural_qa
+    from rgbd_gt.qa.edges import structural_qa, working_view
 
     start = time.perf_counter()
     seconds: dict[str, float] = {}
@@ -240,8 +243,12 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
         ev["repeatability"] = timed("repeatability", repeatability, aligner, result, T_init, view, cfg, init_sigma, seed)
     if result.objective != "nid":  # NID's values rise by 1e-5..1e-3: its uncertainty, from their Hessian, stands for it
         ev["sharpness"] = timed("sharpness", sharpness, aligner, T, M, cfg.sharpness_step_px, cfg.sharpness_level)
-    _, score = timed("edges", lambda: structural_qa(scan, colors, photo, camera, T, cfg.edge_max_side, cfg.edge_shift_px,
-                                                    score_only=True))
+
+    def edge_check():
+        drawn = working_view(scan, colors, photo, camera, T, cfg.edge_max_side, cfg.edge_shift_px)
+        return drawn, structural_qa(scan, colors, photo, camera, T, view=drawn, shift_px=cfg.edge_shift_px, score_only=True)[1]
+
+    drawn, score = timed("edges", edge_check)
     ev["edges"] = score.as_dict()
     if check is not None:
         ev["check"] = check_pairs(check, camera, T_init, T)
@@ -252,4 +259,4 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
                                           moved_deg / max(float(init_sigma["rotation_deg"]), 1e-9))
     ev["seconds"] = seconds
     verdict, reasons = decide(ev, cfg)
-    return Verification(verdict, reasons, ev, time.perf_counter() - start)
+    return Verification(verdict, reasons, ev, time.perf_counter() - start, drawn)

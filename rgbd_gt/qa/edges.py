@@ -113,13 +113,14 @@ class WorkingView:
     gray: np.ndarray  # `scan_view`'s
     z: np.ndarray
     radius: int
+    T: np.ndarray | None = None  # (4, 4) the pose it was rendered at
 
 
 def working_view(scan: Scan, colors: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray,
                  max_side: int = 1280, max_splat_px: int | None = None) -> WorkingView:
     cam = working_camera(camera, max_side)
     small = photo if cam.size == camera.size else cv2.resize(photo, cam.size, interpolation=cv2.INTER_AREA)
-    return WorkingView(cam, small, *scan_view(scan, colors, cam, T, max_splat_px))
+    return WorkingView(cam, small, *scan_view(scan, colors, cam, T, max_splat_px), np.array(T, np.float64))
 
 
 def qa(scan: Scan, colors: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray,
