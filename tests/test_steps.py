@@ -82,3 +82,12 @@ def test_depth_files_are_the_same(run_and_commands):
 def test_overlays_are_the_same(run_and_commands, name):
     ran, cmd = run_and_commands
     np.testing.assert_array_equal(cv2.imread(str(ran / name)), cv2.imread(str(cmd / name)))
+
+
+def test_a_nan_on_its_way_to_an_output_is_an_error_of_its_step():
+    from rgbd_gt.errors import InputError
+    from rgbd_gt.steps import finite
+
+    finite("depth", "the depth map", np.zeros((4, 4)))
+    with pytest.raises(InputError, match=r"^depth: the depth map holds 2 NaN or inf value\(s\)"):
+        finite("depth", "the depth map", np.array([[0.0, np.nan], [np.inf, 1.0]]))
