@@ -45,6 +45,7 @@ class Scene:
     photo: np.ndarray  # (H, W, 3) uint8, as shipped (distorted)
     camera: Camera
     T_ref: np.ndarray  # the shipped reference T_cam_from_scan
+    prepared: object = None  # `prepared.PreparedScan` of scan, in memory: what the commands and `run` take views of
 
 
 def pjlab_scene(d: Path) -> Scene:
@@ -52,12 +53,15 @@ def pjlab_scene(d: Path) -> Scene:
     from rgbd_gt.io import load_scan, read_camera, read_pose
     from rgbd_gt.io.image import read_image
     from rgbd_gt.scan import scan_colors
+    from rgbd_gt.prepared import prepared_in_memory
     from rgbd_gt.render.normals import with_normals
 
-    scan = with_normals(load_scan(d / "calib.pcd"))
+    read = load_scan(d / "calib.pcd")
+    scan = with_normals(read)
     photo = read_image(next(p for p in sorted(d.glob("calib.*")) if p.suffix in (".jpg", ".png")))
     camera = read_camera(d / "calib.txt", (photo.shape[1], photo.shape[0]))
-    return Scene(d.name, scan, scan_colors(scan), photo, camera, read_pose(d / "calib.txt")[0])
+    return Scene(d.name, scan, scan_colors(scan), photo, camera, read_pose(d / "calib.txt")[0],
+                 prepared_in_memory(read, d / "calib.pcd"))
 
 
 def pjlab_scenes(folder: Path) -> list[Scene]:
@@ -86,12 +90,11 @@ def group_inits(group: list[Scene], inits: int, sizes=SIZES) -> list[tuple[float
 
 def refine_inputs(s: Scene, T_init: np.ndarray, init_meta: dict | None = None):
     """The refine command's inputs for scene s from T_init: the points in view, as `run` and
-    `refine` take them (`view_as_stored`)."""
+    `refine` take them (`PreparedScan.views`)."""
     from rgbd_gt.align.refine import RefineInputs
     from rgbd_gt.scan import scan_colors
-    from rgbd_gt.prepared import view_as_stored
 
-    view = view_as_stored(s.scan, s.camera, [T_init])
+    view = s.prepared.views(s.camera, [T_init])
     return RefineInputs(view.xyz, scan_colors(view), s.photo, s.camera, T_init, None, view, init_meta or {})
 
 

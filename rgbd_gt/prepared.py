@@ -1,8 +1,9 @@
-"""A scan prepared once and shared by every photo and step, cached on disk.
+"""A scan prepared once and shared by every photo and step: the one way every command and `run`
+reach a scan, cached on disk (--cache, `run`'s OUTPUT/.scan-cache) or held in memory.
 
 Preparing reads the scan file, computes what depends on the scan alone (normals facing the
 scanner, the grid mesh, the voxel-block index, the board) and writes it as plain .npy files in
-a folder keyed by the file's size, time and content hash. Reopening maps those files (seconds
+a folder keyed by the file's size, time and content hash (or keeps the same arrays in memory). Reopening maps those files (seconds
 for 40 million points), and each photo then gathers only the blocks its view can reach
 (`PreparedScan.view`), so that its steps scale with what it sees. The grid mesh is stored as a
 byte a point (`render.mesh.grid_cell_bits`: which of the grid's triangles are kept), from which
@@ -44,12 +45,13 @@ def file_key(path: Path) -> dict:
 
 @dataclass
 class PreparedScan:
-    """A block-ordered scan: arrays (memory-mapped .npy) with xyz as float32 metres from
-    `centre` (float64, `storage_centre`: float32 is then exact to microns within a few hundred
-    metres); blocks in the scan's frame; origins (S, 3) the scanner positions."""
+    """A block-ordered scan: arrays (memory-mapped .npy of the cache `folder`, or in memory when
+    folder is None) with xyz as float32 metres from `centre` (float64, `storage_centre`: float32
+    is then exact to microns within a few hundred metres); blocks in the scan's frame; origins
+    (S, 3) the scanner positions."""
 
-    folder: Path
-    source: Path
+    folder: Path | None
+    source: Path | None
     centre: np.ndarray
     origins: np.ndarray
     arrays: dict[str, np.ndarray]
@@ -116,8 +118,8 @@ class PreparedScan:
         from rgbd_gt.scan import colors_to_gray, scan_colors
 
         name = f"board-{spec.cols}x{spec.rows}-{spec.square:g}-{spec.charuco or 'chess'}-{spec.marker or 0:g}.npz"
-        path = self.folder / name
-        if path.exists():
+        path = self.folder / name if self.folder is not None else None
+        if path is not None and path.exists():
             with np.load(path) as z:
                 return BoardInScan(z["corners"], z["ids"], z["near_xyz"], z["near_gray"], str(z["method"]),
                                    float(z["plane_rms_m"]))
@@ -134,6 +136,8 @@ class PreparedScan:
             near = board_neighbourhood(local, sb.corners, spec.square)
             board = BoardInScan(sb.corners, sb.ids, local.xyz[near], colors_to_gray(scan_colors(local, scan_path)[near]),
                                 "board found in the scan's virtual views", sb.plane_rms_m, sb)
+        if path is None:  # prepared in memory: nowhere to keep it
+            return board
         with atomic_output(path) as tmp:  # a temporary file of its own: two runs may write it at once
             np.savez(tmp, corners=board.corners, ids=board.ids, near_xyz=board.near_xyz, near_gray=board.near_gray,
                      method=np.array(board.method), plane_rms_m=np.array(board.plane_rms_m or np.nan))
@@ -145,10 +149,18 @@ def cache_folder(root: Path, scan_path: Path, key: dict) -> Path:
     return root / f"{scan_path.stem}-{key['sha1'][:16]}"
 
 
-def prepare_scan(scan_path: Path, root: Path, progress: Callable[[str], None] = lambda msg: None) -> PreparedScan:
-    """The prepared scan of `scan_path`, from the cache under `root` when its key matches, else
-    built there (and the folders of earlier versions of this file removed)."""
+def prepare_scan(scan_path: Path, root: Path | None = None,
+                 progress: Callable[[str], None] = lambda msg: None) -> PreparedScan:
+    """The prepared scan of `scan_path`: the one way every command and `run` reach a scan. With a
+    cache folder `root`, from the cache there when its key matches, else built there (and the
+    folders of earlier versions of this file removed); without, built in memory for this process
+    (the same arrays, so a command sees what it would see through the cache)."""
+    from rgbd_gt.io.scan import load_scan
+
     scan_path = require_file(scan_path)
+    if root is None:
+        progress("reading the scan")
+        return prepared_in_memory(load_scan(scan_path, require_points=True), scan_path, progress)
     progress("hashing the scan file")
     key = file_key(scan_path)
     folder = cache_folder(root, scan_path, key)
@@ -187,57 +199,25 @@ def storage_centre(scan: Scan) -> np.ndarray:
     return np.median(scan.xyz[:: max(1, len(scan) // 100_000)], axis=0)
 
 
-def as_stored(xyz: np.ndarray, centre: np.ndarray) -> np.ndarray:
-    """xyz (N, 3) float64 rounded as the prepared scan stores them (float32 metres from `centre`,
-    microns within a few hundred metres): from the file or from the cache, a command then sees
-    the same coordinates to the bit, and the aligners draw the same points (align/subset.py)."""
-    return (xyz - centre).astype(np.float32).astype(np.float64) + centre
-
-
 def scan_in_view(scan_path: Path, camera: Camera, poses: list[np.ndarray], cache: Path | None = None) -> Scan:
-    """The scan's points in view of the camera at any of the poses: from the prepared scan under
-    `cache` (prepared there first when it is not yet: seconds on later calls, whatever the
-    file's size), else read from the file, culled (`render.blocks.view_of`) and rounded as the
-    cache holds them (`as_stored`)."""
-    if cache is None:
-        from rgbd_gt.io.scan import load_scan
-
-        return view_as_stored(load_scan(scan_path, require_points=True), camera, poses)
+    """The scan's points in view of the camera at any of the poses (`PreparedScan.views`), from the
+    prepared scan (under `cache`, or in memory)."""
     return prepare_scan(scan_path, cache).views(camera, poses)
 
 
 def view_and_around(scan_path: Path, camera: Camera, poses: list[np.ndarray], reach: float, max_points: int,
                     cache: Path | None = None) -> tuple[Scan, np.ndarray]:
-    """`scan_in_view`, and the coordinates (n, 3) of the scan's points in the box `reach` metres
-    around the first pose's camera, every k-th beyond `max_points` (`PreparedScan.xyz_around`),
-    the file read once."""
+    """`scan_in_view`, and the coordinates (n, 3) of the scan's points around the first pose's
+    camera (`PreparedScan.xyz_around`), the scan prepared once."""
     from rgbd_gt.pose import camera_centre
 
-    centre = camera_centre(poses[0])
-    if cache is None:
-        from rgbd_gt.io.scan import load_scan
-
-        read = load_scan(scan_path, require_points=True)
-        inside = np.ones(len(read), bool)
-        for axis in range(3):  # a column at a time: no temporary of the whole scan's size x 3
-            inside &= np.abs(read.xyz[:, axis] - centre[axis]) <= reach
-        near = read.xyz[inside]
-        return view_as_stored(read, camera, poses), near[:: thinning_step(len(near), max_points)]
     prepared = prepare_scan(scan_path, cache)
-    return prepared.views(camera, poses), prepared.xyz_around(centre, reach, max_points)
+    return prepared.views(camera, poses), prepared.xyz_around(camera_centre(poses[0]), reach, max_points)
 
 
-def view_as_stored(scan: Scan, camera: Camera, poses: list[np.ndarray]) -> Scan:
-    """`render.blocks.view_of` with the coordinates rounded as the prepared scan holds them
-    (`as_stored`). A grid scan's normals and grid mesh are made first on the whole scan
-    (`whole_scan_geometry`), as the prepared scan makes them."""
-    from rgbd_gt.render.blocks import view_of
-    from rgbd_gt.render.normals import oriented
-
-    scan = whole_scan_geometry(scan) if scan.has_grid else oriented(scan)
-    view = view_of(scan, camera, poses)
-    view.xyz = as_stored(view.xyz, storage_centre(scan))
-    return view
+def whole_scan(scan_path: Path, cache: Path | None = None) -> Scan:
+    """Every point of the prepared scan (under `cache`, or in memory)."""
+    return prepare_scan(scan_path, cache).whole()
 
 
 def whole_scan_geometry(read: Scan) -> Scan:
@@ -255,17 +235,6 @@ def whole_scan_geometry(read: Scan) -> Scan:
     return scan
 
 
-def whole_scan(scan_path: Path, cache: Path | None = None) -> Scan:
-    """Every point of the scan: from the prepared scan under `cache` (prepared there first when it
-    is not yet), else read from the file."""
-    if cache is None:
-        from rgbd_gt.io.scan import load_scan
-        from rgbd_gt.render.normals import oriented
-
-        return oriented(load_scan(scan_path, require_points=True))
-    return prepare_scan(scan_path, cache).whole()
-
-
 def open_prepared(folder: Path, scan_path: Path) -> PreparedScan:
     """A prepared scan's cache folder, opened without checking it against the scan file (the
     caller prepared it: `prepare_scan`)."""
@@ -280,12 +249,68 @@ def _open(folder: Path, scan_path: Path, meta: dict) -> PreparedScan:
                         blocks, meta.get("angular_step"), meta["key"]["sha1"])
 
 
+@dataclass
+class _Layout:
+    """What preparing makes besides the arrays: the float32 coordinates' origin (3,), the scanner
+    positions (S, 3), the angular step (`scan_step`, or None), the blocks (in the scan's frame)
+    and the points' count."""
+
+    centre: np.ndarray
+    origins: np.ndarray
+    angular_step: float | None
+    blocks: Blocks
+    points: int
+
+
+def _prepared_arrays(read: Scan, progress: Callable[[str], None], phase: Callable[[str], None]):
+    """Make what depends on the scan `read` alone (its normals facing the scanner, the grid mesh's
+    cell bits, the block order): yields its `_Layout` first, then (name, array) of each of ARRAYS
+    the scan has, block-ordered, one at a time and each freed from the scan as it goes, so that
+    memory stays near the scan's own whether they are written to a cache or kept."""
+    from rgbd_gt.init.scan_board import scan_step
+
+    progress("normals")
+    scan = whole_scan_geometry(read)
+    del read
+    step = scan_step(scan) if len(scan.origins) else None
+    cells = scan.derived.pop("cell_bits", None)
+    phase("normals")
+    centre = storage_centre(scan)
+    progress("spatial index")
+    local = np.empty(scan.xyz.shape, np.float32)  # = (xyz - centre).astype(float32), without a float64 temporary
+    np.subtract(scan.xyz, centre, out=local, casting="same_kind")
+    scan.xyz = None  # the float64 copy is no longer needed
+    order, blocks = block_order(local)
+    phase("index")
+    yield _Layout(centre, scan.origins, step, Blocks(blocks.start, blocks.lo + centre, blocks.hi + centre), len(order))
+    for name in ARRAYS:
+        values = local if name == "xyz" else cells if name == "cells" else getattr(scan, name)
+        if values is None:
+            continue
+        ordered = values[order]
+        if name == "xyz":
+            del local, values
+        elif name == "cells":
+            cells = None
+        else:
+            setattr(scan, name, None)
+        yield name, ordered
+
+
+def prepared_in_memory(read: Scan, source: Path | None = None,
+                       progress: Callable[[str], None] = lambda msg: None) -> PreparedScan:
+    """The prepared scan of `read` (a `Scan` as read from `source`), in memory: what a cache
+    folder would hold, for one process."""
+    arrays = _prepared_arrays(read, progress, lambda name: None)
+    layout = next(arrays)
+    return PreparedScan(None, source, layout.centre, layout.origins, dict(arrays), layout.blocks, layout.angular_step)
+
+
 def _build(scan_path: Path, folder: Path, key: dict, progress: Callable[[str], None]) -> None:
-    """Read the scan, compute its normals and block order, write every array block-ordered into a
-    staging folder and move it into place (a crash leaves no half-written cache)."""
+    """Read the scan, prepare it (`_prepared_arrays`), write every array into a staging folder
+    and move it into place (a crash leaves no half-written cache)."""
     import time
 
-    from rgbd_gt.init.scan_board import scan_step
     from rgbd_gt.io.scan import load_scan
 
     seconds: dict[str, float] = {}
@@ -299,41 +324,24 @@ def _build(scan_path: Path, folder: Path, key: dict, progress: Callable[[str], N
     progress("reading the scan")
     read = load_scan(scan_path, require_points=True)
     phase("read")
-    progress("normals")
-    scan = whole_scan_geometry(read)
+    arrays = _prepared_arrays(read, progress, phase)
     del read
-    step = scan_step(scan) if len(scan.origins) else None
-    cells = scan.derived.pop("cell_bits", None)
-    phase("normals")
-    centre = storage_centre(scan)
-    progress("spatial index")
-    local = np.empty(scan.xyz.shape, np.float32)  # = (xyz - centre).astype(float32), without a float64 temporary
-    np.subtract(scan.xyz, centre, out=local, casting="same_kind")
-    scan.xyz = None  # the float64 copy is no longer needed: memory stays near the scan's own
-    order, blocks = block_order(local)
-    phase("index")
+    layout = next(arrays)
     folder.parent.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=".rgbd-gt-", dir=folder.parent))
     try:
         progress("writing the cache")
         names = []
-        for name in ARRAYS:
-            values = local if name == "xyz" else cells if name == "cells" else getattr(scan, name)
-            if values is None:
-                continue
-            np.save(stage / f"{name}.npy", values[order])
+        for name, values in arrays:
+            np.save(stage / f"{name}.npy", values)
             names.append(name)
-            if name == "xyz":
-                del local, values
-            elif name == "cells":
-                cells = None
-            else:
-                setattr(scan, name, None)
-        np.savez(stage / "blocks.npz", start=blocks.start, lo=blocks.lo + centre, hi=blocks.hi + centre)
+            del values
+        blocks = layout.blocks
+        np.savez(stage / "blocks.npz", start=blocks.start, lo=blocks.lo, hi=blocks.hi)
         phase("write")
-        meta = {"seconds": seconds, "version": CACHE_VERSION, "key": key, "source": str(scan_path.absolute()), "points": int(len(order)),
-                "arrays": names, "centre": centre.tolist(), "origins": scan.origins.tolist(), "angular_step": step,
-                "blocks": len(blocks)}
+        meta = {"seconds": seconds, "version": CACHE_VERSION, "key": key, "source": str(scan_path.absolute()),
+                "points": layout.points, "arrays": names, "centre": layout.centre.tolist(),
+                "origins": layout.origins.tolist(), "angular_step": layout.angular_step, "blocks": len(blocks)}
         (stage / "meta.json").write_text(json.dumps(meta, indent=1))
         # another run that prepared the same scan meanwhile has put an equal cache in place, which it
         # may be reading: keep that one
