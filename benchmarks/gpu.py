@@ -217,3 +217,7 @@ def main(argv: list[str] | None = None) -> None:
     write_markdown(args.doc, rows, desc, base)
     for row in rows:
         print(json.dumps(row))
+
+
+if __name__ == "__main__":
+    main()

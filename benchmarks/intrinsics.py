@@ -89,3 +89,7 @@ def main(argv: list[str] | None = None) -> None:
     with atomic_output(args.out) as tmp_out:
         tmp_out.write_text("\n".join(lines) + kept)
     print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()

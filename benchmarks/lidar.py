@@ -347,3 +347,7 @@ def main(argv: list[str] | None = None) -> None:
         save(picks, collect_picks(pjlab_scenes(args.data / "lidar_camera")), t)
     write_markdown(args.out / "lidar.md", json.loads(cases.read_text()),
                    json.loads(picks.read_text()) if picks.exists() else [])
+
+
+if __name__ == "__main__":
+    main()

@@ -385,3 +385,7 @@ def main(argv: list[str] | None = None) -> None:
         records = run_trust_benchmark(args.data, args.out, args.work)
     for name, recs in (("chosen", [r for r in records if not r["held_out"]]), ("held out", [r for r in records if r["held_out"]])):
         print(name, confusion(recs))
+
+
+if __name__ == "__main__":
+    main()
