@@ -3,9 +3,9 @@ reach a scan, cached on disk (--cache, `run`'s OUTPUT/.scan-cache) or held in me
 
 Preparing reads the scan file, computes what depends on the scan alone (normals facing the
 scanner, the grid mesh, the voxel-block index, the board) and writes it as plain .npy files in
-a folder keyed by the file's size, time and content hash (or keeps the same arrays in memory). Reopening maps those files (seconds
-for 40 million points), and each photo then gathers only the blocks its view can reach
-(`PreparedScan.view`), so that its steps scale with what it sees. The grid mesh is stored as a
+a folder keyed by the file's size, time and content hash, or keeps the same arrays in memory.
+Reopening maps those files (seconds for 40 million points), and each photo then gathers only
+the blocks its view can reach (`PreparedScan.view`), so that its steps scale with what it sees. The grid mesh is stored as a
 byte a point (`render.mesh.grid_cell_bits`: which of the grid's triangles are kept), from which
 a view makes its triangles without measuring an edge; its ray-casting scene depends on the
 camera and pose (`render.depth.grid_mesh`), so it is made per photo from the view's triangles.
@@ -13,6 +13,7 @@ camera and pose (`render.depth.grid_mesh`), so it is made per photo from the vie
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -273,7 +274,8 @@ def _prepared_arrays(read: Scan, progress: Callable[[str], None], phase: Callabl
     scan = whole_scan_geometry(read)
     del read
     step = scan_step(scan) if len(scan.origins) else None
-    cells = scan.derived.pop("cell_bits", None)
+    cells = scan.derived.get("cell_bits")
+    scan = dataclasses.replace(scan)  # a Scan of its own, whose fields are let go below: not the caller's
     phase("normals")
     centre = storage_centre(scan)
     progress("spatial index")
