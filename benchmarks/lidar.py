@@ -56,12 +56,11 @@ def pjlab_scene(d: Path) -> Scene:
     from rgbd_gt.prepared import prepared_in_memory
     from rgbd_gt.render.normals import with_normals
 
-    read = load_scan(d / "calib.pcd")
-    scan = with_normals(read)
+    scan = with_normals(load_scan(d / "calib.pcd"))
     photo = read_image(next(p for p in sorted(d.glob("calib.*")) if p.suffix in (".jpg", ".png")))
     camera = read_camera(d / "calib.txt", (photo.shape[1], photo.shape[0]))
     return Scene(d.name, scan, scan_colors(scan), photo, camera, read_pose(d / "calib.txt")[0],
-                 prepared_in_memory(read, d / "calib.pcd"))
+                 prepared_in_memory(scan, d / "calib.pcd"))  # its normals made once, on the whole sweep
 
 
 def pjlab_scenes(folder: Path) -> list[Scene]:

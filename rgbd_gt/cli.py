@@ -639,7 +639,6 @@ def overlay(
     from rgbd_gt.io.image import write_image
     from rgbd_gt.io.outputs import Outputs
     from rgbd_gt.prepared import scan_in_view
-    from rgbd_gt.render.normals import with_normals
     from rgbd_gt.steps import open_photo, overlay_paths, overlay_step
 
     start = time.perf_counter()
@@ -651,7 +650,7 @@ def overlay(
         raise InputError(f"--max-depth must be positive, got {max_depth}")
     photo = open_photo(image, camera)
     T, _ = read_pose(pose)
-    the_scan = with_normals(scan_in_view(scan, photo.camera, [T], cache))  # once, for both pictures
+    the_scan = scan_in_view(scan, photo.camera, [T], cache)
     with _progress() as bar:
         bar.add_task("rendering the scan", total=None)
         pictures = overlay_step(the_scan, photo.image, photo.camera, T, max_depth, points, pose)

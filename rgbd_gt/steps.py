@@ -73,21 +73,19 @@ def load_inputs(scan_path: PathLike, image_path: PathLike, camera_path: PathLike
     from rgbd_gt.io import read_pose
     from rgbd_gt.prepared import view_and_around
     from rgbd_gt.qa.verticals import MAX_POINTS, REACH
-    from rgbd_gt.render.normals import with_normals
     from rgbd_gt.scan import scan_colors
 
     opened = open_photo(image_path, camera_path, mask_path, to_align=True)
     photo, camera, ignore = opened.image, opened.camera, opened.ignore
     T_init, init_meta = read_pose(init_path)
-    # what the photo can see from poses around T_init: a big scan's renders, and its normals
-    # (minutes for tens of millions of points without a grid), then cost what the photo sees.
-    # The view `run` takes (render.blocks.VIEW_MARGIN), as its cache holds it: both hand the
-    # aligner the same points and get the same pose.
+    # what the photo can see from poses around T_init (its normals made on the whole scan when it
+    # was prepared): the renders then cost what the photo sees. The view `run` takes
+    # (render.blocks.VIEW_MARGIN), of the same prepared arrays: both hand the aligner the same
+    # points and get the same pose.
     scan, around = view_and_around(scan_path, camera, [T_init], REACH, MAX_POINTS, cache)
     if len(scan) == 0:
         raise InputError("no scan points in view of the initial pose (nor near it): check the pose, the camera file "
                          "and the scan", init_path)
-    scan = with_normals(scan)
     return RefineInputs(scan.xyz, scan_colors(scan, scan_path, to_align=True), photo, camera, T_init, ignore, scan, init_meta,
                         around)
 
