@@ -39,13 +39,14 @@ def photometric_method(change: dict, device: str) -> Callable[[Case], np.ndarray
     import torch
 
     from rgbd_gt.align.aligner import Aligner
+    from rgbd_gt.align.photometric import Photometric
     from rgbd_gt.align.pyramid import photo_pyramid
 
     cfg = dataclasses.replace(RefineConfig(), **change)
 
     def run(case: Case) -> np.ndarray:
         pyramid = photo_pyramid(case.photo, ICL_CAMERA, cfg.levels, torch.device(device), upsample=cfg.upsample)
-        return Aligner(case.points, case.colors, pyramid, cfg).refine(case.T_init).T_cam_from_scan
+        return Aligner(Photometric(case.points, case.colors, pyramid, cfg)).refine(case.T_init).T_cam_from_scan
 
     return run
 

@@ -1,4 +1,5 @@
-"""Rigid-pose arithmetic on 4x4 numpy matrices, and the error measures of the benchmarks."""
+"""Rigid-pose arithmetic on 4x4 numpy matrices, SO(3) once for numpy and torch, and the error
+measures of the benchmarks."""
 
 from __future__ import annotations
 
@@ -73,14 +74,47 @@ def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ T[:3, :3].T + T[:3, 3]
 
 
-def so3_exp(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix of the rotation vector w (3,) (Rodrigues), radians."""
-    w = np.asarray(w, np.float64)
-    theta = np.linalg.norm(w)
-    K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
-    if theta < 1e-12:
-        return np.eye(3) + K
-    return np.eye(3) + np.sin(theta) / theta * K + (1 - np.cos(theta)) / theta**2 * (K @ K)
+def _torch_or_numpy(w):
+    """The array module of w: torch for a tensor (imported only when one is given), else numpy."""
+    if not type(w).__module__.startswith("torch"):
+        return np
+    import torch
+
+    return torch
+
+
+def _hat_and_eye(w):
+    """(3, 3) cross-product matrix of w (3,) and the identity, in w's array module, dtype and device."""
+    xp = _torch_or_numpy(w)
+    zero = w[0] * 0
+    K = xp.stack([zero, -w[2], w[1], w[2], zero, -w[0], -w[1], w[0], zero]).reshape(3, 3)
+    eye = xp.eye(3, dtype=w.dtype) if xp is np else xp.eye(3, dtype=w.dtype, device=w.device)
+    return xp, K, eye
+
+
+def so3_exp(w):
+    """Rotation matrix (3, 3) of the rotation vector w (3,), radians (Rodrigues). numpy float64, or
+    a torch tensor of any float dtype and device (differentiable, also at 0)."""
+    w = w if _torch_or_numpy(w) is not np else np.asarray(w, np.float64)
+    xp, K, eye = _hat_and_eye(w)
+    theta2 = (w * w).sum()
+    small = theta2 < 1e-12
+    theta = xp.sqrt(xp.where(small, theta2 * 0 + 1, theta2))
+    a = xp.where(small, 1 - theta2 / 6, xp.sin(theta) / theta)
+    b = xp.where(small, 0.5 - theta2 / 24, (1 - xp.cos(theta)) / theta**2)
+    return eye + a * K + b * (K @ K)
+
+
+def so3_left_jacobian(w):
+    """(3, 3) J with so3_exp(w + e) = so3_exp(J e) so3_exp(w) to first order in e (3,); w as `so3_exp`'s."""
+    w = w if _torch_or_numpy(w) is not np else np.asarray(w, np.float64)
+    xp, K, eye = _hat_and_eye(w)
+    theta2 = (w * w).sum()
+    small = theta2 < 1e-8
+    theta = xp.sqrt(xp.where(small, theta2 * 0 + 1, theta2))
+    a = xp.where(small, 0.5 - theta2 / 24, (1 - xp.cos(theta)) / theta**2)
+    b = xp.where(small, 1 / 6 - theta2 / 120, (theta - xp.sin(theta)) / theta**3)
+    return eye + a * K + b * (K @ K)
 
 
 def apply_update(T: np.ndarray, delta: np.ndarray) -> np.ndarray:

@@ -9,6 +9,7 @@ from conftest import assert_one_line_error, run_cli
 from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.align.pyramid import photo_pyramid
 from rgbd_gt.align.aligner import Aligner
+from rgbd_gt.align.photometric import Photometric
 from rgbd_gt.camera import Camera
 from rgbd_gt.io import read_pose, save_scan, write_pose
 from rgbd_gt.io.camera_file import write_camera
@@ -145,8 +146,8 @@ def test_refine_matches_no_point_seen_from_behind(scene):
     photo = np.full((CAMERA.height, CAMERA.width, 3), 128, np.uint8)
     cfg = RefineConfig(levels=1)
     T = read_pose(d / "behind.yaml")[0]
-    aligner = Aligner(scan.xyz, scan.rgb, photo_pyramid(photo, CAMERA, 1, "cpu"), cfg, scan.normals)
-    aligner.prepared_levels(T)
+    aligner = Aligner(Photometric(scan.xyz, scan.rgb, photo_pyramid(photo, CAMERA, 1, "cpu"), cfg, scan.normals))
+    aligner.prepare(T)
     seen = aligner.visible_scan_points(T)
     assert len(seen) > 100
     assert np.all(np.abs(seen[:, 2]) < 1e-3)  # only the floor: nothing of the wall's or the panel's backs
@@ -158,8 +159,8 @@ def test_refine_matches_no_point_seen_from_behind(scene):
     wall, _ = _wall_pixels(T)
     assert wall[uv[:, 1], uv[:, 0]].mean() < 0.01
     # without normals the same aligner matches the wall's back
-    blind = Aligner(scan.xyz, scan.rgb, photo_pyramid(photo, CAMERA, 1, "cpu"), cfg)
-    blind.prepared_levels(T)
+    blind = Aligner(Photometric(scan.xyz, scan.rgb, photo_pyramid(photo, CAMERA, 1, "cpu"), cfg))
+    blind.prepare(T)
     assert (np.abs(blind.visible_scan_points(T)[:, 0] - WALL_X) < 1e-3).sum() > 100
 
 

@@ -11,13 +11,14 @@ from conftest import DATA, assert_one_line_error, run_cli
 from rgbd_gt.align import lbfgs
 from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.align.nid import joint_histogram, nid, nid_with_gradient, parzen_windows
-from rgbd_gt.align.nid_aligner import Frame, NidAligner, so3_exp
+from rgbd_gt.align.aligner import Aligner
+from rgbd_gt.align.nid_objective import Frame, Nid
 from rgbd_gt.align.pyramid import photo_pyramid
 from rgbd_gt.errors import InputError
 from rgbd_gt.io import load_scan, read_camera, read_pose, save_scan
 from rgbd_gt.io.image import read_image
 from rgbd_gt.scan import Scan, colors_to_gray
-from rgbd_gt.pose import apply_update, rotation_error_deg, so3_exp as so3_exp_np, translated, translation_error_m
+from rgbd_gt.pose import apply_update, rotation_error_deg, so3_exp, translated, translation_error_m
 from rgbd_gt.render.zbuffer import cell_for_density, depth_edges
 
 
@@ -56,7 +57,7 @@ def test_nid_gradient_matches_finite_differences():
 
 def test_differentiable_rotation_matches_rodrigues():
     for w in (np.zeros(3), np.array([1e-7, 0, 0]), np.array([0.3, -0.2, 0.9])):
-        np.testing.assert_allclose(so3_exp(torch.as_tensor(w)).numpy(), so3_exp_np(w), atol=1e-12)
+        np.testing.assert_allclose(so3_exp(torch.as_tensor(w)).numpy(), so3_exp(w), atol=1e-12)
 
 
 @pytest.fixture(scope="module")
@@ -108,6 +109,7 @@ def _gradients(aligner, level, T, delta):
     """Of sum(weights * NID) on `level` at apply_update(T, delta) (delta (6,)), unequal weights
     per channel pair: (closed-form gradient, autograd's, functions of delta giving the value and
     the closed-form gradient, the size of each parameter that moves the level's points by one pixel)."""
+    aligner = aligner.objective
     T_local = translated(T, aligner.centre)
     parts = aligner._parts(level, T_local)
     zero = torch.zeros(6, dtype=torch.float64)
@@ -122,7 +124,7 @@ def _gradients(aligner, level, T, delta):
     def gradient(x):
         return aligner._evaluate(parts, T_local, torch.as_tensor(x, dtype=torch.float64), weights).gradient.numpy()
 
-    return at.gradient.detach().numpy(), d.grad.numpy(), value, gradient, aligner._units(parts, T_local).numpy()
+    return at.gradient.detach().numpy(), d.grad.numpy(), value, gradient, aligner.units(level, T_local, aligner.evaluate(level, [T_local])).numpy()
 
 
 @pytest.mark.parametrize("edges", [False, True])
@@ -131,8 +133,8 @@ def test_pose_gradient_matches_autograd_and_finite_differences(intensity_scene, 
     scan, photo, camera = load_scan(d / "intensity.ply"), read_image(d / "photo.png"), read_camera(d / "camera.yaml")
     T = read_pose(d / "init_pose.yaml")[0]
     cfg = RefineConfig(objective="nid", levels=3, nid_edges=edges)
-    al = NidAligner([Frame(scan.xyz, scan.intensity, photo_pyramid(photo, camera, 3, torch.device("cpu")))], cfg)
-    al.prepared_levels(T)
+    al = Aligner(Nid([Frame(scan.xyz, scan.intensity, photo_pyramid(photo, camera, 3, torch.device("cpu")))], cfg))
+    al.prepare(T)
     d0 = np.array([2e-3, -1e-3, 5e-4, 3e-3, -2e-3, 1e-3])
     closed, auto, value, gradient, units = _gradients(al, 1, T, d0)
     np.testing.assert_allclose(closed, auto, rtol=1e-5, atol=1e-6 * np.abs(auto).max())  # autograd: float32 geometry
@@ -162,8 +164,8 @@ def test_closed_form_pose_gradient_on_real_sweeps_with_their_sky():
         T = read_pose(folder / "calib.txt")[0]
         inputs.append(RefineInputs(scan.xyz, scan_colors(scan), photo, camera, T, None, scan))
     al = make_aligner(inputs[0], RefineConfig(objective="nid"), "cpu", inputs[1:])
-    al.prepared_levels(T)
-    assert al._sky == [True, True]
+    al.prepare(T)
+    assert al.objective._sky == [True, True]
     closed, auto, _, _, _ = _gradients(al, 2, T, np.r_[np.radians([0.6, -0.5, 0.6]), 0.05, -0.03, 0.08])
     np.testing.assert_allclose(closed, auto, rtol=1e-5, atol=1e-6 * np.abs(auto).max())  # autograd: float32 geometry
 
@@ -176,7 +178,7 @@ def test_repeat_runs_are_refine_itself_and_the_covariance_is_a_minimum(intensity
     scan, photo, camera = load_scan(d / "intensity.ply"), read_image(d / "photo.png"), read_camera(d / "camera.yaml")
     T0 = read_pose(d / "init_pose.yaml")[0]
     cfg = RefineConfig(objective="nid", levels=3)
-    al = NidAligner([Frame(scan.xyz, scan.intensity, photo_pyramid(photo, camera, 3, torch.device("cpu")))], cfg)
+    al = Aligner(Nid([Frame(scan.xyz, scan.intensity, photo_pyramid(photo, camera, 3, torch.device("cpu")))], cfg))
     result = al.refine(T0)
     np.testing.assert_allclose(al.refine_many([T0])[0], result.T_cam_from_scan, atol=1e-9)
     cov = result.covariance
@@ -332,7 +334,7 @@ def test_nothing_to_align_by_is_an_input_error(tmp_path):
 
 
 def test_calibration_text_files(tmp_path):
-    R = so3_exp_np(np.array([0.01, -0.02, 1.5]))
+    R = so3_exp(np.array([0.01, -0.02, 1.5]))
     rows = np.round(np.hstack([R, [[0.1], [-0.4], [0.2]]]), 6)  # printed with 6 digits: not quite orthonormal
     pjlab = tmp_path / "calib.txt"
     pjlab.write_text("K: 2000 0 960 0 2010 600 0 0 1\nD: -0.1 0.1 0.001 0.002\nT: " + " ".join(map(str, rows.ravel())) + "\n")
@@ -498,7 +500,7 @@ def test_the_sky_is_charged_on_the_coarse_levels_only():
     for weight in (0.0, 0.5):
         cfg = replace(RefineConfig(), objective="nid", sky_weight=weight)
         aligner = make_aligner(RefineInputs(scan.xyz, scan_colors(scan), photo, camera, T_ref, None, scan), cfg, "cpu")
-        aligner.prepared_levels(T_ref)  # as refine does from its init: the sky is found there
+        aligner.prepare(T_ref)  # as refine does from its init: the sky is found there
         losses[weight] = [aligner.loss_profile(T_up, np.zeros((0, 6)), level)[0] for level in range(4)]
     assert losses[0.5][:2] == losses[0.0][:2]  # levels 0 and 1: no charge
     for level in (2, 3):

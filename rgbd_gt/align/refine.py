@@ -127,7 +127,8 @@ def make_aligner(inputs: RefineInputs, cfg: RefineConfig, device: str, more: lis
     """The aligner of cfg's objective for inputs (and the further pairs `more` that share its
     pose: nid only)."""
     from rgbd_gt.align.aligner import Aligner
-    from rgbd_gt.align.nid_aligner import Frame, NidAligner
+    from rgbd_gt.align.nid_objective import Frame, Nid
+    from rgbd_gt.align.photometric import Photometric
     from rgbd_gt.align.pyramid import photo_pyramid
     from rgbd_gt.scan import colors_to_gray
 
@@ -139,11 +140,11 @@ def make_aligner(inputs: RefineInputs, cfg: RefineConfig, device: str, more: lis
         if more:
             raise InputError("several pairs are solved jointly with --objective nid only")
         pyramid = photo_pyramid(inputs.photo, inputs.camera, cfg.levels, dev, inputs.ignore, cfg.upsample)
-        return Aligner(inputs.points, inputs.colors, pyramid, cfg, inputs.normals)
+        return Aligner(Photometric(inputs.points, inputs.colors, pyramid, cfg, inputs.normals))
     # NID compares value distributions: an enlarged photo adds pixels, not information
     frames = [Frame(i.points, colors_to_gray(i.colors) / 255.0, photo_pyramid(i.photo, i.camera, cfg.levels, dev, i.ignore),
                     i.normals) for i in [inputs, *more]]
-    return NidAligner(frames, cfg)
+    return Aligner(Nid(frames, cfg))
 
 
 def run_refine(inputs: RefineInputs, cfg: RefineConfig, device: str = "auto",

@@ -4,7 +4,7 @@ In a street scene the sky is the largest region of a photo and the most uniform 
 statistical objective such as NID rewards any pose that puts one class of scan points on it
 (tree points onto a bright sky make "high intensity -> bright" as tidy a relation as the true
 one), and on the PJLab sweeps it drifted by degrees to such poses. A sweep has no points in the
-sky, so the aligner charges for every point that lands there (`NidAligner`, cfg.sky_weight).
+sky, so the aligner charges for every point that lands there (`nid_objective.Nid`, cfg.sky_weight).
 
 The sky is found in the photo, at 1/8 scale: the smooth, bright, not reddish regions that reach
 into the top 15% of the photo, cover at least 1% of it, and in which the sweep at the initial

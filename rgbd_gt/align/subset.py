@@ -4,11 +4,18 @@ The aligners work on a random subset of the points in view. Drawn by a seeded pe
 indices, the subset changes with the order the points come in: the same scan read whole
 (`refine`) or block by block (`run`), or saved again in another order, gave poses a millimetre
 apart. A key hashed from the point's coordinates picks the same points in any order.
+
+And which points an aligner considers at all: those near the view of its initial pose.
 """
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+
+if TYPE_CHECKING:
+    import torch
 
 _MIX = (np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB))
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
@@ -41,3 +48,16 @@ def point_keys(points: np.ndarray, seed: int) -> np.ndarray:
     keys += 0.5
     keys /= float(1 << 53)
     return keys
+
+
+ALIGN_MARGIN = 0.15  # of the photo's width and height on every side: a pose moves a few degrees
+
+
+def near_view(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], near: float, far: float = 0.0) -> torch.Tensor:
+    """(N,) bool: the points at pixels uv (N, 2) and depths z (N,) metres that an aligner
+    considers: within ALIGN_MARGIN of the photo of size (W, H), deeper than `near` and, when
+    far > 0, shallower than `far`."""
+    w, h = size
+    mu, mv = ALIGN_MARGIN * w, ALIGN_MARGIN * h
+    keep = (z > near) & (uv[:, 0] > -mu) & (uv[:, 1] > -mv) & (uv[:, 0] < w + mu) & (uv[:, 1] < h + mv)
+    return keep & (z < far) if far > 0 else keep

@@ -120,9 +120,9 @@ def repeatability(aligner: Aligner, result: RefineResult, T_init: np.ndarray, vi
     rot, trans = start_size(T_init, result.T_cam_from_scan, init_sigma, view, cfg.start_floor_px)
     starts = [T_init] + random_starts(T_init, cfg.repeats, rot, trans, seed)
     if result.objective == "nid" and cfg.repeat_nid_whole:  # the init's run would be refine's again
-        ends = [result.T_cam_from_scan] + aligner.refine_many(starts[1:])
+        ends = [result.T_cam_from_scan] + aligner.refine_many(starts[1:], intrinsics=result.intrinsics)
     else:
-        ends = aligner.refine_many(starts, finest, cfg.repeat_coarsest, cfg.repeat_iterations)
+        ends = aligner.refine_many(starts, finest, cfg.repeat_coarsest, cfg.repeat_iterations, result.intrinsics)
     reference, others = ends[0], ends[1:]
     lost = sum(T is None for T in ends)
     if reference is None or lost:  # a run that lost the scan certainly did not reproduce the result
@@ -138,14 +138,15 @@ def repeatability(aligner: Aligner, result: RefineResult, T_init: np.ndarray, vi
             "lost_the_scan": lost, "start_rotation_deg": float(np.degrees(rot)), "start_translation_mm": trans * 1e3}
 
 
-def sharpness(aligner: Aligner, T: np.ndarray, M: np.ndarray, step_px: float, level: int) -> dict:
+def sharpness(aligner: Aligner, T: np.ndarray, M: np.ndarray, step_px: float, level: int,
+              intrinsics: np.ndarray | None = None) -> dict:
     """The robust loss at the result against the same at the 12 poses that move the image by
     +-step_px (RMS, photo pixels) along each pose parameter, on one pyramid level: the relative
     rise (L_k - L_0) / L_0, smallest and median. A right pose is a clear minimum: every rise is
     positive. (A coarse level sees a 1.5 px motion as well as level 0 does, at a fraction of the cost.)"""
     per_unit = np.sqrt(np.diag(M))  # (6,) RMS px per unit of each parameter
     steps = np.diag(step_px / np.maximum(per_unit, 1e-12))
-    loss0, losses = aligner.loss_profile(T, np.concatenate([steps, -steps]), level)
+    loss0, losses = aligner.loss_profile(T, np.concatenate([steps, -steps]), level, intrinsics)
     rise = (losses - loss0) / max(loss0, 1e-12)
     return {"min_rise": float(rise.min()), "median_rise": float(np.median(rise)), "step_px": step_px}
 
@@ -233,7 +234,7 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
         return out
 
     T = result.T_cam_from_scan
-    view = _View(aligner.visible_scan_points(T), without_distortion(camera))
+    view = _View(aligner.visible_scan_points(T, result.intrinsics), without_distortion(camera))
     M = view.motion_metric(T)
     ev: dict = {"objective": result.objective, "uncertainty": timed("uncertainty", uncertainty, result, M)}
     ev["convergence"] = {"levels": result.levels,
@@ -242,7 +243,8 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
     if cfg.repeats > 0:
         ev["repeatability"] = timed("repeatability", repeatability, aligner, result, T_init, view, cfg, init_sigma, seed)
     if result.objective != "nid":  # NID's values rise by 1e-5..1e-3: its uncertainty, from their Hessian, stands for it
-        ev["sharpness"] = timed("sharpness", sharpness, aligner, T, M, cfg.sharpness_step_px, cfg.sharpness_level)
+        ev["sharpness"] = timed("sharpness", sharpness, aligner, T, M, cfg.sharpness_step_px, cfg.sharpness_level,
+                                 result.intrinsics)
 
     def edge_check():
         drawn = working_view(scan, colors, photo, camera, T, cfg.edge_max_side, cfg.edge_shift_px)

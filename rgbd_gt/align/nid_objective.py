@@ -1,16 +1,14 @@
-"""The aligner for weak correspondence: refine T_cam_from_scan by minimising the NID between the
+"""The NID objective, for weak correspondence: the normalised information distance between the
 scan's values (laser intensity, or the gray of colors) and the photo's gray levels at the
-projected points (align/nid.py), over one or several (scan, photo) pairs that share the pose
-(a LiDAR-camera rig over several frames).
+projected points (align/nid.py), over one or several (scan, photo) pairs that share the pose (a
+LiDAR-camera rig over several frames). The driver (align/aligner.py) minimises it with L-BFGS
+(strong Wolfe line search) over the 6 pose parameters, in units of one level pixel of image
+motion, after a wide search on the coarsest level (docs/lidar-method.md).
 
-Per pyramid level, coarse to fine: the level's points (a random subset of those in view of the
-initial pose) are Z-buffered at the level's start pose with a cell sized for their density in
-the image, and L-BFGS (strong Wolfe line search) minimises NID over the 6 pose parameters, in
-units of one level pixel of image motion; the gradient is exact, in closed form (through the
-B-spline histogram, the bilinear interpolant and the projection). Before the coarsest level,
-an optional search runs that level from random starts around the init: a wider basin for poor
-inits. The few results of lowest NID each go on to level 1, and the lowest NID there goes on to
-the finest level.
+Per pyramid level, the level's points (a random subset of those in view of the initial pose) are
+Z-buffered at the level's start pose with a cell sized for their density in the image. The
+gradient is exact, in closed form (through the B-spline histogram, the bilinear interpolant and
+the projection).
 Points that land on the photo's sky add cfg.sky_weight times their fraction to NID (align/sky.py):
 a sweep has no returns from the sky, and NID alone drifts to poses that put points there. The
 charge applies on the levels from cfg.sky_coarse_level up: the sky is found at 1/8 scale, and its
@@ -19,34 +17,22 @@ coarse border would otherwise steer the fine levels (docs/lidar-method.md).
 
 from __future__ import annotations
 
-import math
-import time
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import torch
 
-from rgbd_gt.align import lbfgs
-from rgbd_gt.align.aligner import RefineResult, near_view, refine_each
 from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.align.nid import nid_of_windows, nid_with_gradient, parzen_windows
 from rgbd_gt.align.pyramid import PhotoLevel
 from rgbd_gt.align.sampling import bilinear, bilinear_with_gradient, central_gradients
-from rgbd_gt.align.subset import point_keys
+from rgbd_gt.align.subset import near_view, point_keys
 from rgbd_gt.errors import InputError
-from rgbd_gt.pose import apply_update, random_starts, rotation_error_deg, translated
+from rgbd_gt.pose import so3_exp, so3_left_jacobian
 from rgbd_gt.render.project import project_pinhole, projection_jacobian
 from rgbd_gt.render.normals import facing_camera
 from rgbd_gt.render.zbuffer import cell_for_density, check_spread_in_view, depth_edges, visible_points
 from rgbd_gt.scan import LUMA
-
-# A level moves each pose parameter by at most this many of its pixels and at most the search
-# size (smoothly, through tanh): NID has spurious minima far away, where other structure lines
-# up by chance, and a line search reaches them in one step; in a street scene one pixel of a
-# coarse level is a metre of camera motion.
-STEP_CAP_PX = 16.0
-
 
 @dataclass
 class Frame:
@@ -92,34 +78,6 @@ class _Evaluation:
                             device=self.nid.device)
 
 
-def _hat(w: torch.Tensor) -> torch.Tensor:
-    """(3, 3) cross-product matrix of w (3,)."""
-    zero = torch.zeros((), dtype=w.dtype, device=w.device)
-    return torch.stack([zero, -w[2], w[1], w[2], zero, -w[0], -w[1], w[0], zero]).reshape(3, 3)
-
-
-def so3_exp(w: torch.Tensor) -> torch.Tensor:
-    """Rotation matrix (3, 3) of the rotation vector w (3,), differentiable (also at 0)."""
-    theta2 = (w * w).sum()
-    K = _hat(w)
-    small = theta2 < 1e-12
-    theta = torch.sqrt(torch.where(small, torch.ones_like(theta2), theta2))
-    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
-    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta**2)
-    return torch.eye(3, dtype=w.dtype, device=w.device) + a * K + b * (K @ K)
-
-
-def so3_left_jacobian(w: torch.Tensor) -> torch.Tensor:
-    """(3, 3) J with so3_exp(w + e) = so3_exp(J e) so3_exp(w) to first order in e (3,)."""
-    theta2 = (w * w).sum()
-    K = _hat(w)
-    small = theta2 < 1e-8
-    theta = torch.sqrt(torch.where(small, torch.ones_like(theta2), theta2))
-    a = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta**2)
-    b = torch.where(small, 1 / 6 - theta2 / 120, (theta - torch.sin(theta)) / theta**3)
-    return torch.eye(3, dtype=w.dtype, device=w.device) + a * K + b * (K @ K)
-
-
 def _pose_gradient(d_u: torch.Tensor, d_v: torch.Tensor, p: torch.Tensor, q: torch.Tensor, K: torch.Tensor,
                    w: torch.Tensor) -> torch.Tensor:
     """(6,) d loss / d delta of points p = so3_exp(w) q + delta[3:] (n, 3, camera frame), given
@@ -144,11 +102,33 @@ def _channels(image: torch.Tensor, edges: bool) -> torch.Tensor:
     return torch.cat([gray, (mag / top).clamp(0, 1)], dim=2)
 
 
-class NidAligner:
-    """Refines one pose against one or more frames (`Frame`) by NID.
+@dataclass
+class NidTerms:
+    """NID at one pose on one level: the visible points per frame (kept by the calls that use
+    these terms), the evaluation there and its frames' weights."""
 
-    The interface is the photometric `Aligner`'s (refine, refine_many, visible_scan_points,
-    loss_profile), so that the verification (align/verify.py) judges either."""
+    level: int
+    parts: list[_Part]
+    evaluation: _Evaluation
+    weights: torch.Tensor  # (F x C,) float64
+
+    @property
+    def loss(self) -> np.ndarray:
+        return np.array([float(self.evaluation.loss)])
+
+    @property
+    def visible(self) -> np.ndarray:
+        return np.array([sum(self.evaluation.counts)])
+
+
+class Nid:
+    """The NID objective of one pose against one or more frames (`Frame`). A batch of poses is
+    evaluated one pose after another: ~10k points per frame leave little to batch."""
+
+    name = "nid"
+    method = "lbfgs"
+    wide_search = True  # NID has spurious minima where other structure lines up by chance
+    free = 0  # no camera corrections
 
     def __init__(self, frames: list[Frame], cfg: RefineConfig):
         self.cfg = cfg.check()
@@ -166,16 +146,18 @@ class NidAligner:
         self._sky = [False] * len(frames)
 
     # -- the points of each level (chosen once, at the init) ---------------------------------------
-    def prepared_levels(self, T_init: np.ndarray) -> list[list[torch.Tensor]]:
+    # -- the points of each level (chosen once, at the init) ---------------------------------------
+    def prepare(self, T_local: np.ndarray) -> int:
         """Per level, per frame: indices of a random subset of the points near the view of T_init
         (`near_view`; the same subset in any order of the points: align/subset.py), `max_points` at
         full resolution and a quarter per coarser level (nested), never fewer than `min_points`.
         Also finds each photo's sky, with the points seen at T_init (`_find_sky`), and appends it
-        to the frame's images (one sampling serves both)."""
+        to the frame's images (one sampling serves both). Chosen once, at the first pose T_local
+        (local frame). Returns the number of levels."""
         if self._prepared is not None:
-            return self._prepared
+            return len(self._prepared)
         cfg = self.cfg
-        R, t = self._pose(translated(T_init, self.centre))
+        R, t = self._pose(T_local)
         per_frame = []
         for k, (f, pts) in enumerate(zip(self.frames, self._points)):
             finest = f.pyramid[0]
@@ -193,7 +175,7 @@ class NidAligner:
             per_frame.append(idx[torch.argsort(self._keys[k][idx])])
         self._prepared = [[idx[: max(cfg.min_points, cfg.max_points // 4**level)] for idx in per_frame]
                           for level in range(len(self.frames[0].pyramid))]
-        return self._prepared
+        return len(self._prepared)
 
     def _find_sky(self, frame: Frame, uv: torch.Tensor) -> list[torch.Tensor] | None:
         """Per level (H, W, 1): the sky of the frame's photo (`sky_mask`), given the finest-level
@@ -241,7 +223,7 @@ class NidAligner:
             parts.append(_Part(pts[vis], windows, self._images[k][level], photo, sky))
         return parts
 
-    # -- the objective -----------------------------------------------------------------------------
+    # -- NID at a pose ------------------------------------------------------------------------------
     def _evaluate(self, parts: list[_Part], T_local: np.ndarray, delta: torch.Tensor,
                   weights: torch.Tensor | None = None) -> _Evaluation:
         """NID per frame and channel pair at apply_update(T_local, delta) (delta (6,) float64), on
@@ -291,8 +273,9 @@ class NidAligner:
                                            q[ok].double(), part.photo.K, delta[:3])
         return _Evaluation(torch.stack(nids), counts, entropies, gradient)
 
-    def _units(self, parts: list[_Part], T_local: np.ndarray) -> torch.Tensor:
-        """(6,) size of each pose parameter that moves the level's points by 1 pixel (RMS)."""
+    def units(self, level: int, T_local: np.ndarray, at: "NidTerms") -> torch.Tensor:
+        """(6,) float64 size of each pose parameter that moves the points of `at` by 1 pixel (RMS)."""
+        parts = at.parts
         R, t = self._pose(T_local)
         sq, n = torch.zeros(6, device=self.device), 0
         for part in parts:
@@ -301,104 +284,50 @@ class NidAligner:
             n += du.shape[0]
         return (1.0 / torch.sqrt(sq / max(n, 1)).clamp_min(1e-12)).double()
 
-    def _level(self, level: int, T_local: np.ndarray, iterations: int) -> tuple[np.ndarray, float, int, str]:
-        """L-BFGS on one level from T_local. Returns (pose, NID, iterations, why it stopped)."""
-        parts = self._parts(level, T_local)
-        units = self._units(parts, T_local)
+    # -- what the driver asks ----------------------------------------------------------------------
+    def evaluate(self, level: int, Ts: list[np.ndarray], q=None, prev=None, jacobian: bool = False, free=None,
+                 lost_is_error: bool = True) -> "NidTerms":
+        """NID at the one local-frame pose of Ts, on the level's points visible there (which the
+        later calls with these terms keep). Raises InputError where fewer than 50 points land on
+        usable pixels. (q, prev, jacobian, free, lost_is_error: the driver's interface; NID has
+        no Gauss-Newton terms.)"""
+        (T,) = Ts
+        parts = self._parts(level, T)
         with torch.no_grad():
-            weights = self._evaluate(parts, T_local, torch.zeros(6, dtype=torch.float64, device=self.device)).weights()
+            at = self._evaluate(parts, T, torch.zeros(6, dtype=torch.float64, device=self.device))
+        return NidTerms(level, parts, at, at.weights())
 
-        r, m = math.radians(self.cfg.search_rotation_deg), self.cfg.search_translation_m
-        cap = torch.minimum(units * STEP_CAP_PX, torch.tensor([r, r, r, m, m, m], dtype=units.dtype, device=units.device))
-
-        def update(x: torch.Tensor) -> torch.Tensor:  # smoothly at most `cap` per parameter
-            return cap * torch.tanh(units * x / cap)
-
-        def objective(x_np: np.ndarray) -> tuple[float, np.ndarray]:
-            x = torch.tensor(x_np, device=self.device)
-            with torch.no_grad():
-                at = self._evaluate(parts, T_local, update(x), weights)
-            d_update = units * (1 - torch.tanh(units * x / cap) ** 2)
-            return float((at.nid * weights).sum()), (at.gradient * d_update).cpu().numpy()
-
-        x, n_iter = lbfgs.minimize(objective, np.zeros(6), iterations)
-        T = apply_update(T_local, update(torch.tensor(x, device=self.device)).cpu().numpy())
+    def trial(self, level: int, Ts: list[np.ndarray], q, at: "NidTerms") -> np.ndarray:
+        """(B,) mean NID at each local-frame pose of Ts on the points of `at`."""
+        zero = torch.zeros(6, dtype=torch.float64, device=self.device)
         with torch.no_grad():
-            loss = float(self._evaluate(parts, T, torch.zeros(6, device=self.device)).loss)
-        return T, loss, n_iter, "iteration cap" if n_iter >= iterations else "converged"
+            return np.array([float(self._evaluate(at.parts, T, zero).loss) for T in Ts])
 
-    def _search(self, level: int, T_local: np.ndarray) -> list[np.ndarray]:
-        """The coarsest level from the init and from cfg.search_starts random starts around it:
-        the cfg.search_keep results of lowest NID, lowest first (a start that loses the scan drops
-        out)."""
-        cfg = self.cfg
-        starts = [T_local] + random_starts(T_local, cfg.search_starts, math.radians(cfg.search_rotation_deg),
-                                           cfg.search_translation_m, cfg.seed + 1)
-        found = []
-        for T0 in starts:
-            try:
-                T, loss, _, _ = self._level(level, T0, cfg.search_iterations)
-            except InputError:
-                continue
-            found.append((loss, T))
-        found.sort(key=lambda c: c[0])
-        return [T for _, T in found[: cfg.search_keep]] or [T_local]
-
-    def _descend(self, T_local: np.ndarray, top: int, bottom: int, iterations: int,
-                 progress: Callable[[dict], None] | None = None) -> tuple[np.ndarray, float, list[dict], list[dict]]:
-        """L-BFGS level by level from top down to bottom (inclusive). Returns (pose, NID of the
-        last level, history records, per-level iterations and stop reasons)."""
-        T, loss, history, level_info = T_local, math.inf, [], []
-        for level in range(top, bottom - 1, -1):
-            T_before = T
-            T, loss, n_it, stop = self._level(level, T, iterations)
-            level_info.append({"level": level, "iterations": n_it, "stop": stop})
-            step = T @ np.linalg.inv(T_before)
-            rec = {"level": level, "iteration": n_it, "loss": loss, "rotation_update_deg": rotation_error_deg(T, T_before),
-                   "translation_update_m": float(np.linalg.norm(step[:3, 3])), "accepted": True}
-            history.append(rec)
-            if progress is not None:
-                progress(rec)
-        return T, loss, history, level_info
-
-    # -- refine ------------------------------------------------------------------------------------
-    def refine(self, T_init: np.ndarray, progress: Callable[[dict], None] | None = None,
-               keep_residuals: bool = False, finest: int = 0, coarsest: int | None = None,
-               iterations: int | None = None) -> RefineResult:
-        """Refine T_init (4x4 T_cam_from_scan) coarse to fine; the arguments are `Aligner.refine`'s
-        (keep_residuals is ignored: NID has no per-point residual). The wide search
-        (cfg.search_starts) runs first; its cfg.search_keep best results each go down to level
-        1, where the lowest NID wins."""
-        start = time.perf_counter()
-        cfg = self.cfg
-        T_init = np.asarray(T_init, np.float64)
-        n_levels = len(self.prepared_levels(T_init))
-        top = n_levels - 1 if coarsest is None else min(coarsest, n_levels - 1)
-        T = translated(T_init, self.centre)
-        iterations = iterations or cfg.iterations
-        candidates = self._search(top, T) if cfg.search_starts > 0 else [T]
-        # The coarsest level's NID ranks the search's results poorly (at 1/16 scale a wrong
-        # basin can score lower); each of the best few goes on to level 1 and the lowest NID
-        # there wins (docs/lidar-method.md, "Which search result goes on").
-        judge = max(finest, min(1, top))
-        runs = [self._descend(c, top, judge, iterations, progress) for c in candidates]
-        T, _, history, level_info = min(runs, key=lambda r: r[1])
-        T, _, more_history, more_info = self._descend(T, judge - 1, finest, iterations, progress)
-        history, level_info = history + more_history, level_info + more_info
-        total = sum(rec["iterations"] for rec in level_info)
-        parts = self._parts(finest, T)
+    def value_and_gradient(self, level: int, T_local: np.ndarray, delta: torch.Tensor,
+                           at: "NidTerms") -> tuple[float, torch.Tensor]:
+        """sum(weights * NID) at apply_update(T_local, delta) (delta (6,) float64) on the points of
+        `at`, with `at`'s weights (`_Evaluation.weights`: the frames count by their evidence), and
+        its gradient (6,) with respect to delta."""
         with torch.no_grad():
-            final = self._evaluate(parts, T, torch.zeros(6, device=self.device))
-        n_candidates = sum(int(idx.numel()) for idx in self._prepared[finest])
-        seen = sum(final.counts[:: 2 if self.cfg.nid_edges else 1])  # per frame, not per channel pair
-        return RefineResult(
-            T_cam_from_scan=translated(T, -self.centre), color_transform=np.zeros((0, 0)), iterations=total,
-            loss=float(final.loss), inlier_fraction=seen / max(n_candidates, 1),
-            visible_points=seen, seconds=time.perf_counter() - start, history=history,
-            levels=level_info, objective="nid", covariance=self._covariance(parts, T, final) if finest == 0 else None,
-        )
+            e = self._evaluate(at.parts, T_local, delta, at.weights)
+        return float((e.nid * at.weights).sum()), e.gradient
 
-    def _covariance(self, parts: list[_Part], T_local: np.ndarray, at: _Evaluation) -> np.ndarray:
+    def summary(self, terms: "NidTerms") -> dict:
+        """`RefineResult`'s objective-specific fields at the terms' pose."""
+        level_points = sum(int(idx.numel()) for idx in self._prepared[terms.level])
+        seen = sum(terms.evaluation.counts[:: 2 if self.cfg.nid_edges else 1])  # per frame, not per channel pair
+        return {"color_transform": np.zeros((0, 0)), "loss": float(terms.evaluation.loss),
+                "inlier_fraction": seen / max(level_points, 1), "visible_points": seen}
+
+    def residuals(self, level: int, terms: "NidTerms") -> None:
+        """NID has no per-point residual."""
+        return None
+
+    def visible_scan_points(self, T_local: np.ndarray, q=None) -> np.ndarray:
+        """(n, 3) float64 local-frame points of the first frame's finest level visible at T_local."""
+        return self._parts(0, T_local)[0].points.double().cpu().numpy()
+
+    def covariance(self, level: int, T_local: np.ndarray, q, terms: "NidTerms") -> np.ndarray:
         """Laplace approximation: the inverse Hessian of the negative log-likelihood
         sum_f n_f H_f NID_f (`_Evaluation.weights`); a lower bound, as neighbouring points share
         photo pixels. The Hessian comes from central differences of the objective's values over
@@ -407,7 +336,8 @@ class NidAligner:
         half a pixel were not positive definite at most right results on real sweeps
         (docs/lidar-method.md). All inf where it is not positive definite: no minimum. at: the
         evaluation at T_local itself (its weights, and the centre value of the differences)."""
-        units = self._units(parts, T_local)
+        parts, at = terms.parts, terms.evaluation
+        units = self.units(level, T_local, terms)
         weights = at.weights()
 
         def f(x: np.ndarray) -> float:
@@ -426,23 +356,3 @@ class NidAligner:
         return np.linalg.inv(H) * u[:, None] * u[None, :]
 
     # -- what the verification asks (see `Aligner`) ---------------------------------------------------
-    def refine_many(self, starts: list[np.ndarray], finest: int = 0, coarsest: int | None = None,
-                    iterations: int | None = None) -> list[np.ndarray | None]:
-        """`refine` from each start, with its wide search (a repeat that skips it answers another
-        question: from 3 deg inits such runs ended 90-220 px apart around right results); None for
-        a start that lost the scan."""
-        return refine_each(self, starts, finest=finest, coarsest=coarsest, iterations=iterations)
-
-    def visible_scan_points(self, T: np.ndarray) -> np.ndarray:
-        """(n, 3) float64 scan-frame points of the first frame's finest level visible at T."""
-        part = self._parts(0, translated(T, self.centre))[0]
-        return part.points.double().cpu().numpy() + self.centre
-
-    def loss_profile(self, T: np.ndarray, deltas: np.ndarray, level: int = 0) -> tuple[float, np.ndarray]:
-        """NID at T and at T moved by each update of deltas (k, 6), on the points visible at T."""
-        level = min(level, len(self._prepared) - 1)
-        T_local = translated(T, self.centre)
-        parts = self._parts(level, T_local)
-        with torch.no_grad():
-            at = lambda d: float(self._evaluate(parts, T_local, torch.as_tensor(d, dtype=torch.float64, device=self.device)).loss)  # noqa: E731
-            return at(np.zeros(6)), np.array([at(d) for d in deltas])

@@ -1,0 +1,419 @@
+"""The photometric objective of "Multimodal Colored Point Cloud to Image Alignment" (Rotstein,
+Bracha, Kimmel, CVPR 2022), evaluated on a batch of poses at once (one pose is a batch of one).
+
+At each pose of the batch: move the points, drop occluded ones (coarse Z-buffer), project, sample
+the photo bilinearly with its gradient (strategy A or B), lift the colors with the color model's
+kernel, fit the color transform D on inliers, clip the prediction to [0, 1] (keeping the
+unclipped gradient), and weight the residuals with a Student-t. It returns the robust loss and
+the Gauss-Newton terms of the 6 pose parameters and of the shared camera corrections q
+(`render.project.project_corrected`); the driver (align/driver.py) optimises them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from rgbd_gt.align.color_models import ColorModel, fit_many_with_inliers, unclipped
+from rgbd_gt.align.config import RefineConfig
+from rgbd_gt.align.pyramid import PhotoLevel
+from rgbd_gt.align.robust import student_t_loss, student_t_weights
+from rgbd_gt.align.sampling import bilinear, bilinear_sparse, bilinear_with_gradient, central_gradients
+from rgbd_gt.align.subset import near_view, point_keys
+from rgbd_gt.errors import InputError
+from rgbd_gt.render.normals import facing_camera
+from rgbd_gt.render.project import INTRINSICS, corrected_jacobian, project_corrected, project_pinhole, projection_jacobian
+from rgbd_gt.render.zbuffer import cell_size_for, check_spread_in_view, estimate_spacing, visible_points
+
+@dataclass
+class Level:
+    """The objective's data on one pyramid level."""
+
+    photo: PhotoLevel
+    grads: tuple[torch.Tensor, torch.Tensor] | None
+    points: torch.Tensor  # (n, 3) float32, local frame
+    target: torch.Tensor  # (n, m)
+    cell: int
+    normals: torch.Tensor | None = None  # (n, 3) float32, facing the scanner (render/normals.py)
+
+
+@dataclass
+class Terms:
+    """The objective at B poses of one level: per pose its visible points, color fit, robust
+    scale, loss and (when asked) Gauss-Newton system. P = 6 pose parameters, plus the free camera
+    corrections when they are refined."""
+
+    loss: np.ndarray  # (B,) robust loss with this D and sigma
+    D: torch.Tensor  # (B, m, k)
+    sigma2: torch.Tensor  # (B, 1, 1)
+    mask: torch.Tensor  # (B, n) the level's points visible on usable pixels
+    visible: np.ndarray  # (B,) int
+    inlier_fraction: np.ndarray  # (B,) of the visible points
+    err: torch.Tensor  # (B, n) |r| per point (meaningful where mask)
+    uv: torch.Tensor  # (B, n, 2) level pixels
+    H: np.ndarray | None = None  # (B, P, P) J^T W J
+    g: np.ndarray | None = None  # (B, P) J^T W r
+    wrr: np.ndarray | None = None  # (B,) sum of w r^2 over points and channels
+    count: np.ndarray | None = None  # (B,) residuals: points x channels
+
+    def where(self, keep: np.ndarray, other: "Terms") -> "Terms":
+        """Per pose: these terms where keep (B,) is True, else other's."""
+        if keep.all():
+            return self
+        k = torch.as_tensor(keep, device=self.D.device)
+
+        def pick(a, b):
+            if a is None:
+                return None
+            if isinstance(a, np.ndarray):
+                return np.where(keep.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)
+            return torch.where(k.reshape((-1,) + (1,) * (a.dim() - 1)), a, b)
+
+        return Terms(*(pick(getattr(self, f), getattr(other, f)) for f in self.__dataclass_fields__))
+
+    def record(self, b: int = 0) -> dict:
+        """Pose b's figures for the refine history."""
+        return {"loss": float(self.loss[b]), "median_residual": float(self.err[b][self.mask[b]].median()),
+                "visible": int(self.visible[b]), "inlier_fraction": float(self.inlier_fraction[b])}
+
+
+def texture_score(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cell: int,
+                  colors: torch.Tensor) -> torch.Tensor:
+    """Per point (N,), the local contrast of the scan's own colors as seen from a pose: the
+    visible points' mean gray per Z-buffer cell, then the central-difference gradient magnitude
+    of that cell image, widened by a 3x3 maximum. 0 for points outside the image."""
+    w, h = size
+    vis = visible_points(uv, z, size, cell)
+    cw, ch = (w + cell - 1) // cell, (h + cell - 1) // cell
+    key = (uv[:, 1].clamp(0, h - 1) / cell).long() * cw + (uv[:, 0].clamp(0, w - 1) / cell).long()
+    gray = colors.mean(dim=1)
+    total = torch.zeros(ch * cw, dtype=gray.dtype, device=gray.device).index_add_(0, key[vis], gray[vis])
+    count = torch.zeros_like(total).index_add_(0, key[vis], torch.ones_like(gray[vis]))
+    img = (total / count.clamp_min(1)).reshape(ch, cw)
+    have = (count > 0).reshape(ch, cw)
+    g = torch.zeros_like(img)
+    ok = have[:, 2:] & have[:, :-2]
+    g[:, 1:-1] += torch.where(ok, (img[:, 2:] - img[:, :-2]).abs(), torch.zeros_like(img[:, 1:-1]))
+    ok = have[2:] & have[:-2]
+    g[1:-1] += torch.where(ok, (img[2:] - img[:-2]).abs(), torch.zeros_like(img[1:-1]))
+    g = torch.nn.functional.max_pool2d(g[None, None], 3, stride=1, padding=1)[0, 0]
+    return torch.where(vis, g.reshape(-1)[key], torch.zeros_like(gray))
+
+
+def pixel_sums(uv: torch.Tensor, target: torch.Tensor, size: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """The pixels of an image of size (W, H) that points at uv (N, 2) fall nearest to: their flat
+    indices (K,) sorted, and per pixel the sum of those points' targets (N, m) and their count
+    (K, m + 1). Only the occupied pixels: a 24-megapixel photo's levels cost what the scan has."""
+    w, h = size
+    ok = (uv[:, 0] > -0.5) & (uv[:, 1] > -0.5) & (uv[:, 0] < w - 0.5) & (uv[:, 1] < h - 0.5)
+    keys, inverse = torch.unique((uv[ok, 1] + 0.5).long() * w + (uv[ok, 0] + 0.5).long(), return_inverse=True)
+    sums = torch.zeros(keys.numel(), target.shape[1] + 1, dtype=target.dtype, device=target.device)
+    return keys, sums.index_add_(0, inverse, torch.cat([target[ok], torch.ones_like(target[ok, :1])], 1))
+
+
+def halved(cells: tuple[torch.Tensor, torch.Tensor], size: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """`pixel_sums` of an image of size (W, H) on the next pyramid level (W // 2, H // 2): each
+    level pixel sums its 2x2 pixels, as the pyramid's box averaging does (align/pyramid.py)."""
+    keys, sums = cells
+    w = size[0]
+    y, x = keys // w // 2, keys % w // 2
+    ok = (x < w // 2) & (y < size[1] // 2)
+    new, inverse = torch.unique(y[ok] * (w // 2) + x[ok], return_inverse=True)
+    return new, torch.zeros(new.numel(), sums.shape[1], dtype=sums.dtype, device=sums.device).index_add_(0, inverse, sums[ok])
+
+
+def blurred_targets(cells: tuple[torch.Tensor, torch.Tensor], size: tuple[int, int], uv: torch.Tensor,
+                    target: torch.Tensor) -> torch.Tensor:
+    """The targets (n, m) of points at uv (n, 2) of a coarse pyramid level of size (W, H), blurred
+    as the level blurs the photo: the mean target of the seen points in each level pixel (cells:
+    `pixel_sums`, the level's box average), sampled bilinearly (the aligner's interpolant). Without
+    it a coarse level compares a blurred photo with sharp scan colors: the black and white points
+    of a checkerboard that the level averages to gray pull towards the board shifted by a square
+    (docs/intrinsics.md). Points with no seen point near keep their own target."""
+    m = target.shape[1]
+    s = bilinear_sparse(*cells, size[::-1], uv)
+    return torch.where(s[:, m:] > 1e-3, s[:, :m] / s[:, m:].clamp_min(1e-3), target)
+
+
+def _normal_equations(du: torch.Tensor, dv: torch.Tensor, a: torch.Tensor, b: torch.Tensor, r: torch.Tensor,
+                      w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The Gauss-Newton system J^T W J (B, 6, 6) and J^T W r (B, 6), float64, of B poses' residuals
+    r (B, n, m) with weights w (B, n, m) (0 for points not used), where the residual's Jacobian
+    is J_nm = a_nm du_n + b_nm dv_n: a, b (B, n, m) its derivatives along the image axes, du, dv
+    (B, n, 6) the pixel motion per pose parameter. Summed over the channels first, which needs
+    only 2x2 sums per point."""
+    saa, sab, sbb = ((w * a * a).sum(2).double(), (w * a * b).sum(2).double(), (w * b * b).sum(2).double())
+    sar, sbr = (w * a * r).sum(2).double(), (w * b * r).sum(2).double()
+    du, dv = du.double(), dv.double()
+    duT, dvT = du.transpose(1, 2), dv.transpose(1, 2)
+    cross = duT @ (sab[..., None] * dv)
+    H = duT @ (saa[..., None] * du) + cross + cross.transpose(1, 2) + dvT @ (sbb[..., None] * dv)
+    return H, (duT @ sar[..., None] + dvT @ sbr[..., None])[..., 0]
+
+
+def covariance(H: np.ndarray, energy: float, count: int) -> np.ndarray:
+    """The covariance (P, P) of the parameters (the pose's 6 first) from a Gauss-Newton matrix
+    H = J^T W J, scaled by the residual variance energy / (count - P) (energy = sum w r^2), or
+    all inf where H is singular. Inverted
+    with its parameters scaled to unit diagonal (rotation and translation differ by orders of
+    magnitude). Residuals are treated as independent: neighbouring points share photo pixels, so
+    this is a lower bound."""
+    s = 1.0 / np.sqrt(np.clip(np.diag(H), 1e-30, None))
+    Hs = H * s[:, None] * s[None, :]
+    eig = np.linalg.eigvalsh(Hs)
+    if eig[0] <= eig[-1] * 1e-12:
+        return np.full(H.shape, np.inf)
+    return energy / max(count - len(H), 1) * (s[:, None] * np.linalg.inv(Hs) * s[None, :])
+
+
+def _valid_at(valid: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """All four bilinear neighbours of uv (N, 2) are usable pixels."""
+    h, w = valid.shape
+    u0 = uv[:, 0].floor().clamp(0, w - 2).long()
+    v0 = uv[:, 1].floor().clamp(0, h - 2).long()
+    return valid[v0, u0] & valid[v0, u0 + 1] & valid[v0 + 1, u0] & valid[v0 + 1, u0 + 1]
+
+
+POOL = 16  # x max_points: the most scan points an aligner keeps (drawn at random)
+
+
+class Photometric:
+    """The photometric objective of one photo against one colored scan.
+
+    Args:
+        points: (N, 3) float64 scan points (metres, scan frame).
+        colors: (N, 3) uint8 colors, or (N, 1) intensity in [0, 1] for scans without color.
+        pyramid: the photo's pyramid (`photo_pyramid`), finest first.
+        cfg: settings.
+        normals: (N, 3) unit normals facing the scanner (`render.normals.scan_normals`), or None:
+            points seen from behind are then not told apart.
+    """
+
+    name = "photometric"
+    wide_search = False
+
+    def __init__(self, points: np.ndarray, colors: np.ndarray, pyramid: list[PhotoLevel], cfg: RefineConfig,
+                 normals: np.ndarray | None = None):
+        self.cfg = cfg.check()
+        self.pyramid = pyramid
+        self.device = pyramid[0].image.device
+        self.dtype = torch.float32
+        self.model = ColorModel(cfg.color_model)
+        if len(points) > POOL * cfg.max_points:
+            # a big scan's view: a random pool, so that setting up costs what max_points needs. Its
+            # keys are a stream of their own: its lowest keys, reused as `self.keys`, would rank its
+            # points with noise squeezed into (0, 0.18) and the subsets follow texture alone
+            # (docs/scale.md: repeats 7-14 px apart on a 7-million-point view)
+            pool = POOL * cfg.max_points
+            keep = np.sort(np.argpartition(point_keys(points, cfg.seed + 1), pool)[:pool])
+            points, colors = points[keep], colors[keep]
+            normals = None if normals is None else normals[keep]
+        # a local frame keeps float32 exact for georeferenced coordinates
+        self.centre = points.mean(axis=0)
+        self.points = torch.as_tensor(points - self.centre, dtype=self.dtype, device=self.device)
+        c = torch.as_tensor(colors, device=self.device)
+        c = c.to(self.dtype) / 255.0 if colors.dtype == np.uint8 else c.to(self.dtype)
+        self.target = self.model.target(c.reshape(len(points), -1))
+        self.normals = None if normals is None else torch.as_tensor(normals, dtype=self.dtype, device=self.device)
+        self.keys = torch.as_tensor(point_keys(points, cfg.seed), device=self.device)  # the subsets' order (align/subset.py)
+        # the camera corrections refined with the pose (cfg.refine_intrinsics: the first `free` of q),
+        # parameters shared by every pose of a batch
+        self.free = INTRINSICS[cfg.refine_intrinsics]
+        self.method = cfg.optimizer  # 'lm' or 'adam' (align/driver.py)
+        self.levels: list[Level] | None = None
+
+
+    def prepare(self, T_local: np.ndarray) -> int:
+        """Per level: a random subset of the points near the initial view (`near_view`; nested
+        subsets, `max_points` at full resolution and a quarter per coarser level, the same in any
+        order of the points: align/subset.py) and its Z-buffer cell, chosen once at the first pose
+        T_local (4x4, local frame): every later evaluation, the verification's repeat runs from
+        nearby starts included, sees the same points. Returns the number of levels."""
+        if self.levels is not None:
+            return len(self.levels)
+        finest = self.pyramid[0]
+        R, t = self._pose_tensors([T_local])
+        p = self.points @ R[0].T + t[0]
+        uv, z = project_pinhole(p, finest.K)
+        w, h = finest.camera.size
+        idx = torch.nonzero(near_view(uv, z, (w, h), 1e-3, self.cfg.max_depth)).squeeze(1)
+        need = self.cfg.min_visible
+        spacing = estimate_spacing(self.points[idx]) if idx.numel() >= need else 0.0
+        depth = float(z[idx].median()) if idx.numel() else 1.0
+        # cells that close the gaps between the points: through them, what a surface hides would count as seen
+        cell = cell_size_for(spacing, finest.camera.fx, depth)
+        facing = None if self.normals is None else facing_camera(p[idx], self.normals[idx] @ R[0].T)
+        seen = visible_points(uv[idx], z[idx], (w, h), cell, facing=facing)
+        visible = int(seen.sum())
+        if visible >= need:
+            check_spread_in_view(uv[idx], seen, need)
+        if visible < need:
+            if facing is not None and int(visible_points(uv[idx], z[idx], (w, h), cell).sum()) >= need:
+                raise InputError(f"only {visible} scan points in view of the initial pose face the camera "
+                                 f"(need {need}): the photo sees the back of what the scanner saw")
+            raise InputError(f"only {visible} scan points in view of the initial pose "
+                             f"(need {need}): check the pose, the camera file and the scan")
+        # order the points so that every prefix favours textured ones (they carry the pose)
+        score = texture_score(uv[idx], z[idx], (w, h), cell, self.target[idx])
+        gumbel = (-torch.log(-torch.log(self.keys[idx]))).to(self.dtype)
+        weight = score + self.cfg.texture_floor * score.mean().clamp_min(1e-6)
+        order = torch.argsort(torch.log(weight) + gumbel, descending=True)
+        idx, seen = idx[order], seen[order]
+        out = []
+        p_near, target_near = p[idx], self.target[idx]
+        for level, photo in enumerate(self.pyramid):
+            n = min(idx.numel(), max(self.cfg.min_points, self.cfg.max_points // 4**level))
+            sub = idx[:n]
+            cell = cell_size_for(spacing * math.sqrt(idx.numel() / n), photo.camera.fx, depth)
+            grads = central_gradients(photo.image) if self.cfg.gradient == "central" else None
+            target = target_near[:n]
+            if level:
+                size = photo.camera.size
+                cells = pixel_sums(project_pinhole(p_near[seen], photo.K)[0], target_near[seen], size) if level == 1 \
+                    else halved(cells, self.pyramid[level - 1].camera.size)
+                target = blurred_targets(cells, size, project_pinhole(p_near[:n], photo.K)[0], target)
+            out.append(Level(photo, grads, self.points[sub], target, min(cell, 16 * photo.zoom),
+                                  None if self.normals is None else self.normals[sub]))
+        self.levels = out
+        return len(out)
+
+
+    # -- one evaluation of a batch of poses ------------------------------------------------------
+    def _pose_tensors(self, Ts: list[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rotations (B, 3, 3) and translations (B, 3) of local-frame poses."""
+        T = torch.as_tensor(np.stack(Ts), dtype=self.dtype, device=self.device)
+        return T[:, :3, :3], T[:, :3, 3]
+
+    def _project(self, lv: Level, Ts: list[np.ndarray], q: torch.Tensor, cols: torch.Tensor | None = None):
+        """The level's points (or those of cols) at each pose: camera frame (B, n, 3), pixels and
+        depths (B*n, 2), (B*n,) through the camera corrected by q (5,)."""
+        R, t = self._pose_tensors(Ts)
+        pts = lv.points if cols is None else lv.points[cols]
+        p = pts @ R.transpose(1, 2) + t[:, None]
+        uv, z = project_corrected(p.reshape(-1, 3), lv.photo.K, q) if self.free else project_pinhole(p.reshape(-1, 3), lv.photo.K)
+        return p, uv, z
+
+    def _visible(self, lv: Level, Ts: list[np.ndarray], q: torch.Tensor, lost_is_error: bool) -> torch.Tensor:
+        """(B, n) the level's points visible at each pose on usable pixels. lost_is_error: a pose
+        that sees fewer than 10 raises InputError (saying so when the rest face away)."""
+        p, uv, z = self._project(lv, Ts, q)
+        B, n = p.shape[:2]
+        group = torch.arange(B, device=self.device).repeat_interleave(n) if B > 1 else None
+        facing = None
+        if lv.normals is not None:
+            R, _ = self._pose_tensors(Ts)
+            facing = facing_camera(p.reshape(-1, 3), (lv.normals @ R.transpose(1, 2)).reshape(-1, 3))
+        size, tol = lv.photo.camera.size, (self.cfg.zbuffer_rel_tol, self.cfg.zbuffer_abs_tol)
+        vis = visible_points(uv, z, size, lv.cell, *tol, group=group, facing=facing)
+        if lv.photo.valid is not None:
+            vis &= _valid_at(lv.photo.valid, uv)
+        vis = vis.reshape(B, n)
+        if lost_is_error and int(vis.sum(1).min()) < 10:
+            if facing is not None and int(visible_points(uv, z, size, lv.cell, *tol, group=group).reshape(B, n).sum(1).min()) >= 10:
+                raise InputError("fewer than 10 scan points in view face the camera: the photo sees the back of "
+                                 "what the scanner saw")
+            raise InputError("the pose left the scan: fewer than 10 points in view")
+        return vis
+
+    def _sample(self, lv: Level, Ts: list[np.ndarray], q: torch.Tensor, cols: torch.Tensor, gradient: bool):
+        """Points cols at each pose: camera frame p (B, c, 3), pixels uv (B, c, 2) (clamped to the
+        level: a point may drift out), photo colors I, kernel K(I) (B, c, k) and, with gradient,
+        dI/du, dI/dv (B*c, 3)."""
+        p, uv, _ = self._project(lv, Ts, q, cols)
+        B, c = p.shape[:2]
+        w, h = lv.photo.camera.size
+        uv = torch.stack([uv[:, 0].clamp(0, w - 1), uv[:, 1].clamp(0, h - 1)], 1)
+        if gradient:
+            I, Iu, Iv = bilinear_with_gradient(lv.photo.image, uv, self.cfg.gradient, lv.grads)
+        else:
+            I, Iu, Iv = bilinear(lv.photo.image, uv), None, None
+        return p, uv.reshape(B, c, 2), I, self.model.kernel(I).reshape(B, c, -1), Iu, Iv
+
+    def evaluate(self, level: int, Ts: list[np.ndarray], q: torch.Tensor, prev: Terms | None = None,
+                 jacobian: bool = True, free: int | None = None, lost_is_error: bool = True) -> Terms:
+        """Visibility, color fit, robust weights and (with jacobian) the Gauss-Newton system at
+        each local-frame pose of Ts (B of 4x4), with the camera corrections q (5,). prev (the last
+        accepted terms) seeds the inliers and sigma. free: the camera corrections differentiated
+        (default: those refined; 0 for the verification's repeats, which keep q)."""
+        cfg, lv = self.cfg, self.levels[level]
+        free = self.free if free is None else free
+        vis = self._visible(lv, Ts, q, lost_is_error)
+        # the points some pose sees: a single pose's evaluation costs what it sees
+        cols = torch.nonzero(vis.any(0)).squeeze(1)
+        seen = vis[:, cols]
+        target = lv.target[cols]
+        p, uv, I, Kk, Iu, Iv = self._sample(lv, Ts, q, cols, gradient=jacobian)
+        B, c, k = Kk.shape
+        m = target.shape[1]
+        if self.model.fitted:
+            fit = seen & unclipped(I).reshape(B, c)
+            few = fit.sum(1) < torch.clamp(0.05 * seen.sum(1), min=100)  # a photo clipped almost everywhere
+            fit = torch.where(few[:, None], seen, fit)
+            D, inliers = fit_many_with_inliers(Kk, target, fit, cfg.beta_max, D0=prev.D if prev is not None else None)
+        else:
+            D = self.model.identity(k, m, Kk).expand(B, m, k)
+            inliers = seen & ((Kk @ D.transpose(1, 2) - target).norm(dim=2) < cfg.beta_max)
+        r = (Kk @ D.transpose(1, 2)).clamp(0, 1) - target  # clipped values; the Jacobian below is the unclipped one
+        # one pose sees all of cols: its plain means are the masked ones, at less cost
+        mask = seen if B > 1 else None
+        w, sigma2 = student_t_weights(r, cfg.nu, prev.sigma2 if prev is not None else None, mask=mask)
+        sigma2 = sigma2.reshape(B, 1, 1)
+        loss = student_t_loss(r, cfg.nu, sigma2, mask=mask).reshape(B)
+        visible = seen.sum(1).cpu().numpy()
+        n = lv.points.shape[0]
+        err = torch.zeros(B, n, dtype=r.dtype, device=self.device)
+        err[:, cols] = r.norm(dim=2)
+        uv_all = torch.zeros(B, n, 2, dtype=uv.dtype, device=self.device)
+        uv_all[:, cols] = uv
+        terms = Terms(loss.double().cpu().numpy(), D, sigma2, vis, visible,
+                      inliers.sum(1).cpu().numpy() / np.maximum(visible, 1), err, uv_all)
+        if not jacobian:
+            return terms
+        # dr/du = D (dK/dI . dI/du), likewise for v: (B, c, m)
+        a = self.model.kernel_derivative(I, Iu).reshape(B, c, k) @ D.transpose(1, 2)
+        b = self.model.kernel_derivative(I, Iv).reshape(B, c, k) @ D.transpose(1, 2)
+        du, dv = self._jacobian(p.reshape(-1, 3), lv.photo.K, q, free)
+        ws = w * seen[..., None]
+        H, g = _normal_equations(du.reshape(B, c, -1), dv.reshape(B, c, -1), a, b, r, ws)
+        terms.H, terms.g = H.cpu().numpy(), g.cpu().numpy()
+        terms.wrr = (ws * r * r).sum((1, 2)).double().cpu().numpy()
+        terms.count = visible * m
+        return terms
+
+    def _jacobian(self, p: torch.Tensor, K: torch.Tensor, q: torch.Tensor, free: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """d(u, v) / d(pose, q[:free]): two (n, 6 + free)."""
+        if not self.free:
+            return projection_jacobian(p, K[0, 0], K[1, 1])
+        return corrected_jacobian(p, K, q, free)
+
+    def trial(self, level: int, Ts: list[np.ndarray], q: torch.Tensor, at: Terms) -> np.ndarray:
+        """(B,) the robust loss at each pose of Ts on the points, color fit and scale of the
+        terms `at` (so that it compares with at.loss as a smooth function of the pose)."""
+        lv = self.levels[level]
+        cols = torch.nonzero(at.mask.any(0)).squeeze(1)
+        _, _, _, Kk, _, _ = self._sample(lv, Ts, q, cols, gradient=False)
+        r = (Kk @ at.D.transpose(1, 2)).clamp(0, 1) - lv.target[cols]
+        return student_t_loss(r, self.cfg.nu, at.sigma2, mask=at.mask[:, cols]).double().cpu().numpy()
+
+    # -- what a result reports ---------------------------------------------------------------------
+    def residuals(self, level: int, at: Terms) -> tuple[np.ndarray, np.ndarray]:
+        """The first pose's visible points: photo pixels (n, 2) and |r| (n,)."""
+        seen = at.mask[0]
+        return (self.levels[level].photo.to_photo_pixels(at.uv[0][seen]).cpu().numpy(), at.err[0][seen].cpu().numpy())
+
+    def covariance(self, level: int, T: np.ndarray, q: torch.Tensor, at: Terms) -> np.ndarray | None:
+        """(P, P) the parameters' covariance at the first pose of `at` (evaluated with its Jacobian)."""
+        return None if at.H is None else covariance(at.H[0], float(at.wrr[0]), int(at.count[0]))
+
+    def summary(self, at: Terms) -> dict:
+        """`RefineResult`'s objective-specific fields of the first pose of at."""
+        return {"color_transform": at.D[0].double().cpu().numpy(), "loss": float(at.loss[0]),
+                "inlier_fraction": float(at.inlier_fraction[0]), "visible_points": int(at.visible[0])}
+
+    def visible_scan_points(self, T_local: np.ndarray, q: torch.Tensor) -> np.ndarray:
+        """(n, 3) float32 local-frame points of the finest level visible at T_local."""
+        lv = self.levels[0]
+        return lv.points[self._visible(lv, [T_local], q, True)[0]].double().cpu().numpy()
