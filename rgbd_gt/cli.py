@@ -235,7 +235,7 @@ def init_pose(
                                   init_from_correspondences, read_correspondences, read_csv_rows, write_report)
     from rgbd_gt.io import write_pose
     from rgbd_gt.io.outputs import Outputs
-    from rgbd_gt.steps import open_photo
+    from rgbd_gt.steps import made_from, open_photo
 
     outs = Outputs([scan, image, camera, board_points, correspondences])
     pose_out = outs.file(output, "-o", POSE_SUFFIXES)
@@ -282,7 +282,14 @@ def init_pose(
             else:
                 in_scan = board_in_scan(whole_scan(scan, cache), spec, corners, scan)
             result = init_from_board(in_scan, photo, cam, spec, found)
-    meta = result.pose_meta() | (upright.as_dict() if upright is not None else {})
+    files = {"photo": image, "camera": camera} | ({"board_points": board_points} if board_points else {})
+    board_layout = None
+    if correspondences is not None:
+        files["correspondences"] = correspondences
+    else:
+        board_layout = (cols, rows, square, charuco, marker)
+    made = made_from(scan, None, files, board_layout)
+    meta = result.pose_meta() | (upright.as_dict() if upright is not None else {}) | made
     with outs:
         if camera_out is not None:
             from rgbd_gt.io.camera_file import write_camera

@@ -90,6 +90,26 @@ def load_inputs(scan_path: PathLike, image_path: PathLike, camera_path: PathLike
                         around)
 
 
+def made_from(scan: PathLike, scan_sha1: str | None, files: dict[str, PathLike],
+              board: tuple | None = None) -> dict:
+    """The path and SHA-1 of the scan (scan_sha1, or read from the file when None) and of each of
+    `files` ({kind: path}) that a pose file is made from, recorded beside the pose so that a rerun
+    with other inputs is told apart; with board (cols, rows, square, charuco, marker) its layout,
+    whose text stands for a file's content."""
+    import hashlib
+
+    from rgbd_gt.prepared import file_key
+
+    made = {"scan": str(scan), "scan_sha1": scan_sha1 or file_key(Path(scan))["sha1"]}
+    for kind, path in files.items():
+        made |= {kind: str(path), f"{kind}_sha1": file_key(Path(path))["sha1"]}
+    if board is not None:
+        cols, rows, square, charuco, marker = board
+        made["board"] = f"{cols}x{rows} inner corners, square {square} m" + (f", {charuco} markers {marker} m" if charuco else "")
+        made["board_sha1"] = hashlib.sha1(made["board"].encode()).hexdigest()
+    return made
+
+
 def refine_config(config: PathLike | None = None, repeats: int | None = None, **flags):
     """The aligner's settings: configs/refine.yaml (or `config`) with the options given (None:
     as the file says); InputError naming them when they make it inconsistent."""
@@ -212,12 +232,12 @@ def qa_step(scan, colors: np.ndarray, photo: np.ndarray, camera: Camera, T: np.n
     for T_before with keys prefixed before_. A pose that sees no scan edge is an error naming it.
     drawn: the verdict's render at T (`Refined.verification.view`), used when it is the one qa
     would make (the same working size, the splats drawn)."""
-    from rgbd_gt.qa.edges import SHIFT_PX, qa, side_by_side, structural_qa, working_camera, working_view
+    from rgbd_gt.qa.edges import SHIFT_PX, WORKING_SIDE, qa, side_by_side, structural_qa, working_camera, working_view
     from rgbd_gt.qa.verticals import verticals_qa
 
     poses = [(T, pose_path, "")] + ([(T_before, before_path, "before_")] if T_before is not None else [])
     uprights = verticals_qa(around, photo, camera, [p[0] for p in poses])
-    if drawn is not None and not (drawn.camera == working_camera(camera, 1280) and drawn.radius <= SHIFT_PX
+    if drawn is not None and not (drawn.camera == working_camera(camera, WORKING_SIDE) and drawn.radius <= SHIFT_PX
                                   and np.array_equal(drawn.T, T)):
         drawn = None
     images, scores, rows = [], {}, []

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import csv
 import glob
-import hashlib
 import json
 import os
 import time
@@ -331,17 +330,6 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     return res
 
 
-def made_from(prepared, files: dict[str, Path]) -> dict:
-    """The path and SHA-1 of the scan and of each of `files` ({kind: path}) that outputs are made
-    from, as recorded beside them."""
-    from rgbd_gt.prepared import file_key
-
-    made = {"scan": str(prepared.source), "scan_sha1": prepared.sha1}
-    for kind, path in files.items():
-        made |= {kind: str(path), f"{kind}_sha1": file_key(path)["sha1"]}
-    return made
-
-
 def made_from_other(recorded: dict, made: dict) -> str | None:
     """The first kind of input whose SHA-1 in `recorded` differs from `made`'s (`made_from`), or
     None. No SHA-1 recorded is no difference: outputs written before they were are resumed."""
@@ -362,11 +350,11 @@ def initial_pose(photo: Path, image: np.ndarray, prepared, camera, job: ScanJob,
         files["init"] = job.init
     elif job.board.points:
         files["board_points"] = Path(job.board.points)
-    made = made_from(prepared, files)
-    if job.init is None:  # the board's layout is the config's, not a file's: its text stands for the content
-        b = job.board
-        made["board"] = f"{b.cols}x{b.rows} inner corners, square {b.square} m" + (f", {b.charuco} markers {b.marker} m" if b.charuco else "")
-        made["board_sha1"] = hashlib.sha1(made["board"].encode()).hexdigest()
+    b = job.board
+    from rgbd_gt.steps import made_from
+
+    made = made_from(prepared.source, prepared.sha1, files,
+                     None if job.init is not None else (b.cols, b.rows, b.square, b.charuco, b.marker))
     if path.exists():
         T, meta = read_pose(path)
         kind = made_from_other(meta, made)
@@ -412,10 +400,10 @@ def shared_camera(job: ScanJob, prepared, camera, cfg: RunConfig, progress: Call
     from rgbd_gt.io.atomic import atomic_output
     from rgbd_gt.io.camera_file import write_camera
     from rgbd_gt.scan import scan_colors
-    from rgbd_gt.steps import open_photo
+    from rgbd_gt.steps import made_from, open_photo
 
     out = job.out
-    made = made_from(prepared, {"camera": job.camera})
+    made = made_from(prepared.source, prepared.sha1, {"camera": job.camera})
     if (out / "camera.yaml").exists() and made_from_other(_json_or_empty(out / "intrinsics.json").get("made_from", {}), made) is None:
         return read_camera(out / "camera.yaml")  # else refined again: the camera file or the scan has changed
     estimates, errors = [], []

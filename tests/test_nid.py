@@ -19,7 +19,8 @@ from rgbd_gt.io import load_scan, read_camera, read_pose, save_scan
 from rgbd_gt.io.image import read_image
 from rgbd_gt.scan import Scan, colors_to_gray
 from rgbd_gt.pose import apply_update, rotation_error_deg, so3_exp, translated, translation_error_m
-from rgbd_gt.render.zbuffer import cell_for_density, depth_edges
+from rgbd_gt.render.cells import cell_for_density
+from rgbd_gt.render.zbuffer import depth_edges
 
 
 def test_nid_is_zero_for_dependent_values_and_near_one_for_independent_ones():

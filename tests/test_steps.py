@@ -37,7 +37,8 @@ def run_and_commands(tmp_path_factory, synth_scene):
     ran, cmd, cache = tmp / "out" / "photo", tmp / "cmd", tmp / "out" / ".scan-cache"
     common = ["--scan", scene / "scan.e57", "--cache", cache]
     photo = ["--image", scene / "photo.png", "--camera", scene / "camera.yaml"]
-    for args in (["refine", *common, *photo, "--init", ran / "init.yaml", "--max-points", 30000, "-o", cmd / "pose.yaml"],
+    for args in (["init-pose", *common, *photo, "-o", cmd / "init.yaml"],
+                 ["refine", *common, *photo, "--init", ran / "init.yaml", "--max-points", 30000, "-o", cmd / "pose.yaml"],
                  ["export-depth", *common, "--camera", scene / "camera.yaml", "--pose", ran / "pose.yaml",
                   "-o", cmd / "depth.exr", "--png16", cmd / "depth.png"],
                  ["qa-edges", *common, *photo, "--pose", ran / "pose.yaml", "--before", ran / "init.yaml",
@@ -46,6 +47,14 @@ def run_and_commands(tmp_path_factory, synth_scene):
         proc = run_cli(*args)
         assert proc.returncode == 0, (args[0], proc.stderr)
     return ran, cmd
+
+
+def test_init_files_are_the_same(run_and_commands):
+    """init-pose records what run's init.yaml records: the board's pose and the SHA-1 of each input."""
+    ran, cmd = run_and_commands
+    a, b = (without_timings(yaml.safe_load((d / "init.yaml").read_text())) for d in (ran, cmd))
+    assert "photo_sha1" in a and "scan_sha1" in a and "board_sha1" in a
+    assert a == b
 
 
 def test_pose_files_are_the_same(run_and_commands):

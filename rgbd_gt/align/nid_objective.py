@@ -31,7 +31,8 @@ from rgbd_gt.errors import InputError
 from rgbd_gt.pose import so3_exp, so3_left_jacobian
 from rgbd_gt.render.project import project_pinhole, projection_jacobian
 from rgbd_gt.render.normals import facing_camera
-from rgbd_gt.render.zbuffer import cell_for_density, check_spread_in_view, depth_edges, visible_points
+from rgbd_gt.render.cells import cell_for_density
+from rgbd_gt.render.zbuffer import check_spread_in_view, depth_edges, visible_points
 from rgbd_gt.scan import LUMA
 
 @dataclass

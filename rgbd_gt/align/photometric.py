@@ -26,7 +26,8 @@ from rgbd_gt.align.subset import near_view, point_keys
 from rgbd_gt.errors import InputError
 from rgbd_gt.render.normals import facing_camera
 from rgbd_gt.render.project import INTRINSICS, corrected_jacobian, project_corrected, project_pinhole, projection_jacobian
-from rgbd_gt.render.zbuffer import cell_size_for, check_spread_in_view, estimate_spacing, visible_points
+from rgbd_gt.render.cells import cell_size_for
+from rgbd_gt.render.zbuffer import check_spread_in_view, estimate_spacing, visible_points
 
 @dataclass
 class Level:

@@ -20,6 +20,7 @@ from rgbd_gt.scan import Scan, colors_to_gray
 from rgbd_gt.render.depth import render_depth
 
 
+WORKING_SIDE = 1280  # the longer side (pixels) of the picture the scores are taken on
 SHIFT_PX = 6  # working pixels: the structural score's chance shift, and the widest splats either score can use
 
 
@@ -117,14 +118,14 @@ class WorkingView:
 
 
 def working_view(scan: Scan, colors: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray,
-                 max_side: int = 1280, max_splat_px: int | None = None) -> WorkingView:
+                 max_side: int = WORKING_SIDE, max_splat_px: int | None = None) -> WorkingView:
     cam = working_camera(camera, max_side)
     small = photo if cam.size == camera.size else cv2.resize(photo, cam.size, interpolation=cv2.INTER_AREA)
     return WorkingView(cam, small, *scan_view(scan, colors, cam, T, max_splat_px), np.array(T, np.float64))
 
 
 def qa(scan: Scan, colors: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray,
-       max_side: int = 1280, view: WorkingView | None = None,
+       max_side: int = WORKING_SIDE, view: WorkingView | None = None,
        usable_splat_px: int = SHIFT_PX) -> tuple[np.ndarray, EdgeScore]:
     """(overlay image, score) for one pose, at a working resolution whose longer side is at most
     max_side (distances in the photo's own pixels): Canny on every pixel of a 24 MP photo costs
@@ -228,7 +229,7 @@ def working_camera(camera: Camera, max_side: int) -> Camera:
 
 
 def structural_qa(scan: Scan, colors: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray,
-                  max_side: int = 1280, shift_px: int = SHIFT_PX, view: WorkingView | None = None,
+                  max_side: int = WORKING_SIDE, shift_px: int = SHIFT_PX, view: WorkingView | None = None,
                   score_only: bool = False) -> tuple[np.ndarray, StructuralScore]:
     """(overlay at the working resolution: red = the photo's strongest gradients, blue = the
     scan's structural edges that were scored, white = both; the chance-relative score) for one

@@ -12,32 +12,22 @@ from __future__ import annotations
 import numpy as np
 
 from rgbd_gt.camera import Camera, rescale
+from rgbd_gt.render.cells import cell_for_density
 from rgbd_gt.scan import Scan, scan_colors
 
 
 def render_scale(scan: Scan, camera: Camera, T: np.ndarray, per_step: float = 2.0) -> float:
     """The scale (at most 1) at which `per_step` pixels span one step between neighbouring scan
     points in view: finer rendering only interpolates. Measured in the image: the side of the
-    square cells whose occupied ones hold 3 points at the median, over sqrt(3). (The rule of
-    `render.zbuffer.cell_for_density`, in numpy: the overlay of a colored scan does not need torch,
-    whose import alone would cost it 1.5 s.)"""
+    square cells whose occupied ones hold 3 points at the median (`render.cells.cell_for_density`),
+    over sqrt(3)."""
     p = scan.xyz @ T[:3, :3].T + T[:3, 3]
     z = np.maximum(p[:, 2], 1e-9)
     # pinhole: the lens distortion hardly changes how densely points land
-    u, v = camera.fx * p[:, 0] / z + camera.cx, camera.fy * p[:, 1] / z + camera.cy
-    w, h = camera.size
-    inside = (p[:, 2] > 0) & (u >= 0) & (v >= 0) & (u < w) & (v < h)
-    u, v = u[inside], v[inside]
-    if len(u) < 100:
+    uv = np.stack([camera.fx * p[:, 0] / z + camera.cx, camera.fy * p[:, 1] / z + camera.cy], 1)[p[:, 2] > 0]
+    if int(((uv >= 0) & (uv <= np.array(camera.size) - 1)).all(1).sum()) < 100:
         return 1.0
-    cell = 1
-    while cell < 256:
-        cw = w // cell + 1
-        counts = np.bincount((v // cell).astype(np.int64) * cw + (u // cell).astype(np.int64), minlength=(h // cell + 1) * cw)
-        if np.median(counts[counts > 0]) >= 3:
-            break
-        cell *= 2
-    return float(min(1.0, per_step * np.sqrt(3) / cell))
+    return float(min(1.0, per_step * np.sqrt(3) / cell_for_density(uv, camera.size, largest=256)))
 
 
 def render_colors(scan: Scan, camera: Camera, T: np.ndarray, max_depth: float | None = None) -> tuple[np.ndarray, np.ndarray]:

@@ -74,7 +74,8 @@ def seen_and_behind(scan: Scan, camera: Camera, T: np.ndarray,
 
     from rgbd_gt.camera import project
     from rgbd_gt.render.normals import facing_camera
-    from rgbd_gt.render.zbuffer import cell_for_density, visible_points
+    from rgbd_gt.render.cells import cell_for_density
+    from rgbd_gt.render.zbuffer import visible_points
 
     p = scan.xyz @ T[:3, :3].T + T[:3, 3]
     uv, z = project(camera, p)

@@ -28,13 +28,6 @@ def estimate_spacing(points: torch.Tensor) -> float:
     return v / math.sqrt(n / m)
 
 
-def cell_size_for(spacing_m: float, focal_px: float, median_depth_m: float, minimum: int = 1) -> int:
-    """Cell side (pixels) that no gap between neighbouring points can slip through:
-    1.5 x the projected point spacing at the median depth, at least `minimum`."""
-    projected = focal_px * spacing_m / max(median_depth_m, 1e-6)
-    return max(minimum, int(math.ceil(1.5 * projected)))
-
-
 def visible_points(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cell: int,
                    rel_tol: float = 0.02, abs_tol: float = 0.01, near: float = 1e-3,
                    group: torch.Tensor | None = None, facing: torch.Tensor | None = None) -> torch.Tensor:
@@ -79,27 +72,6 @@ def check_spread_in_view(uv: torch.Tensor, visible: torch.Tensor, need: int) -> 
     if pixels < need / 2:
         raise InputError(f"the {int(visible.sum())} scan points in view of the initial pose fall on only {pixels} "
                          "pixels (identical or nearly identical points): there is nothing to align")
-
-
-def cell_for_density(uv: torch.Tensor, size: tuple[int, int], per_cell: int = 3, largest: int = 64) -> int:
-    """Cell side (pixels, a power of 2) at which the occupied cells of a projection uv (N, 2)
-    hold at least `per_cell` points at the median: the projected spacing, measured in the image.
-
-    `cell_size_for` derives it from the 3D spacing at the median depth, which fits dense scans;
-    a LiDAR sweep has rings with large vertical gaps, points from 2 to 100 m and nothing on the
-    sky, so its spacing is best measured where it lands."""
-    w, h = size
-    inside = (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)
-    uv = uv[inside]
-    cell = 1
-    while cell < largest and uv.shape[0]:
-        cw = (w + cell - 1) // cell
-        key = (uv[:, 1] / cell).long() * cw + (uv[:, 0] / cell).long()
-        counts = torch.bincount(key)
-        if float(counts[counts > 0].float().median()) >= per_cell:
-            break
-        cell *= 2
-    return cell
 
 
 def depth_edges(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cell: int, ratio: float = 0.5) -> torch.Tensor:
