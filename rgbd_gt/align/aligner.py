@@ -277,7 +277,7 @@ class Aligner:
         def objective(x_np: np.ndarray) -> tuple[float, np.ndarray]:
             x = torch.tensor(x_np, device=self.device)
             value, gradient = obj.value_and_gradient(level, T, update(x), at)
-            return value, (gradient * units * (1 - torch.tanh(units * x / cap) ** 2)).cpu().numpy()
+            return value, (gradient * (units * (1 - torch.tanh(units * x / cap) ** 2))).cpu().numpy()
 
         x, n_iter = lbfgs.minimize(objective, np.zeros(6), iterations)
         T = apply_update(T, update(torch.tensor(x, device=self.device)).cpu().numpy())

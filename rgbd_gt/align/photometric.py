@@ -6,7 +6,7 @@ the photo bilinearly with its gradient (strategy A or B), lift the colors with t
 kernel, fit the color transform D on inliers, clip the prediction to [0, 1] (keeping the
 unclipped gradient), and weight the residuals with a Student-t. It returns the robust loss and
 the Gauss-Newton terms of the 6 pose parameters and of the shared camera corrections q
-(`render.project.project_corrected`); the driver (align/driver.py) optimises them.
+(`render.project.project_corrected`); the driver (align/aligner.py) optimises them.
 """
 
 from __future__ import annotations
@@ -170,6 +170,14 @@ def covariance(H: np.ndarray, energy: float, count: int) -> np.ndarray:
     return energy / max(count - len(H), 1) * (s[:, None] * np.linalg.inv(Hs) * s[None, :])
 
 
+def _times_transposed(a: torch.Tensor, M: torch.Tensor) -> torch.Tensor:
+    """a M^T per pose: a (B, n, k) or (n, k) shared by the poses, M (B, m, k) -> (B, n, m). One
+    pose as a plain 2-D product: torch's batched kernel is slower there (a refine is one pose)."""
+    if M.shape[0] == 1:
+        return ((a[0] if a.dim() == 3 else a) @ M[0].T)[None]
+    return a @ M.transpose(1, 2)
+
+
 def _valid_at(valid: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     """All four bilinear neighbours of uv (N, 2) are usable pixels."""
     h, w = valid.shape
@@ -223,9 +231,8 @@ class Photometric:
         # the camera corrections refined with the pose (cfg.refine_intrinsics: the first `free` of q),
         # parameters shared by every pose of a batch
         self.free = INTRINSICS[cfg.refine_intrinsics]
-        self.method = cfg.optimizer  # 'lm' or 'adam' (align/driver.py)
+        self.method = cfg.optimizer  # 'lm' or 'adam' (align/aligner.py)
         self.levels: list[Level] | None = None
-
 
     def prepare(self, T_local: np.ndarray) -> int:
         """Per level: a random subset of the points near the initial view (`near_view`; nested
@@ -277,23 +284,22 @@ class Photometric:
                     else halved(cells, self.pyramid[level - 1].camera.size)
                 target = blurred_targets(cells, size, project_pinhole(p_near[:n], photo.K)[0], target)
             out.append(Level(photo, grads, self.points[sub], target, min(cell, 16 * photo.zoom),
-                                  None if self.normals is None else self.normals[sub]))
+                             None if self.normals is None else self.normals[sub]))
         self.levels = out
         return len(out)
-
 
     # -- one evaluation of a batch of poses ------------------------------------------------------
     def _pose_tensors(self, Ts: list[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
         """Rotations (B, 3, 3) and translations (B, 3) of local-frame poses."""
         T = torch.as_tensor(np.stack(Ts), dtype=self.dtype, device=self.device)
-        return T[:, :3, :3], T[:, :3, 3]
+        return T[:, :3, :3].contiguous(), T[:, :3, 3].contiguous()  # strided views make slow products
 
     def _project(self, lv: Level, Ts: list[np.ndarray], q: torch.Tensor, cols: torch.Tensor | None = None):
         """The level's points (or those of cols) at each pose: camera frame (B, n, 3), pixels and
         depths (B*n, 2), (B*n,) through the camera corrected by q (5,)."""
         R, t = self._pose_tensors(Ts)
         pts = lv.points if cols is None else lv.points[cols]
-        p = pts @ R.transpose(1, 2) + t[:, None]
+        p = _times_transposed(pts, R) + t[:, None]
         uv, z = project_corrected(p.reshape(-1, 3), lv.photo.K, q) if self.free else project_pinhole(p.reshape(-1, 3), lv.photo.K)
         return p, uv, z
 
@@ -306,7 +312,7 @@ class Photometric:
         facing = None
         if lv.normals is not None:
             R, _ = self._pose_tensors(Ts)
-            facing = facing_camera(p.reshape(-1, 3), (lv.normals @ R.transpose(1, 2)).reshape(-1, 3))
+            facing = facing_camera(p.reshape(-1, 3), _times_transposed(lv.normals, R).reshape(-1, 3))
         size, tol = lv.photo.camera.size, (self.cfg.zbuffer_rel_tol, self.cfg.zbuffer_abs_tol)
         vis = visible_points(uv, z, size, lv.cell, *tol, group=group, facing=facing)
         if lv.photo.valid is not None:
@@ -353,11 +359,16 @@ class Photometric:
             fit = seen & unclipped(I).reshape(B, c)
             few = fit.sum(1) < torch.clamp(0.05 * seen.sum(1), min=100)  # a photo clipped almost everywhere
             fit = torch.where(few[:, None], seen, fit)
-            D, inliers = fit_many_with_inliers(Kk, target, fit, cfg.beta_max, D0=prev.D if prev is not None else None)
+            D0 = prev.D if prev is not None else None
+            if B == 1:  # one pose: its fit's rows alone, fewer than all it sees
+                rows = fit[0]
+                D, inliers = fit_many_with_inliers(Kk[:, rows], target[rows], rows[rows][None], cfg.beta_max, D0=D0)
+            else:
+                D, inliers = fit_many_with_inliers(Kk, target, fit, cfg.beta_max, D0=D0)
         else:
             D = self.model.identity(k, m, Kk).expand(B, m, k)
-            inliers = seen & ((Kk @ D.transpose(1, 2) - target).norm(dim=2) < cfg.beta_max)
-        r = (Kk @ D.transpose(1, 2)).clamp(0, 1) - target  # clipped values; the Jacobian below is the unclipped one
+            inliers = seen & ((_times_transposed(Kk, D) - target).norm(dim=2) < cfg.beta_max)
+        r = _times_transposed(Kk, D).clamp(0, 1) - target  # clipped values; the Jacobian below is the unclipped one
         # one pose sees all of cols: its plain means are the masked ones, at less cost
         mask = seen if B > 1 else None
         w, sigma2 = student_t_weights(r, cfg.nu, prev.sigma2 if prev is not None else None, mask=mask)
@@ -374,10 +385,10 @@ class Photometric:
         if not jacobian:
             return terms
         # dr/du = D (dK/dI . dI/du), likewise for v: (B, c, m)
-        a = self.model.kernel_derivative(I, Iu).reshape(B, c, k) @ D.transpose(1, 2)
-        b = self.model.kernel_derivative(I, Iv).reshape(B, c, k) @ D.transpose(1, 2)
+        a = _times_transposed(self.model.kernel_derivative(I, Iu).reshape(B, c, k), D)
+        b = _times_transposed(self.model.kernel_derivative(I, Iv).reshape(B, c, k), D)
         du, dv = self._jacobian(p.reshape(-1, 3), lv.photo.K, q, free)
-        ws = w * seen[..., None]
+        ws = w if B == 1 else w * seen[..., None]  # one pose sees all of cols
         H, g = _normal_equations(du.reshape(B, c, -1), dv.reshape(B, c, -1), a, b, r, ws)
         terms.H, terms.g = H.cpu().numpy(), g.cpu().numpy()
         terms.wrr = (ws * r * r).sum((1, 2)).double().cpu().numpy()
@@ -396,7 +407,7 @@ class Photometric:
         lv = self.levels[level]
         cols = torch.nonzero(at.mask.any(0)).squeeze(1)
         _, _, _, Kk, _, _ = self._sample(lv, Ts, q, cols, gradient=False)
-        r = (Kk @ at.D.transpose(1, 2)).clamp(0, 1) - lv.target[cols]
+        r = _times_transposed(Kk, at.D).clamp(0, 1) - lv.target[cols]
         return student_t_loss(r, self.cfg.nu, at.sigma2, mask=at.mask[:, cols]).double().cpu().numpy()
 
     # -- what a result reports ---------------------------------------------------------------------

@@ -76,6 +76,7 @@ def render_view(points: np.ndarray, gray: np.ndarray, origin: np.ndarray, az: fl
     import cv2
 
     from rgbd_gt.render.project import project_pinhole
+    from rgbd_gt.render.zbuffer import visible_points
 
     f = 1.0 / step_rad
     w = int(2 * f * np.tan(np.deg2rad(VIEW_FOV_DEG[0]) / 2))
@@ -92,15 +93,13 @@ def render_view(points: np.ndarray, gray: np.ndarray, origin: np.ndarray, az: fl
     cam = torch.as_tensor(cam[cone], dtype=torch.float64)
     K = torch.tensor([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]], dtype=torch.float64)
     uv, z = project_pinhole(cam, K)
-    px = torch.round(uv).long()
-    ok = (z > 0.05) & (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] < w) & (px[:, 1] < h)
-    key = (px[:, 1] * w + px[:, 0])[ok]
-    z = z[ok]
-    zmin = torch.full((h * w,), float("inf"), dtype=z.dtype).scatter_reduce(0, key, z, reduce="amin")
-    front = z <= zmin[key] + 0.02
-    g = torch.as_tensor(gray, dtype=torch.float64)[ok][front]
-    total = torch.zeros(h * w, dtype=torch.float64).index_add_(0, key[front], g)
-    count = torch.zeros(h * w, dtype=torch.float64).index_add_(0, key[front], torch.ones_like(g))
+    px = torch.round(uv)
+    # the aligners' visibility rule on 1-pixel cells, within 2 cm of the nearest point
+    front = visible_points(px, z, (w, h), 1, rel_tol=0.0, abs_tol=0.02, near=0.05)
+    key = (px[front, 1] * w + px[front, 0]).long()
+    g = torch.as_tensor(gray, dtype=torch.float64)[front]
+    total = torch.zeros(h * w, dtype=torch.float64).index_add_(0, key, g)
+    count = torch.zeros(h * w, dtype=torch.float64).index_add_(0, key, torch.ones_like(g))
     img = (total / count.clamp_min(1)).reshape(h, w).numpy().astype(np.float32)
     have = (count > 0).reshape(h, w).numpy().astype(np.float32)
     fill = cv2.GaussianBlur(img * have, (0, 0), 1.0) / np.maximum(cv2.GaussianBlur(have, (0, 0), 1.0), 1e-6)
