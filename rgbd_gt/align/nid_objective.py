@@ -147,12 +147,11 @@ class Nid:
         self._sky = [False] * len(frames)
 
     # -- the points of each level (chosen once, at the init) ---------------------------------------
-    # -- the points of each level (chosen once, at the init) ---------------------------------------
     def prepare(self, T_local: np.ndarray) -> int:
-        """Per level, per frame: indices of a random subset of the points near the view of T_init
+        """Per level, per frame: indices of a random subset of the points near the view of T_local
         (`near_view`; the same subset in any order of the points: align/subset.py), `max_points` at
         full resolution and a quarter per coarser level (nested), never fewer than `min_points`.
-        Also finds each photo's sky, with the points seen at T_init (`_find_sky`), and appends it
+        Also finds each photo's sky, with the points seen at T_local (`_find_sky`), and appends it
         to the frame's images (one sampling serves both). Chosen once, at the first pose T_local
         (local frame). Returns the number of levels."""
         if self._prepared is not None:
