@@ -22,6 +22,7 @@ _API = {
     "rgbd_gt.steps": ("open_photo", "load_inputs", "refine_config", "refine_step", "depth_step", "write_depth", "qa_step",
                       "overlay_step", "Photo", "Refined", "QA", "Overlay"),
     "rgbd_gt.align.refine": ("RefineInputs",),
+    "rgbd_gt.render.renders": ("Renders",),
     "rgbd_gt.prepared": ("prepare_scan", "scan_in_view", "view_and_around"),
     "rgbd_gt.camera": ("Camera",),
     "rgbd_gt.scan": ("Scan", "scan_colors"),

@@ -603,7 +603,7 @@ def qa_edges(
     from rgbd_gt.prepared import view_and_around
     from rgbd_gt.qa.edges import as_json
     from rgbd_gt.qa.verticals import MAX_POINTS, REACH
-    from rgbd_gt.render.depth import expect_poses
+    from rgbd_gt.render.renders import Renders
     from rgbd_gt.steps import open_photo, qa_step
 
     outs = Outputs([scan, image, camera, pose, before])
@@ -614,11 +614,10 @@ def qa_edges(
     T, _ = read_pose(pose)
     poses = [T] + ([read_pose(before)[0]] if before else [])
     the_scan, around = view_and_around(scan, photo.camera, poses, REACH, MAX_POINTS, cache)
-    expect_poses(the_scan, poses)  # one ray-casting scene for both renders
+    renders = Renders(the_scan, scan_colors(the_scan, scan), poses)  # one ray-casting scene for both poses
     with _progress() as bar:
         bar.add_task("edges", total=None)
-        result = qa_step(the_scan, scan_colors(the_scan, scan), photo.image, photo.camera, T, around,
-                         poses[1] if before else None, pose, before)
+        result = qa_step(renders, photo.image, photo.camera, T, around, poses[1] if before else None, pose, before)
     with outs:
         write_image(staged, result.image)
         if json_out:
@@ -646,6 +645,8 @@ def overlay(
     from rgbd_gt.io.image import write_image
     from rgbd_gt.io.outputs import Outputs
     from rgbd_gt.prepared import scan_in_view
+    from rgbd_gt.render.renders import Renders
+    from rgbd_gt.scan import scan_colors
     from rgbd_gt.steps import open_photo, overlay_paths, overlay_step
 
     start = time.perf_counter()
@@ -660,7 +661,8 @@ def overlay(
     the_scan = scan_in_view(scan, photo.camera, [T], cache)
     with _progress() as bar:
         bar.add_task("rendering the scan", total=None)
-        pictures = overlay_step(the_scan, photo.image, photo.camera, T, max_depth, points, pose)
+        pictures = overlay_step(Renders(the_scan, scan_colors(the_scan, scan)), photo.image, photo.camera, T, max_depth,
+                                points, pose)
     images = {k: getattr(pictures, k) for k in paths if getattr(pictures, k) is not None}
     with outs, ThreadPoolExecutor(3) as pool:  # PNG encoding releases the GIL: the images at once
         list(pool.map(lambda k: write_image(staged[k], images[k]), images))

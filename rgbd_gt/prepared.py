@@ -33,7 +33,7 @@ from rgbd_gt.render.blocks import VIEW_MARGIN, Blocks, block_order, block_points
 
 CACHE_VERSION = 4
 ARRAYS = Scan.PER_POINT + ("cells",)  # per point, block-ordered
-# "cells": `render.mesh.grid_cell_bits` (grid scans), kept in a subset's Scan.derived as "cell_bits"
+# "cells": `render.mesh.grid_cell_bits` (grid scans), a subset's Scan.cell_bits
 
 
 def file_key(path: Path) -> dict:
@@ -69,7 +69,7 @@ class PreparedScan:
         xyz = self.arrays["xyz"][index].astype(np.float64) + self.centre
         scan = Scan(xyz=xyz, origins=self.origins, **fields)
         if "cells" in self.arrays:
-            scan.derived["cell_bits"] = np.asarray(self.arrays["cells"][index])
+            scan.cell_bits = np.asarray(self.arrays["cells"][index])
         return scan
 
     def view(self, camera: Camera, T_cam_from_scan: np.ndarray, margin: float = VIEW_MARGIN,
@@ -222,18 +222,20 @@ def whole_scan(scan_path: Path, cache: Path | None = None) -> Scan:
 
 
 def whole_scan_geometry(read: Scan) -> Scan:
-    """The scan with its normals (`with_normals`) and, for a grid scan, its grid mesh in
-    derived["cell_bits"] (`grid_cell_bits`), both made on these points: a view takes them along.
-    Made on a view alone they differ at depth edges: the stretch test's limit follows the angular
-    step, which a view's own grid gives a few percent off (pumpA: 4%; normals of 1% of the points
-    in a view more than 5 deg apart, 167 pixels of its depth map up to 5 m apart)."""
-    from rgbd_gt.render.mesh import grid_cell_bits
+    """The scan with its normals (`with_normals`) and, for a grid scan, its grid mesh's
+    `cell_bits` (`grid_cell_bits`), both made on these points: a view takes them along. Made on
+    a view alone they differ at depth edges: the stretch test's limit follows the angular step,
+    which a view's own grid gives a few percent off (pumpA: 4%; normals of 1% of the points in a
+    view more than 5 deg apart, 167 pixels of its depth map up to 5 m apart)."""
+    from rgbd_gt.render.mesh import grid_cell_bits, grid_normals
     from rgbd_gt.render.normals import oriented, with_normals
 
-    scan = with_normals(oriented(read))
-    if scan.has_grid:  # a by-product of the normals' pass when they came from the grid (on `read`)
-        scan.derived["cell_bits"] = grid_cell_bits(read)
-    return scan
+    scan = oriented(read)
+    if scan.has_grid and scan.normals is None and len(scan.origins):  # the normals' pass makes the bits too
+        normals, bits = grid_normals(scan)
+        return dataclasses.replace(scan, normals=normals, cell_bits=bits)
+    scan = with_normals(scan)
+    return dataclasses.replace(scan, cell_bits=grid_cell_bits(scan)) if scan.has_grid else scan
 
 
 def open_prepared(folder: Path, scan_path: Path) -> PreparedScan:
@@ -274,8 +276,8 @@ def _prepared_arrays(read: Scan, progress: Callable[[str], None], phase: Callabl
     scan = whole_scan_geometry(read)
     del read
     step = scan_step(scan) if len(scan.origins) else None
-    cells = scan.derived.get("cell_bits")
     scan = dataclasses.replace(scan)  # a Scan of its own, whose fields are let go below: not the caller's
+    cells, scan.cell_bits = scan.cell_bits, None
     phase("normals")
     centre = storage_centre(scan)
     progress("spatial index")

@@ -28,6 +28,9 @@ class Scan:
             (`render.normals.with_normals` fills them in).
         ring: (N,) int16 the laser (ring) of a spinning LiDAR that made each return, or None: a
             sweep's rings are known, in whatever frame its points are (`render.points.is_sweep`).
+        cell_bits: (N,) uint8 or None: a grid scan's mesh, a byte a point
+            (`render.mesh.grid_cell_bits`), made on the whole scan when it was prepared and
+            taken along by its views (made on a view alone, it differs at depth edges).
     """
 
     xyz: np.ndarray
@@ -39,9 +42,7 @@ class Scan:
     origins: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     normals: np.ndarray | None = None
     ring: np.ndarray | None = None
-    # what renderers derive from this scan once and reuse (its grid mesh and ray-casting
-    # scene): not copied by `subset` or dataclasses.replace
-    derived: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+    cell_bits: np.ndarray | None = field(default=None, repr=False)
 
     PER_POINT = ("xyz", "rgb", "intensity", "row", "col", "scan_id", "normals", "ring")
 
@@ -58,13 +59,10 @@ class Scan:
         return self.row is not None and self.col is not None
 
     def subset(self, index: np.ndarray) -> "Scan":
-        """A new Scan with the points selected by a boolean mask or an index array. Derived data
-        that holds per point for any subset goes along (the grid mesh's "cell_bits")."""
+        """A new Scan with the points selected by a boolean mask or an index array (and their
+        cell_bits)."""
         picked = {name: getattr(self, name)[index] for name in self.fields}
-        out = dataclasses.replace(self, **picked)
-        if "cell_bits" in self.derived:
-            out.derived["cell_bits"] = self.derived["cell_bits"][index]
-        return out
+        return dataclasses.replace(self, **picked, cell_bits=None if self.cell_bits is None else self.cell_bits[index])
 
 
 def scan_colors(scan: Scan, path: object = None, to_align: bool = False) -> np.ndarray:

@@ -73,6 +73,7 @@ def load_inputs(scan_path: PathLike, image_path: PathLike, camera_path: PathLike
     from rgbd_gt.io import read_pose
     from rgbd_gt.prepared import view_and_around
     from rgbd_gt.qa.verticals import MAX_POINTS, REACH
+    from rgbd_gt.render.renders import Renders
     from rgbd_gt.scan import scan_colors
 
     opened = open_photo(image_path, camera_path, mask_path, to_align=True)
@@ -86,8 +87,9 @@ def load_inputs(scan_path: PathLike, image_path: PathLike, camera_path: PathLike
     if len(scan) == 0:
         raise InputError("no scan points in view of the initial pose (nor near it): check the pose, the camera file "
                          "and the scan", init_path)
-    return RefineInputs(scan.xyz, scan_colors(scan, scan_path, to_align=True), photo, camera, T_init, ignore, scan, init_meta,
-                        around)
+    colors = scan_colors(scan, scan_path, to_align=True)
+    return RefineInputs(scan.xyz, colors, photo, camera, T_init, ignore, scan, init_meta, around,
+                        Renders(scan, colors, [T_init]))
 
 
 def made_from(scan: PathLike, scan_sha1: str | None, files: dict[str, PathLike],
@@ -175,16 +177,27 @@ def refine_step(inputs, cfg, init_path: PathLike, device: str = "auto", camera_p
     return Refined(result, verification, camera, meta, upright, upright_init, warnings)
 
 
-def depth_step(scan, camera: Camera, T: np.ndarray, max_depth: float | None = None, points: bool | None = None,
+def renders_of(view):
+    """`view` (a `Scan`, or its `render.renders.Renders`) as Renders: the steps of one photo that
+    share them render each camera and pose once."""
+    from rgbd_gt.render.renders import Renders
+
+    return view if isinstance(view, Renders) else Renders(view)
+
+
+def depth_step(view, camera: Camera, T: np.ndarray, max_depth: float | None = None, points: bool | None = None,
                normals: bool = False, pose_path: PathLike | None = None):
-    """The depth map (`render.depth.DepthMap`) of `scan` (`Scan`, the view) at T: of its points
+    """The depth map (`render.depth.DepthMap`) of the view (`renders_of`) at T: of its points
     alone (sparse) or of the surfaces rendered from them; points=None chooses points for LiDAR
     sweeps (`render.points.as_points`). An empty map is an error naming the pose."""
-    from rgbd_gt.render.depth import point_depth, render_depth
+    from rgbd_gt.render.depth import point_depth
     from rgbd_gt.render.points import as_points
 
-    sparse = as_points(scan, points)
-    depth = (point_depth if sparse else render_depth)(scan, camera, T, max_depth, normals=normals)
+    renders = renders_of(view)
+    if as_points(renders.scan, points):
+        depth = point_depth(renders.scan, camera, T, max_depth, normals, renders.seen(camera, T, max_depth))
+    else:
+        depth = renders.surfaces(camera, T, max_depth, normals=normals)
     finite("depth", "the depth map", depth.z)
     if not (depth.z > 0).any():
         if depth.back_facing:
@@ -223,30 +236,26 @@ class QA:
     rows: list[tuple[str, str]]
 
 
-def qa_step(scan, colors: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray, around: np.ndarray,
+def qa_step(view, photo: np.ndarray, camera: Camera, T: np.ndarray, around: np.ndarray,
             T_before: np.ndarray | None = None, pose_path: PathLike | None = None,
-            before_path: PathLike | None = None, drawn=None) -> QA:
-    """How well the scan (`Scan`, the view; colors its `scan_colors`) rendered at T lines up with
-    the photo: the structural edges against chance, the Canny distances (`qa.edges`) and the
-    verticals check (`qa.verticals`, on `around`: (n, 3) scan points around the camera); the same
-    for T_before with keys prefixed before_. A pose that sees no scan edge is an error naming it.
-    drawn: the verdict's render at T (`Refined.verification.view`), used when it is the one qa
-    would make (the same working size, the splats drawn)."""
-    from rgbd_gt.qa.edges import SHIFT_PX, WORKING_SIDE, qa, side_by_side, structural_qa, working_camera, working_view
+            before_path: PathLike | None = None) -> QA:
+    """How well the view (`renders_of`, with the scan's colors) rendered at T lines up with the photo: the structural edges against chance, the Canny
+    distances (`qa.edges`) and the verticals check (`qa.verticals`, on `around`: (n, 3) scan
+    points around the camera); the same for T_before with keys prefixed before_. A pose that sees
+    no scan edge is an error naming it."""
+    from rgbd_gt.qa.edges import qa, side_by_side, structural_qa, working_view
     from rgbd_gt.qa.verticals import verticals_qa
 
+    renders = renders_of(view)
     poses = [(T, pose_path, "")] + ([(T_before, before_path, "before_")] if T_before is not None else [])
     uprights = verticals_qa(around, photo, camera, [p[0] for p in poses])
-    if drawn is not None and not (drawn.camera == working_camera(camera, WORKING_SIDE) and drawn.radius <= SHIFT_PX
-                                  and np.array_equal(drawn.T, T)):
-        drawn = None
     images, scores, rows = [], {}, []
     for (pose, path, prefix), upright in zip(poses, uprights):
-        view = drawn if drawn is not None and pose is T else working_view(scan, colors, photo, camera, pose)
-        _, canny = qa(scan, colors, photo, camera, pose, view=view)
+        view = working_view(renders, photo, camera, pose)
+        _, canny = qa(view, camera)
         if canny.scan_edge_pixels == 0:
             raise InputError("no scan edges in view of this pose (no scan points in view?)", path)
-        img, structural = structural_qa(scan, colors, photo, camera, pose, view=view)
+        img, structural = structural_qa(view)
         images.append(img)
         scores |= structural.as_dict(prefix) | canny.as_dict(prefix) | upright.as_dict(prefix)
         rows.append((prefix.rstrip("_") or ("after" if T_before is not None else "score"),
@@ -269,20 +278,20 @@ class Overlay:
     drawn: int = 0
 
 
-def overlay_step(scan, photo: np.ndarray, camera: Camera, T: np.ndarray, max_depth: float | None = None,
+def overlay_step(view, photo: np.ndarray, camera: Camera, T: np.ndarray, max_depth: float | None = None,
                  points: bool | None = None, pose_path: PathLike | None = None) -> Overlay:
-    """The scan (`Scan`, the view) rendered at T over the photo; points=None draws the points
-    picture for LiDAR sweeps (`render.points.as_points`). Nothing of the scan in view is an error
-    naming the pose."""
+    """The view (`renders_of`, with the scan's colors) rendered at T over the photo; points=None draws the points picture for LiDAR sweeps
+    (`render.points.as_points`). Nothing of the scan in view is an error naming the pose."""
     from rgbd_gt.qa.overlay import overlay, points_image
     from rgbd_gt.render.points import as_points
 
-    checker, mixed, covered = overlay(scan, photo, camera, T, max_depth)
+    renders = renders_of(view)
+    checker, mixed, covered = overlay(renders, photo, camera, T, max_depth)
     if covered == 0:
         raise InputError("no scan surface in view of this pose (or only surfaces seen from behind)", pose_path)
-    if not as_points(scan, points):
+    if not as_points(renders.scan, points):
         return Overlay(checker, mixed, None, covered)
-    dots, drawn = points_image(scan, photo, camera, T, max_depth)
+    dots, drawn = points_image(renders, photo, camera, T, max_depth)
     return Overlay(checker, mixed, dots, covered, drawn)
 
 

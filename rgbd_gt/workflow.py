@@ -226,7 +226,8 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     from rgbd_gt.pose import camera_centre
     from rgbd_gt.qa import verticals
     from rgbd_gt.qa.edges import as_json
-    from rgbd_gt.render.depth import back_facing_fraction, expect_poses
+    from rgbd_gt.render.depth import back_facing_fraction
+    from rgbd_gt.render.renders import Renders
     from rgbd_gt.steps import depth_step, open_photo, overlay_paths, overlay_step, qa_step, refine_step, write_depth
 
     start = time.perf_counter()
@@ -257,20 +258,20 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     if len(seen) == 0:
         raise InputError("no scan points in view of the initial pose", files["init"])
     scan = prepared.subset(seen)
-    expect_poses(scan, [T_init])  # the verdict renders the result, qa the init beside it: one ray-casting scene
+    # the verdict renders the result, qa the init beside it: one ray-casting scene; depth, qa and
+    # the overlay take the verdict's render where they ask for the same camera and pose
+    renders = Renders(scan, scan_colors(scan, prepared.source), [T_init])
     lap("view")
 
     progress("refine")
-    drawn = None  # the verdict's render of the result, which qa's would repeat
     if files["refine"].exists():
         res.skipped.append("refine")
     else:
         inputs = RefineInputs(scan.xyz, scan_colors(scan, prepared.source, to_align=True), image, camera, T_init, None,
-                              scan, init_meta, around(T_init))
+                              scan, init_meta, around(T_init), renders)
         refined = refine_step(inputs, cfg.refine, files["init"], cfg.device, job.camera)
         write_pose(files["refine"], refined.T, **refined.meta)
         res.steps["aligner"] = round(refined.result.seconds, 3)
-        drawn = refined.verification.view
         lap("refine")
     T, meta = read_pose(files["refine"])
     # a poor init: the refined pose may see beyond the initial view's margin, and the depth map,
@@ -278,8 +279,7 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     # any view that holds what a pose sees renders it to the same bits: tests/test_steps.py)
     if not np.isin(prepared.view_index(camera, T, margin=REFINED_VIEW_SLACK), seen).all():
         scan = prepared.subset(np.union1d(seen, prepared.view_index(camera, T)))
-        expect_poses(scan, [T, T_init])
-    colors = scan_colors(scan, prepared.source)
+        renders = Renders(scan, scan_colors(scan, prepared.source), [T_init])
     lap("refined_view")
     res.view_points = len(scan)
     res.refine_loss, res.inlier_fraction = meta.get("final_loss"), meta.get("inlier_fraction")
@@ -297,7 +297,7 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     elif res.verdict == "failed" and not export_failed:
         res.skipped.append("depth (failed)")
     else:
-        depth = depth_step(scan, camera, T, cfg.max_depth, cfg.depth_points, pose_path=files["refine"])
+        depth = depth_step(renders, camera, T, cfg.max_depth, cfg.depth_points, pose_path=files["refine"])
         res.seen_from_behind = back_facing_fraction(depth)
         write_depth(depth, camera, T, prepared.source.name, files["depth"], png16=d / "depth.png")
         lap("depth")
@@ -306,7 +306,7 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     if files["qa"].exists():
         res.skipped.append("qa")
     else:
-        checked = qa_step(scan, colors, image, camera, T, around(T), T_init, files["refine"], files["init"], drawn)
+        checked = qa_step(renders, image, camera, T, around(T), T_init, files["refine"], files["init"])
         write_image(d / "qa.png", checked.image)
         with atomic_output(files["qa"]) as tmp:
             tmp.write_text(as_json(checked.scores))
@@ -315,7 +315,7 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     if files["overlay"].exists():
         res.skipped.append("overlay")
     else:  # the others first: overlay.png's presence says they are all there
-        pictures = overlay_step(scan, image, camera, T, cfg.max_depth, pose_path=files["refine"])
+        pictures = overlay_step(renders, image, camera, T, cfg.max_depth, pose_path=files["refine"])
         paths = overlay_paths(files["overlay"])
         for k in ("blend", "points", "checker"):
             if getattr(pictures, k) is not None:
@@ -325,7 +325,7 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     res.edge_before_px, res.edge_after_px = score["before_mean_distance_px"], score["mean_distance_px"]
     res.within_1px_before, res.within_1px_after = score["before_within_1px"], score["within_1px"]
     res.verticals_roll_before_deg, res.verticals_roll_after_deg = score.get("before_verticals_roll_deg"), score.get("verticals_roll_deg")
-    res.steps["mesh"] = round(scan.derived.get("mesh_seconds", 0.0), 3)  # within the steps that rendered first
+    res.steps["mesh"] = round(renders.mesh_seconds, 3)  # within the steps that rendered first
     res.seconds = time.perf_counter() - start
     return res
 

@@ -13,7 +13,7 @@ from rgbd_gt.io import read_pose, save_scan, write_camera, write_pose
 from rgbd_gt.io.depth_file import read_depth_exr
 from rgbd_gt.scan import Scan
 from rgbd_gt.pose import invert
-from rgbd_gt.render.depth import render_depth
+from rgbd_gt.render.depth import grid_mesh, render_depth
 from rgbd_gt.render.mesh import grid_triangles
 
 
@@ -114,11 +114,6 @@ def _dense_grid_scan() -> Scan:
                 scan_id=np.zeros(ok.sum(), np.int32), origins=np.zeros((1, 3)))
 
 
-def _only_mesh(scan: Scan):
-    ((_, mesh),) = scan.derived["grid_meshes"]
-    return mesh
-
-
 @pytest.mark.parametrize("target", [(6.0, 0.0, -1.0), (4.0, 5.0, 0.0)])  # the box ahead; looking out of the scan
 def test_grid_mesh_keeps_every_triangle_a_pixel_ray_can_hit(monkeypatch, target):
     """The ray-casting scene holds only triangles whose projection holds a pixel centre; rendering
@@ -130,13 +125,14 @@ def test_grid_mesh_keeps_every_triangle_a_pixel_ray_can_hit(monkeypatch, target)
     scan = _dense_grid_scan()
     camera = Camera(320, 240, 240.0, 241.0, 161.3, 118.7, (-0.25, 0.08, 0.001, -0.002, 0.01))
     T = np.linalg.inv(look_at(np.array([0.3, -0.2, 0.1]), np.array(target)))
-    pruned = render_depth(scan, camera, T)
-    kept, whole = len(_only_mesh(scan).tris), len(grid_triangles(scan))
+    mesh = grid_mesh(scan, camera, [T])
+    pruned = render_depth(scan, camera, T, mesh=mesh)
+    kept, whole = len(mesh.tris), len(grid_triangles(scan))
     monkeypatch.setattr(depth_module, "hittable_cells",
                         lambda grid, *a, **k: (np.ones((grid.shape[0] - 1, grid.shape[1] - 1), bool),) * 2)
-    scan.derived.clear()
-    full = render_depth(scan, camera, T)
-    assert len(_only_mesh(scan).tris) == whole
+    mesh = grid_mesh(scan, camera, [T])
+    full = render_depth(scan, camera, T, mesh=mesh)
+    assert len(mesh.tris) == whole
     assert kept < 0.5 * whole  # several points to a pixel: most triangles hold no pixel centre
     assert (full.z > 0).mean() > 0.15  # (the second view sees the scan at one side)
     same = pruned.z == full.z
@@ -154,7 +150,7 @@ def test_a_subset_makes_its_triangles_from_the_whole_scans_cell_bits():
     index = np.flatnonzero((scan.xyz[:, 0] < 6) & (scan.xyz[:, 1] > -1))
     sub = Scan(xyz=scan.xyz[index], row=scan.row[index], col=scan.col[index], scan_id=scan.scan_id[index],
                origins=scan.origins)
-    sub.derived["cell_bits"] = grid_cell_bits(scan)[index]
+    sub.cell_bits = grid_cell_bits(scan)[index]
     local = np.full(len(scan), -1)
     local[index] = np.arange(len(index))
     inside = whole[(local[whole] >= 0).all(axis=1)]

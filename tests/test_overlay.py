@@ -89,12 +89,13 @@ def test_overlay_of_a_real_lidar_sweep_draws_its_visible_points(tmp_path):
     from rgbd_gt.io.image import read_image
     from rgbd_gt.qa.overlay import points_image
     from rgbd_gt.render.normals import with_normals
+    from rgbd_gt.render.renders import Renders
 
     photo = read_image(folder / "calib.png")
     camera = read_camera(folder / "calib.txt", (photo.shape[1], photo.shape[0]))
     scan = with_normals(load_scan(folder / "calib.pcd"))
     T = read_pose(folder / "calib.txt")[0]
-    img, drawn = points_image(scan, photo, camera, T)
+    img, drawn = points_image(Renders(scan), photo, camera, T)
     assert img.shape == photo.shape
     assert 5_000 < drawn < 12_000, drawn  # about 10.5k points fall inside the photo; some are hidden
     changed = (img != cv2.convertScaleAbs(photo, alpha=0.6)).any(axis=2)
@@ -103,7 +104,7 @@ def test_overlay_of_a_real_lidar_sweep_draws_its_visible_points(tmp_path):
     dots = img[changed].astype(int)
     assert ((dots[:, 2] > dots[:, 0] + 60).mean() > 0.01) and ((dots[:, 0] > dots[:, 2] + 60).mean() > 0.01)
     # beyond --max-depth nothing is drawn
-    assert points_image(scan, photo, camera, T, max_depth=10.0)[1] < drawn / 2
+    assert points_image(Renders(scan), photo, camera, T, max_depth=10.0)[1] < drawn / 2
 
 
 def test_dots_cover_their_squares_and_the_nearest_point_wins():

@@ -9,7 +9,8 @@ from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.align.refine import RefineInputs, run_refine
 from benchmarks.depth import frame_grid_scan
 from benchmarks.icl import ICL_CAMERA, make_cases
-from rgbd_gt.qa.edges import edge_score, qa
+from rgbd_gt.qa.edges import edge_score, qa, working_view
+from rgbd_gt.render.renders import Renders
 
 
 def test_score_of_identical_and_shifted_edges():
@@ -58,8 +59,9 @@ def test_qa_score_falls_on_icl_pairs(icl_dir):
         scan = frame_grid_scan(icl_dir, case.i, "noisy")
         res = run_refine(RefineInputs(case.points, case.colors, case.photo, ICL_CAMERA, case.T_init, None),
                          RefineConfig(), "cpu")
-        _, before = qa(scan, scan.rgb, case.photo, ICL_CAMERA, case.T_init)
-        _, after = qa(scan, scan.rgb, case.photo, ICL_CAMERA, res.T_cam_from_scan)
+        renders = Renders(scan, scan.rgb)
+        _, before = qa(working_view(renders, case.photo, ICL_CAMERA, case.T_init), ICL_CAMERA)
+        _, after = qa(working_view(renders, case.photo, ICL_CAMERA, res.T_cam_from_scan), ICL_CAMERA)
         assert after.mean_distance_px < before.mean_distance_px
         assert after.within_1px > before.within_1px
 

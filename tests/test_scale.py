@@ -254,4 +254,4 @@ def test_a_view_without_the_cache_has_the_cached_normals_and_mesh(tmp_path):
     a, b = np.lexsort((plain.col, plain.row)), np.lexsort((cached.col, cached.row))
     np.testing.assert_array_equal(plain.xyz[a], cached.xyz[b])
     np.testing.assert_allclose(plain.normals[a], cached.normals[b], atol=1e-6)
-    np.testing.assert_array_equal(plain.derived["cell_bits"][a], cached.derived["cell_bits"][b])
+    np.testing.assert_array_equal(plain.cell_bits[a], cached.cell_bits[b])

@@ -44,15 +44,20 @@ class RefineInputs:
     scan: object = None  # the `Scan` (its grid renders the verification's edge check); points only when None
     init_meta: dict = field(default_factory=dict)  # the init pose file's other keys (its `uncertainty`)
     around: np.ndarray | None = None  # (M, 3) the scan around the init's camera, for the verticals check
+    renders: object = None  # the view's `render.renders.Renders`, which the verdict's edge check and later steps share
 
     @property
     def normals(self) -> np.ndarray | None:
         return self.scan.normals if self.scan is not None else None
 
-    def the_scan(self):
+    def the_renders(self):
+        """`renders`, or new ones of the scan (of the points alone when there is no scan)."""
+        from rgbd_gt.render.renders import Renders
         from rgbd_gt.scan import Scan
 
-        return self.scan if self.scan is not None else Scan(xyz=self.points)
+        if self.renders is not None:
+            return self.renders
+        return Renders(self.scan if self.scan is not None else Scan(xyz=self.points), self.colors, [self.T_init])
 
 
 def camera_disagreement(camera, init_meta: dict, camera_path) -> str | None:
@@ -165,7 +170,7 @@ def refine_verified(inputs: RefineInputs, cfg: RefineConfig, device: str = "auto
     aligner = make_aligner(inputs, cfg, device, more)
     result = aligner.refine(inputs.T_init, progress=progress, keep_residuals=keep_residuals)
     verification = verify(aligner, result, inputs.T_init, refined_camera(inputs.camera, result), inputs.photo,
-                          inputs.the_scan(), inputs.colors, cfg.verify, cfg.seed, inputs.init_meta, check)
+                          inputs.the_renders(), cfg.verify, cfg.seed, inputs.init_meta, check)
     return result, verification
 
 

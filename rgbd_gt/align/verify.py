@@ -17,7 +17,7 @@ so that one threshold serves a room 3 m across and a street 50 m deep.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -35,9 +35,6 @@ class Verification:
     reasons: list[str]  # short sentences, empty when ok
     evidence: dict  # the numbers (docs/trust.md says what each means)
     seconds: float = 0.0
-    # the scan and photo at the result as the edge check rendered them (`qa.edges.WorkingView`):
-    # qa's render of the same pose, when it is drawn at the same working size
-    view: object = field(default=None, repr=False, compare=False)
 
 
 @dataclass
@@ -213,12 +210,12 @@ def decide(ev: dict, cfg: VerifyConfig) -> tuple[str, list[str]]:
 
 
 def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: Camera, photo: np.ndarray,
-           scan, colors: np.ndarray, cfg: VerifyConfig, seed: int = 0, init_meta: dict | None = None,
+           renders, cfg: VerifyConfig, seed: int = 0, init_meta: dict | None = None,
            check: tuple[np.ndarray, np.ndarray] | None = None) -> Verification:
     """The evidence on `result` (refined from T_init by `aligner`) and the verdict.
 
-    camera, photo: the photo's own (distorted) camera and image (H, W, 3) uint8; scan, colors:
-    the scan (`Scan`) and its `scan_colors`, for the structural image check; init_meta: the
+    camera, photo: the photo's own (distorted) camera and image (H, W, 3) uint8; renders: the
+    scan's `render.renders.Renders` (with its colors), for the structural image check; init_meta: the
     init pose file's other keys (its `uncertainty`, when it states one); check: held-out pairs
     (img (n, 2) px, scan points (n, 3)).
     """
@@ -247,10 +244,10 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
                                  result.intrinsics)
 
     def edge_check():
-        drawn = working_view(scan, colors, photo, camera, T, cfg.edge_max_side, cfg.edge_shift_px)
-        return drawn, structural_qa(scan, colors, photo, camera, T, view=drawn, shift_px=cfg.edge_shift_px, score_only=True)[1]
+        drawn = working_view(renders, photo, camera, T, cfg.edge_max_side, cfg.edge_shift_px)
+        return structural_qa(drawn, cfg.edge_shift_px)[1]
 
-    drawn, score = timed("edges", edge_check)
+    score = timed("edges", edge_check)
     ev["edges"] = score.as_dict()
     if check is not None:
         ev["check"] = check_pairs(check, camera, T_init, T)
@@ -261,4 +258,4 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
                                           moved_deg / max(float(init_sigma["rotation_deg"]), 1e-9))
     ev["seconds"] = seconds
     verdict, reasons = decide(ev, cfg)
-    return Verification(verdict, reasons, ev, time.perf_counter() - start, drawn)
+    return Verification(verdict, reasons, ev, time.perf_counter() - start)

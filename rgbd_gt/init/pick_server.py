@@ -57,6 +57,8 @@ class PickSession:
         from rgbd_gt.qa.overlay import blend, points_image, render_colors
         from rgbd_gt.render.blocks import view_of
         from rgbd_gt.render.points import is_sweep
+        from rgbd_gt.render.renders import Renders
+        from rgbd_gt.scan import scan_colors
 
         if self.camera is None:
             raise InputError("the live pose needs --camera")
@@ -67,10 +69,11 @@ class PickSession:
         photo = cv2.resize(self.photo, small.size, interpolation=cv2.INTER_AREA)
         T = np.array(out["T_cam_from_scan"])
         seen = view_of(self.scan, small, [T])  # a render costs what the photo sees
+        renders = Renders(seen, scan_colors(seen))
         if is_sweep(seen):
-            picture = points_image(seen, photo, small, T)[0]
+            picture = points_image(renders, photo, small, T)[0]
         else:
-            picture = blend(photo, *render_colors(seen, small, T))
+            picture = blend(photo, *render_colors(renders, small, T))
         ok, png = cv2.imencode(".png", cv2.cvtColor(picture, cv2.COLOR_RGB2BGR))
         with self.lock:
             self.overlay_png = png.tobytes()

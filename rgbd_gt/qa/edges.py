@@ -16,8 +16,8 @@ import cv2
 import numpy as np
 
 from rgbd_gt.camera import Camera, rescale
-from rgbd_gt.scan import Scan, colors_to_gray
-from rgbd_gt.render.depth import render_depth
+from rgbd_gt.render.renders import Renders
+from rgbd_gt.scan import colors_to_gray
 
 
 WORKING_SIDE = 1280  # the longer side (pixels) of the picture the scores are taken on
@@ -62,16 +62,6 @@ def auto_canny(gray: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
     return edges
 
 
-def scan_view(scan: Scan, colors: np.ndarray, camera: Camera, T: np.ndarray,
-              max_splat_px: int | None = None) -> tuple[np.ndarray, np.ndarray, int]:
-    """The scan as the camera sees it: gray values (H, W) float32 0..255, z-depth (H, W) metres
-    (0 where it sees no scan, or everywhere when splats would be wider than max_splat_px) and
-    the splat radius in pixels (0 for a mesh)."""
-    out = render_depth(scan, camera, T, values=colors_to_gray(colors).reshape(-1, 1), normals=False,
-                       max_splat_px=max_splat_px)
-    return out.colors[..., 0], out.z, out.splat_radius
-
-
 def edge_score(photo_edges: np.ndarray, scan_edges: np.ndarray, pixel: float = 1.0) -> EdgeScore:
     """Distance from each scan edge pixel to the nearest photo edge pixel, in units of `pixel`
     edge-image pixels (the photo's own pixels for edges found at a reduced scale)."""
@@ -107,32 +97,32 @@ def side_by_side(before: np.ndarray, after: np.ndarray) -> np.ndarray:
 @dataclass
 class WorkingView:
     """The photo and the scan rendered at a pose, both at a working resolution (`working_camera`):
-    what both edge checks look at, rendered once."""
+    what both edge checks look at."""
 
     camera: Camera
     photo: np.ndarray  # (h, w, 3) uint8
-    gray: np.ndarray  # `scan_view`'s
-    z: np.ndarray
-    radius: int
-    T: np.ndarray | None = None  # (4, 4) the pose it was rendered at
+    gray: np.ndarray  # (h, w) float32 0..255: the scan's colors as gray, 0 where it sees none
+    z: np.ndarray  # (h, w) metres, 0 where the scan has no surface (or everywhere: splats not drawn)
+    radius: int  # the splat radius in pixels (0 for a mesh)
 
 
-def working_view(scan: Scan, colors: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray,
+def working_view(renders: Renders, photo: np.ndarray, camera: Camera, T: np.ndarray,
                  max_side: int = WORKING_SIDE, max_splat_px: int | None = None) -> WorkingView:
+    """The view (`renders`: `render.renders.Renders` of the scan, with its colors) at T and the
+    photo (H, W, 3) uint8 of `camera`, at the working resolution whose longer side is at most
+    max_side; splats wider than max_splat_px are not drawn (z all 0)."""
     cam = working_camera(camera, max_side)
     small = photo if cam.size == camera.size else cv2.resize(photo, cam.size, interpolation=cv2.INTER_AREA)
-    return WorkingView(cam, small, *scan_view(scan, colors, cam, T, max_splat_px), np.array(T, np.float64))
+    out = renders.surfaces(cam, T, colors=True, max_splat_px=max_splat_px)
+    gray = colors_to_gray(out.colors.reshape(-1, out.colors.shape[-1])).reshape(out.z.shape)
+    return WorkingView(cam, small, gray, out.z, out.splat_radius)
 
 
-def qa(scan: Scan, colors: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray,
-       max_side: int = WORKING_SIDE, view: WorkingView | None = None,
-       usable_splat_px: int = SHIFT_PX) -> tuple[np.ndarray, EdgeScore]:
-    """(overlay image, score) for one pose, at a working resolution whose longer side is at most
-    max_side (distances in the photo's own pixels): Canny on every pixel of a 24 MP photo costs
-    seconds and gigabytes, and its edges are no surer. A scan drawn with splats wider than
-    usable_splat_px (working pixels; a LiDAR sweep's are 30 and more) scores as not usable, as
-    `structural_qa` does beyond its shift."""
-    view = view or working_view(scan, colors, photo, camera, T, max_side)
+def qa(view: WorkingView, camera: Camera, usable_splat_px: int = SHIFT_PX) -> tuple[np.ndarray, EdgeScore]:
+    """(overlay image, score) for one pose from its `working_view` (distances in the pixels of
+    the photo's `camera`): Canny on every pixel of a 24 MP photo costs seconds and gigabytes, and
+    its edges are no surer. A scan drawn with splats wider than usable_splat_px (working pixels;
+    a LiDAR sweep's are 30 and more) scores as not usable, as `structural_qa` does beyond its shift."""
     photo_edges = auto_canny(cv2.cvtColor(view.photo, cv2.COLOR_RGB2GRAY))
     scan_edges = auto_canny(view.gray, view.z > 0)
     if view.radius > usable_splat_px:
@@ -228,14 +218,11 @@ def working_camera(camera: Camera, max_side: int) -> Camera:
     return camera if s == 1.0 else rescale(camera, max(1, round(camera.width * s)), max(1, round(camera.height * s)))
 
 
-def structural_qa(scan: Scan, colors: np.ndarray, photo: np.ndarray, camera: Camera, T: np.ndarray,
-                  max_side: int = WORKING_SIDE, shift_px: int = SHIFT_PX, view: WorkingView | None = None,
-                  score_only: bool = False) -> tuple[np.ndarray, StructuralScore]:
+def structural_qa(view: WorkingView, shift_px: int = SHIFT_PX) -> tuple[np.ndarray, StructuralScore]:
     """(overlay at the working resolution: red = the photo's strongest gradients, blue = the
     scan's structural edges that were scored, white = both; the chance-relative score) for one
-    pose. shift_px is in working-resolution pixels; splats wider than it make the score unusable,
-    and with score_only they are not drawn at all (the overlay then lacks the scan's edges)."""
-    view = view or working_view(scan, colors, photo, camera, T, max_side, shift_px if score_only else None)
+    pose from its `working_view`. shift_px is in working-resolution pixels; splats wider than it
+    make the score unusable (a view whose splats were not drawn lacks the scan's edges)."""
     small, gray, z, radius = view.photo, view.gray, view.z, view.radius
     strength = photo_strength(cv2.cvtColor(small, cv2.COLOR_RGB2GRAY))
     edges = structural_edges(z, gray)

@@ -13,6 +13,7 @@ import numpy as np
 
 from rgbd_gt.camera import Camera, rescale
 from rgbd_gt.render.cells import cell_for_density
+from rgbd_gt.render.renders import Renders
 from rgbd_gt.scan import Scan, scan_colors
 
 
@@ -30,21 +31,19 @@ def render_scale(scan: Scan, camera: Camera, T: np.ndarray, per_step: float = 2.
     return float(min(1.0, per_step * np.sqrt(3) / cell_for_density(uv, camera.size, largest=256)))
 
 
-def render_colors(scan: Scan, camera: Camera, T: np.ndarray, max_depth: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+def render_colors(renders: Renders, camera: Camera, T: np.ndarray,
+                  max_depth: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The scan's colors (gray for intensity) as the camera sees them at T: (H, W, 3) uint8 and
-    (H, W) bool where the scan has a surface (the depth renderer: occlusion and back faces).
-    Rendered at `render_scale` and enlarged: the cost follows the scan, not the photo's pixels."""
+    (H, W) bool where the scan has a surface (the depth renderer: occlusion and back faces), from
+    `renders` (`render.renders.Renders` of the view, with its colors). Rendered at `render_scale`
+    and enlarged: the cost follows the scan, not the photo's pixels."""
     import cv2
 
-    from rgbd_gt.render.depth import render_depth
-
-    colors = scan_colors(scan)
-    if colors.shape[1] == 1:
-        colors = np.repeat(np.clip(np.rint(colors * 255), 0, 255), 3, axis=1)
-    s = render_scale(scan, camera, T)
+    s = render_scale(renders.scan, camera, T)
     cam = camera if s >= 0.999 else rescale(camera, max(1, round(camera.width * s)), max(1, round(camera.height * s)))
-    depth = render_depth(scan, cam, T, max_depth, values=colors.astype(np.uint8), normals=False)
-    rendered, have = depth.colors, (depth.z > 0).astype(np.uint8)
+    depth = renders.surfaces(cam, T, max_depth, colors=True)
+    c = depth.colors if depth.colors.shape[-1] == 3 else np.repeat(depth.colors * 255, 3, axis=-1)
+    rendered, have = np.clip(np.rint(c), 0, 255).astype(np.uint8), (depth.z > 0).astype(np.uint8)
     if cam.size != camera.size:
         rendered = cv2.resize(rendered, camera.size, interpolation=cv2.INTER_LINEAR)
         have = cv2.resize(have, camera.size, interpolation=cv2.INTER_NEAREST)
@@ -78,26 +77,26 @@ def blend(photo: np.ndarray, rendered: np.ndarray, have: np.ndarray) -> np.ndarr
     return out
 
 
-def overlay(scan: Scan, photo: np.ndarray, camera: Camera, T: np.ndarray,
+def overlay(renders: Renders, photo: np.ndarray, camera: Camera, T: np.ndarray,
             max_depth: float | None = None) -> tuple[np.ndarray, np.ndarray, float]:
     """(checkerboard, blend, fraction of the photo the scan covers) at the photo's resolution."""
-    rendered, have = render_colors(scan, camera, T, max_depth)
+    rendered, have = render_colors(renders, camera, T, max_depth)
     return checkerboard(photo, rendered, have), blend(photo, rendered, have), float(have.mean())
 
 
-def points_image(scan: Scan, photo: np.ndarray, camera: Camera, T: np.ndarray, max_depth: float | None = None,
+def points_image(renders: Renders, photo: np.ndarray, camera: Camera, T: np.ndarray, max_depth: float | None = None,
                  dot_px: int = 1) -> tuple[np.ndarray, int]:
-    """(H, W, 3) uint8: the photo, dimmed, with the scan points the camera sees at T drawn as
-    squares of side 2 dot_px + 1 (`dot_pixels`: the nearest wins where they overlap) in their
-    colors (`point_colors`); and the number of points drawn."""
+    """(H, W, 3) uint8: the photo, dimmed, with the scan points the camera sees at T
+    (`Renders.seen`) drawn as squares of side 2 dot_px + 1 (`dot_pixels`: the nearest wins where
+    they overlap) in their colors (`point_colors`); and the number of points drawn."""
     import cv2
 
-    from rgbd_gt.render.points import dot_pixels, seen_points
+    from rgbd_gt.render.points import dot_pixels
 
-    idx, uv, z = seen_points(scan, camera, T, max_depth)
+    idx, uv, z, _ = renders.seen(camera, T, max_depth)
     out = cv2.convertScaleAbs(photo, alpha=0.6)
     key, owner = dot_pixels(uv, z, camera.size, dot_px)
-    out.reshape(-1, 3)[key] = point_colors(scan, idx)[owner]
+    out.reshape(-1, 3)[key] = point_colors(renders.scan, idx)[owner]
     return out, len(idx)
 
 

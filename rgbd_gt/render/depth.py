@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,6 +25,7 @@ class DepthMap:
     # pixels whose nearest surface the camera sees from behind (z is 0 there: the scan has
     # nothing of the side the camera sees); None when the scan's normals are unknown
     back_facing: int | None = None
+    drawn: bool = True  # False: splats wider than the render's max_splat_px were not drawn (z all 0)
 
 
 BACK_FACING_WARN = 0.03  # of the view: more, and the photo was taken from the other side of much of the scan
@@ -82,19 +82,22 @@ def pixel_rays(camera: Camera, rows: tuple[int, int] | None = None, normalised: 
 
 
 def render_depth(scan: Scan, camera: Camera, T_cam_from_scan: np.ndarray, max_depth: float | None = None,
-                 values: np.ndarray | None = None, normals: bool = True, max_splat_px: int | None = None) -> DepthMap:
+                 values: np.ndarray | None = None, normals: bool = True, max_splat_px: int | None = None,
+                 mesh: GridMesh | None = None) -> DepthMap:
     """Occlusion-correct depth: a structured scan is triangulated along its grid and ray-cast
     (Open3D); a scan without a grid is splatted with discs sized by its point spacing.
     values: optional per-point (N, C) values (colors) rendered along, as DepthMap.colors (of the
     values' dtype: uint8 colors stay uint8). normals: also the camera-frame normals (else
     DepthMap.normals is None, which saves 12 bytes a pixel). max_splat_px: splats wider than
     this are not drawn (z all 0; splat_radius says how wide they would be), for a check that
-    cannot use them (a sweep's are tens of pixels and take seconds).
+    cannot use them (a sweep's are tens of pixels and take seconds). mesh: a grid scan's
+    `grid_mesh` for this camera and pose, when made (else made here).
 
     Surfaces seen from behind (their normals, `render.normals`, facing away from the camera)
     render as 0 and are counted in DepthMap.back_facing; they still hide what lies behind them."""
     if scan.has_grid:
-        out = _raycast_mesh(scan, camera, T_cam_from_scan, values, normals)
+        out = _raycast_mesh(scan, camera, T_cam_from_scan, values, normals,
+                            mesh or grid_mesh(scan, camera, [T_cam_from_scan]))
     else:
         out = _splat(scan, camera, T_cam_from_scan, values, max_splat_px)
         if not normals:
@@ -110,18 +113,19 @@ def render_depth(scan: Scan, camera: Camera, T_cam_from_scan: np.ndarray, max_de
 
 
 def point_depth(scan: Scan, camera: Camera, T_cam_from_scan: np.ndarray, max_depth: float | None = None,
-                normals: bool = True) -> DepthMap:
+                normals: bool = True, seen: tuple | None = None) -> DepthMap:
     """Sparse depth: the z of each point the camera sees (`render.points.seen_points`, the
     aligner's visibility rule) at the pixel it falls in, the nearest where several do, 0 elsewhere;
     nothing is interpolated. For a sweep (`render.points.is_sweep`) the only honest depth: its
     rings are metres apart at range, and surfaces rendered from it fill the gaps with discs
     sized by those gaps (on a pole, discs wider than the pole). back_facing counts the points
-    that would be seen but face away (left out)."""
+    that would be seen but face away (left out). seen: that rule's result when found
+    (`render.renders.Renders.seen`)."""
     from rgbd_gt.render.normals import with_normals
     from rgbd_gt.render.points import dot_pixels, seen_and_behind
 
     scan = with_normals(scan)
-    idx, uv, z, back = seen_and_behind(scan, camera, T_cam_from_scan, max_depth)
+    idx, uv, z, back = seen or seen_and_behind(scan, camera, T_cam_from_scan, max_depth)
     key, owner = dot_pixels(uv, z, camera.size, 0)
     w, h = camera.size
     zz = np.zeros(h * w, np.float32)
@@ -149,47 +153,23 @@ class GridMesh:
 
 
 HIT_MARGIN_PX = 0.01  # 5 x the pixel rays' own error (normalised_map: <= 0.002 px; float32 pixels: 1e-4 px)
-MESHES_KEPT = 2  # a result's renders ask for one or two cameras (the working one of the checks, the photo's)
 
 
-def expect_poses(scan: Scan, poses: list[np.ndarray]) -> None:
-    """Say that renders of this scan will be asked at these poses too (a photo's initial pose,
-    which qa renders beside the refined one): the first ray-casting scene `grid_mesh` builds for
-    a camera then serves them all, one build instead of one per pose."""
-    scan.derived["expected_poses"] = [np.asarray(T, np.float64) for T in poses]
-
-
-def grid_mesh(scan: Scan, camera: Camera, T_cam_from_scan: np.ndarray) -> GridMesh:
-    """The scan's grid mesh as the rays through `camera`'s pixel centres at this pose can hit it.
-
-    The grid's cells (`render.mesh.grid_cells`) are made once per scan and kept in scan.derived;
-    the ray-casting scene holds only the triangles whose projection holds a pixel centre
-    (`hittable_cells`) at this pose or one of the `expect_poses`, which leaves every ray's hit as
-    it is. The last MESHES_KEPT scenes are kept: the renders of one result (the verdict, depth,
-    qa, the overlay) share them; the seconds spent building them add up in
-    scan.derived["mesh_seconds"]. A dense scan has several points per pixel, so most of its
-    triangles hold no pixel centre, and the scene's build (which grows with its triangles) costs
-    a fraction of the whole mesh's."""
+def grid_mesh(scan: Scan, camera: Camera, poses: list[np.ndarray], cells: list | None = None) -> GridMesh:
+    """The scan's grid mesh as the rays through `camera`'s pixel centres at any of `poses` can hit
+    it: the ray-casting scene holds only the triangles whose projection holds a pixel centre
+    (`hittable_cells`) at one of the poses, which leaves every ray's hit as it is. A dense scan
+    has several points per pixel, so most of its triangles hold no pixel centre, and the scene's
+    build (which grows with its triangles) costs a fraction of the whole mesh's. cells: the
+    scan's `render.mesh.grid_cells` when already made (`render.renders.Renders` makes them once)."""
     import open3d as o3d
 
     from rgbd_gt.render.mesh import cell_triangles, grid_cells
 
-    def key(T):
-        return camera, np.asarray(T, np.float64).tobytes()
-
-    kept = scan.derived.setdefault("grid_meshes", [])  # (the keys it serves, GridMesh), most recently used last
-    for i, (serves, mesh) in enumerate(kept):
-        if key(T_cam_from_scan) in serves:
-            kept.append(kept.pop(i))
-            return mesh
-    start = time.perf_counter()
-    if "grid_cells" not in scan.derived:
-        scan.derived["grid_cells"] = grid_cells(scan)
-    poses = {key(T): T for T in [T_cam_from_scan, *scan.derived.get("expected_poses", [])]}
-    corners = [_corner_pixels(scan.xyz, camera, T) for T in poses.values()]
+    corners = [_corner_pixels(scan.xyz, camera, T) for T in poses]
     bands = []
-    for cells in scan.derived["grid_cells"]:
-        for grid, keep1, keep2 in _row_bands(*cells):
+    for band in (cells if cells is not None else grid_cells(scan)):
+        for grid, keep1, keep2 in _row_bands(*band):
             hit1, hit2 = False, False
             for uv, out in corners:
                 h1, h2 = hittable_cells(grid, uv, out, camera)
@@ -200,23 +180,19 @@ def grid_mesh(scan: Scan, camera: Camera, T_cam_from_scan: np.ndarray) -> GridMe
     if len(scan.origins):
         sid = scan.scan_id[tris[:, 0]] if scan.scan_id is not None else np.zeros(len(tris), np.int64)
         origin = np.minimum(sid, len(scan.origins) - 1)
-    if "local_xyz" not in scan.derived:  # float32 about the centre: exact for georeferenced coordinates
-        # the scanner where known: every view of one scan then renders to the same bits, whatever
-        # else it holds (run's view of a result and its init, export-depth's of the result alone)
-        centre = scan.origins[0] if len(scan.origins) else scan.xyz.mean(axis=0) if len(scan) else np.zeros(3)
-        scan.derived["local_xyz"] = centre, (scan.xyz - centre).astype(np.float32)
-    centre, local = scan.derived["local_xyz"]
+    # float32 about the scanner where known (exact for georeferenced coordinates): every view of
+    # one scan then renders to the same bits, whatever else it holds (run's view of a result and
+    # its init, export-depth's of the result alone)
+    centre = scan.origins[0] if len(scan.origins) else scan.xyz.mean(axis=0) if len(scan) else np.zeros(3)
     scene = o3d.t.geometry.RaycastingScene()
     if len(tris):
+        used = np.unique(tris)
         mesh = o3d.t.geometry.TriangleMesh()
-        mesh.vertex.positions = o3d.core.Tensor(local)
-        mesh.triangle.indices = o3d.core.Tensor(tris)
+        mesh.vertex.positions = o3d.core.Tensor((scan.xyz[used] - centre).astype(np.float32))
+        mesh.triangle.indices = o3d.core.Tensor(np.searchsorted(used, tris).astype(np.int32))
         scene.add_triangles(mesh)
-        scene.cast_rays(o3d.core.Tensor(np.array([[0, 0, 0, 0, 0, 1]], np.float32)))  # builds the hierarchy now: timed here
-    del kept[:len(kept) + 1 - MESHES_KEPT]
-    kept.append((set(poses), GridMesh(tris, scene, centre, origin)))
-    scan.derived["mesh_seconds"] = scan.derived.get("mesh_seconds", 0.0) + time.perf_counter() - start
-    return kept[-1][1]
+        scene.cast_rays(o3d.core.Tensor(np.array([[0, 0, 0, 0, 0, 1]], np.float32)))  # builds the hierarchy now
+    return GridMesh(tris, scene, centre, origin)
 
 
 def _row_bands(grid: np.ndarray, keep1: np.ndarray, keep2: np.ndarray, cells: int = 1 << 19):
@@ -305,13 +281,12 @@ def _hit(p0, p1, p2, camera: Camera, margin: float, out) -> np.ndarray:
 
 
 def _raycast_mesh(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None, want_normals: bool,
-                  block: int = 1 << 20) -> DepthMap:
+                  mesh: GridMesh, block: int = 1 << 20) -> DepthMap:
     """Ray-cast the grid mesh pixel by pixel, `block` pixels at a time so that memory stays near
     the outputs' own. A hit triangle whose front (the side its scanner saw) faces away from the
     camera is seen from behind."""
     import open3d as o3d
 
-    mesh = grid_mesh(scan, camera, T)
     tris = mesh.tris
     knows_sides = mesh.origin is not None
     h, w = camera.height, camera.width
@@ -436,7 +411,9 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None,
         reach_px = reach * camera.fx / z
         radius = max(1, int(np.ceil(min(np.quantile(reach_px, 0.99), 4 * np.median(reach_px)))))
     if max_splat_px is not None and radius > max_splat_px:
-        return nothing(f"splats of radius {radius} px (over {max_splat_px}: not drawn)", radius)
+        skipped = nothing(f"splats of radius {radius} px (over {max_splat_px}: not drawn)", radius)
+        skipped.drawn = False
+        return skipped
     if normals is not None:
         n_cam = normals[seen] @ T[:3, :3].T
         slope = surfel_slope(p[seen], n_cam, z, camera, radius)

@@ -23,10 +23,10 @@ def grid_cells(scan: Scan, max_stretch: float = 8.0) -> list[tuple[np.ndarray, n
     """The grid's triangles, band by band of grid rows (a 40-million-point grid is triangulated
     in bounded memory), as cells: (grid band (r, c) int32 of point indices (-1: none), keep1,
     keep2 (r-1, c-1) bool: the cells' triangles (a, b, c) and (c, b, d) that `grid_triangles`
-    keeps). Six bytes a cell, without coordinates. A scan whose scan.derived holds "cell_bits"
-    (`grid_cell_bits` of the whole scan it is part of: a prepared scan's view) takes its
-    triangles from them, without measuring an edge."""
-    bits = scan.derived.get("cell_bits")
+    keeps). Six bytes a cell, without coordinates. A scan with `cell_bits` (`grid_cell_bits` of
+    the whole scan it is part of: a prepared scan's view) takes its triangles from them, without
+    measuring an edge."""
+    bits = scan.cell_bits
     if bits is None:
         return [(grid, keep1, keep2) for grid, _, keep1, keep2 in _bands(scan, max_stretch)]
     out = []
@@ -42,14 +42,14 @@ def grid_cell_bits(scan: Scan, max_stretch: float = 8.0) -> np.ndarray:
     """(N,) uint8, the grid's triangles in a byte a point: bit 1 where the point is the corner a
     of a kept triangle (a, b, c), bit 2 where it is the corner d of a kept (c, b, d) (`_bands`).
     Any subset of the points that keeps its grid indices makes its triangles from them
-    (`grid_cells`): what a prepared scan stores for its views. Made by `grid_normals` when it
-    ran on this scan."""
-    if "cell_bits" not in scan.derived:
-        bits = np.zeros(len(scan), np.uint8)
-        for grid, _, keep1, keep2 in _bands(scan, max_stretch):
-            _set_bits(bits, grid, keep1, keep2)
-        scan.derived["cell_bits"] = bits
-    return scan.derived["cell_bits"]
+    (`grid_cells`): what a prepared scan stores for its views (`grid_normals` makes them too, in
+    the same pass). The scan's own `cell_bits` when it has them."""
+    if scan.cell_bits is not None:
+        return scan.cell_bits
+    bits = np.zeros(len(scan), np.uint8)
+    for grid, _, keep1, keep2 in _bands(scan, max_stretch):
+        _set_bits(bits, grid, keep1, keep2)
+    return bits
 
 
 def _set_bits(bits: np.ndarray, grid: np.ndarray, keep1: np.ndarray, keep2: np.ndarray) -> None:
@@ -65,11 +65,11 @@ def cell_triangles(grid: np.ndarray, keep1: np.ndarray, keep2: np.ndarray) -> np
     return np.concatenate([tri1, tri2]).astype(np.int32, copy=False)
 
 
-def grid_normals(scan: Scan, max_stretch: float = 8.0) -> np.ndarray:
+def grid_normals(scan: Scan, max_stretch: float = 8.0) -> tuple[np.ndarray, np.ndarray]:
     """(N, 3) float32 unit normals of a structured scan: per point the area-weighted sum of its
     `grid_triangles`, each turned toward its scanner (0 for a point in no triangle). Summed on
-    the grid itself, band by band: no triangle list is made. The same pass leaves the grid's
-    `grid_cell_bits` in scan.derived["cell_bits"]."""
+    the grid itself, band by band: no triangle list is made. And the grid's `grid_cell_bits`,
+    made in the same pass."""
     out = np.zeros((len(scan), 3), np.float32)
     bits = np.zeros(len(scan), np.uint8)
     for grid, xyz, keep1, keep2 in _bands(scan, max_stretch):
@@ -87,11 +87,10 @@ def grid_normals(scan: Scan, max_stretch: float = 8.0) -> np.ndarray:
                 acc[i:i + h, j:j + w] += n
         have = grid >= 0
         out[grid[have]] += acc[have]
-    scan.derived["cell_bits"] = bits
     # in place: on a 40-million-point scan each (N, 3) temporary is half a gigabyte, and this
     # is the peak of a scan's preparation (a point in no triangle stays 0)
     out /= np.sqrt(np.maximum(np.einsum("ij,ij->i", out, out), np.float32(1e-30)))[:, None]
-    return out
+    return out, bits
 
 
 def _bands(scan: Scan, max_stretch: float, cells: int = 1 << 20):

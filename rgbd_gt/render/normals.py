@@ -57,7 +57,7 @@ def scan_normals(scan: Scan) -> np.ndarray | None:
     elif scan.has_grid:  # oriented as they are summed: no per-point origins (1 GB at 40 M points)
         from rgbd_gt.render.mesh import grid_normals
 
-        return grid_normals(scan)
+        return grid_normals(scan)[0]
     else:
         n = knn_normals(scan.xyz)
     origin = scan_origin_per_point(scan)
