@@ -287,6 +287,8 @@ def _raycast_mesh(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray 
     camera is seen from behind."""
     import open3d as o3d
 
+    from rgbd_gt.render.normals import facing_camera
+
     tris = mesh.tris
     knows_sides = mesh.origin is not None
     h, w = camera.height, camera.width
@@ -323,7 +325,7 @@ def _raycast_mesh(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray 
             scanner = scan.origins[mesh.origin[prim]]
             front = np.sign(np.einsum("ij,ij->i", n_scan, scanner - scan.xyz[tris[prim, 0]]))
             behind = np.zeros(len(zb), bool)
-            behind[ok] = facing[ok] * front > 0
+            behind[ok] = ~facing_camera(d_cam[ok], nb[ok] * front[:, None], tolerance=0.0)
             zb[behind] = 0
             back += int(behind.sum())
             ok &= ~behind
@@ -425,8 +427,8 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None,
         zz, idx = close_gaps(zz, index.numpy(), reach_px)
         img = values_at(torch.as_tensor(vals), torch.as_tensor(idx))
         # a pixel whose nearest point faces away is seen from behind
-        away = ~facing_camera(torch.as_tensor(p[seen], dtype=torch.float32), torch.as_tensor(n_cam, dtype=torch.float32))
-        behind = (idx >= 0) & away.numpy()[np.maximum(idx, 0)]
+        away = ~facing_camera(p[seen].astype(np.float32), n_cam.astype(np.float32))
+        behind = (idx >= 0) & away[np.maximum(idx, 0)]
         zz[behind] = 0
         back = int(behind.sum())
         if values is not None:

@@ -8,15 +8,9 @@ but they still hide what lies behind them.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from rgbd_gt.scan import Scan
-
-if TYPE_CHECKING:
-    import torch
-
 
 def scan_origin_per_point(scan: Scan) -> np.ndarray | None:
     """(N, 3) position of the scanner that saw each point, or None when the scan records none."""
@@ -85,9 +79,11 @@ def with_normals(scan: Scan) -> Scan:
     return scan if n is None else dataclasses.replace(scan, normals=n)
 
 
-def facing_camera(points_cam: torch.Tensor, normals_cam: torch.Tensor, tolerance: float = 0.05) -> torch.Tensor:
+def facing_camera(points_cam, normals_cam, tolerance: float = 0.05):
     """(N,) bool: camera-frame points (N, 3) whose camera-frame normals (N, 3) face the camera:
     n . p <= tolerance |p|, p the ray from the camera to the point; the tolerance (the cosine
-    past perpendicular, about 3 degrees) keeps grazing surfaces whose normals are a little off.
-    A zero normal (unknown) counts as facing."""
-    return (normals_cam * points_cam).sum(1) <= tolerance * points_cam.norm(dim=1)
+    past perpendicular, about 3 degrees) keeps grazing surfaces whose normals are a little off
+    (a triangle's own normal is not off: the grid mesh takes 0). A zero normal (unknown) counts
+    as facing. The one test of sides for points, splats and the mesh: numpy arrays or torch
+    tensors in, the same out."""
+    return (normals_cam * points_cam).sum(1) <= tolerance * ((points_cam * points_cam).sum(1)) ** 0.5

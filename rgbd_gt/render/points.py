@@ -88,7 +88,7 @@ def seen_and_behind(scan: Scan, camera: Camera, T: np.ndarray,
     passed = visible_points(uv_t, z_t, camera.size, cell_for_density(uv_t, camera.size)).numpy()
     behind = None
     if scan.normals is not None:
-        facing = facing_camera(torch.as_tensor(p[idx]), torch.as_tensor(scan.normals[idx] @ T[:3, :3].T)).numpy()
+        facing = facing_camera(p[idx], scan.normals[idx] @ T[:3, :3].T)
         behind = int((passed & ~facing).sum())
         passed &= facing
     idx = idx[passed]
