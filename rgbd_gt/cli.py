@@ -230,12 +230,11 @@ def init_pose(
     """Coarse pose of a photo from a checkerboard seen in both the photo and the scan (PnP), or
     from hand-picked correspondences (RANSAC PnP)."""
     from rgbd_gt.init.detect import MAX_SQUARE_M, BoardSpec
-    from rgbd_gt.init.pnp import check_spread
-    from rgbd_gt.init.run import (board_in_scan, check_picks, detect_photo_board, init_from_board,
-                                  init_from_correspondences, read_correspondences, read_csv_rows, write_report)
+    from rgbd_gt.init.run import read_csv_rows, write_report
     from rgbd_gt.io import write_pose
     from rgbd_gt.io.outputs import Outputs
-    from rgbd_gt.steps import made_from, open_photo
+    from rgbd_gt.prepared import prepare_scan
+    from rgbd_gt.steps import init_step, made_from, open_photo
 
     outs = Outputs([scan, image, camera, board_points, correspondences])
     pose_out = outs.file(output, "-o", POSE_SUFFIXES)
@@ -257,38 +256,19 @@ def init_pose(
     if estimate_focal and correspondences is None:
         raise InputError("--estimate-focal needs --correspondences")
     opened = open_photo(image, camera)
-    photo, cam = opened.image, opened.camera
+    corners = read_csv_rows(board_points, "x,y,z") if board_points and correspondences is None else None
     with _progress() as bar:
         bar.add_task("init-pose", total=None)
-        from rgbd_gt.prepared import prepare_scan, whole_scan
-
-        if correspondences is not None:
-            the_scan = whole_scan(scan, cache)
-            picks = read_correspondences(correspondences)
-            check_picks(picks, cam, the_scan.xyz, correspondences, the_scan.origins)
-            check_spread(picks.obj, picks.img, str(correspondences), 6)  # named after the file
-            result = init_from_correspondences(picks, cam, estimate_focal, ransac_px)
-            from rgbd_gt.qa.verticals import verticals_qa
-
-            # a check the picks do not take part in: a few pairs hardly check each other
-            upright = verticals_qa(the_scan.xyz, photo, result.camera, [result.T_cam_from_scan])[0]
-        else:
-            upright = None
-            spec = BoardSpec(cols, rows, square, charuco, marker)
-            corners = read_csv_rows(board_points, "x,y,z") if board_points else None
-            found = detect_photo_board(photo, spec, image)
-            if cache is not None and corners is None:
-                in_scan = prepare_scan(scan, cache).board(spec, scan)
-            else:
-                in_scan = board_in_scan(whole_scan(scan, cache), spec, corners, scan)
-            result = init_from_board(in_scan, photo, cam, spec, found)
+        prepared = prepare_scan(scan, cache)
+        result, upright = init_step(prepared, opened, image, BoardSpec(cols, rows, square, charuco, marker), corners,
+                                    correspondences, estimate_focal, ransac_px)
     files = {"photo": image, "camera": camera} | ({"board_points": board_points} if board_points else {})
     board_layout = None
     if correspondences is not None:
         files["correspondences"] = correspondences
     else:
         board_layout = (cols, rows, square, charuco, marker)
-    made = made_from(scan, None, files, board_layout)
+    made = made_from(scan, prepared.sha1, files, board_layout)
     meta = result.pose_meta() | (upright.as_dict() if upright is not None else {}) | made
     with outs:
         if camera_out is not None:
@@ -298,7 +278,7 @@ def init_pose(
             meta["camera_out"] = str(camera_out)
         write_pose(pose_out, result.T_cam_from_scan, **meta)
         if report is not None:
-            write_report(report_dir, result, photo)
+            write_report(report_dir, result, opened.image)
     rows = [("method", result.method), ("points used", str(result.n_points)),
             ("reprojection RMS", f"{result.reprojection_rms_px:.3f} px")]
     dropped = [p for p in result.extra.get("pairs", []) if not p["inlier"]]

@@ -50,7 +50,8 @@ def prepare_job(job: ScanJob, cache_root: Path, progress: Callable[[str], None] 
     """Prepare a scan (or reopen its cache) and find its board when a photo still needs an
     initial pose; an InputError becomes the result's error (`unreadable` when the scan's own)."""
     from rgbd_gt.prepared import prepare_scan
-    from rgbd_gt.workflow import scan_board
+    from rgbd_gt.steps import board_in_prepared
+    from rgbd_gt.workflow import board_corners, board_spec
 
     start = time.perf_counter()
     out = Prepared(job)
@@ -67,7 +68,7 @@ def prepare_job(job: ScanJob, cache_root: Path, progress: Callable[[str], None] 
         if job.init is None and any(not (job.out / p.stem / "init.yaml").exists() for p in job.photos):
             progress("finding the board")
             t = time.perf_counter()
-            scan_board(prepared, job.board)
+            board_in_prepared(prepared, board_spec(job.board), board_corners(job.board))
             out.steps["board"] = round(time.perf_counter() - t, 3)
     except InputError as exc:
         out.error = str(exc)

@@ -6,6 +6,7 @@ callers read files, choose what to write and print. A step raises `InputError` n
 file (when given) for what makes its output meaningless (no scan in view).
 
     open_photo    photo + camera (+ mask), checked against each other
+    init_step     the initial pose: a board (found in the photo and the scan) or picked pairs
     load_inputs   what refine works on: the photo, the init and the scan in view of it
     refine_step   the aligner, the verdict and the verticals check -> the pose file's keys
     depth_step    the depth map (surfaces or points), and write_depth for its files
@@ -90,6 +91,43 @@ def load_inputs(scan_path: PathLike, image_path: PathLike, camera_path: PathLike
     colors = scan_colors(scan, scan_path, to_align=True)
     return RefineInputs(scan.xyz, colors, photo, camera, T_init, ignore, scan, init_meta, around,
                         Renders(scan, colors, [T_init]))
+
+
+def board_in_prepared(prepared, spec, corners: np.ndarray | None = None):
+    """The board (`init.run.BoardInScan`, of `init.detect.BoardSpec` spec) in the prepared scan
+    (`prepared.PreparedScan`): its given corners (k, 3) with the scan points around them, or
+    found in the scan's virtual views (kept beside a cached scan: searched once per scan)."""
+    from rgbd_gt.init.run import board_in_scan
+
+    if corners is None:
+        return prepared.board(spec, prepared.source)
+    pad = 2 * spec.square + 0.02
+    return board_in_scan(prepared.near(corners.min(0) - pad, corners.max(0) + pad), spec, corners, prepared.source)
+
+
+def init_step(prepared, photo: Photo, image_path: PathLike, spec=None, corners: np.ndarray | None = None,
+              correspondences: PathLike | None = None, estimate_focal: bool = False, ransac_px: float = 4.0):
+    """The photo's initial pose (`init.run.InitResult`) in the prepared scan: from the board of
+    `spec` (`init.detect.BoardSpec`) found in the photo and in the scan (or at its given corners
+    (k, 3)), or from the pairs picked in the CSV file `correspondences` (u,v,x,y,z[,label];
+    RANSAC PnP, with estimate_focal the focal length too). Returns (result, the verticals check
+    of the result for picks, which take no part in it, else None)."""
+    from rgbd_gt.init.run import detect_photo_board, init_from_board, init_from_correspondences, read_correspondences
+
+    if correspondences is None:
+        found = detect_photo_board(photo.image, spec, image_path)
+        return init_from_board(board_in_prepared(prepared, spec, corners), photo.image, photo.camera, spec, found), None
+    from rgbd_gt.init.pnp import check_spread
+    from rgbd_gt.init.run import check_picks
+    from rgbd_gt.qa.verticals import verticals_qa
+
+    picks = read_correspondences(Path(correspondences))
+    whole = prepared.whole()
+    check_picks(picks, photo.camera, whole.xyz, correspondences, whole.origins)
+    check_spread(picks.obj, picks.img, str(correspondences), 6)  # named after the file
+    result = init_from_correspondences(picks, photo.camera, estimate_focal, ransac_px)
+    # a check the picks do not take part in: a few pairs hardly check each other
+    return result, verticals_qa(whole.xyz, photo.image, result.camera, [result.T_cam_from_scan])[0]
 
 
 def made_from(scan: PathLike, scan_sha1: str | None, files: dict[str, PathLike],

@@ -338,12 +338,12 @@ def made_from_other(recorded: dict, made: dict) -> str | None:
 
 def initial_pose(photo: Path, image: np.ndarray, prepared, camera, job: ScanJob, path: Path) -> tuple[np.ndarray, dict]:
     """The photo's initial pose file `path`: read when it exists, else written from job.init (a
-    pose file shared by the photos) or made from job.board (found once per scan, `scan_board`).
+    pose file shared by the photos) or made from job.board (found once per scan, `steps.init_step`).
     It records the SHA-1 of the photo, the scan, the camera file and the init or board corners
     file, and the board's layout: a rerun where one of them has other content is an error, not
     the old pose resumed."""
-    from rgbd_gt.init.run import detect_photo_board, init_from_board
     from rgbd_gt.io import read_pose, write_pose
+    from rgbd_gt.steps import Photo, init_step
 
     files = {"photo": photo, "camera": job.camera}
     if job.init is not None:
@@ -366,25 +366,17 @@ def initial_pose(photo: Path, image: np.ndarray, prepared, camera, job: ScanJob,
         T, meta = read_pose(job.init)
         meta["method"] = f"the config's init ({job.init})"
     else:
-        spec = board_spec(job.board)
-        found = detect_photo_board(image, spec, photo)
-        r = init_from_board(scan_board(prepared, job.board), image, camera, spec, found)
+        r = init_step(prepared, Photo(image, camera), photo, board_spec(job.board), board_corners(job.board))[0]
         T, meta = r.T_cam_from_scan, r.pose_meta()
     write_pose(path, T, **{**meta, **made})
     return read_pose(path)
 
 
-def scan_board(prepared, board: BoardConfig):
-    """The board in the prepared scan (`init.run.BoardInScan`): its given corners (board.points)
-    with the scan points around them, or found in the scan (cached beside the prepared scan)."""
-    from rgbd_gt.init.run import board_in_scan, read_csv_rows
+def board_corners(board: BoardConfig) -> np.ndarray | None:
+    """The board's corners (k, 3) in the scan as the config's board.points file gives them, or None."""
+    from rgbd_gt.init.run import read_csv_rows
 
-    spec = board_spec(board)
-    if board.points:
-        corners = read_csv_rows(Path(board.points), "x,y,z")
-        pad = 2 * spec.square + 0.02
-        return board_in_scan(prepared.near(corners.min(0) - pad, corners.max(0) + pad), spec, corners, prepared.source)
-    return prepared.board(spec, prepared.source)
+    return read_csv_rows(Path(board.points), "x,y,z") if board.points else None
 
 
 def shared_camera(job: ScanJob, prepared, camera, cfg: RunConfig, progress: Callable[[str], None] = lambda step: None):

@@ -287,8 +287,6 @@ def _raycast_mesh(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray 
     camera is seen from behind."""
     import open3d as o3d
 
-    from rgbd_gt.render.normals import facing_camera
-
     tris = mesh.tris
     knows_sides = mesh.origin is not None
     h, w = camera.height, camera.width
@@ -325,7 +323,9 @@ def _raycast_mesh(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray 
             scanner = scan.origins[mesh.origin[prim]]
             front = np.sign(np.einsum("ij,ij->i", n_scan, scanner - scan.xyz[tris[prim, 0]]))
             behind = np.zeros(len(zb), bool)
-            behind[ok] = ~facing_camera(d_cam[ok], nb[ok] * front[:, None], tolerance=0.0)
+            # `render.normals.facing_camera` at tolerance 0 (a triangle's own normal is not off),
+            # on the normal turned to its scanner, from the dot product the normals take anyway
+            behind[ok] = facing[ok] * front > 0
             zb[behind] = 0
             back += int(behind.sum())
             ok &= ~behind
@@ -338,10 +338,9 @@ def _raycast_mesh(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray 
         if colors is not None and ok.any():  # barycentric interpolation of the hit triangle's vertex values
             tri = tris[hit["primitive_ids"].numpy()[ok].astype(np.int64)]  # ok: hits seen from the front
             bary = hit["primitive_uvs"].numpy()[ok]
-            c = (1 - bary[:, :1] - bary[:, 1:]) * vals[tri[:, 0]] + bary[:, :1] * vals[tri[:, 1]] + bary[:, 1:] * vals[tri[:, 2]]
-            block_colors = np.zeros((len(zb), c.shape[1]), colors.dtype)
-            block_colors[ok] = np.rint(c) if np.issubdtype(colors.dtype, np.integer) else c
-            colors[sl] = block_colors
+            v0 = vals[tri[:, 0]]
+            c = v0 + bary[:, :1] * (vals[tri[:, 1]] - v0) + bary[:, 1:] * (vals[tri[:, 2]] - v0)
+            colors[r0 * w + np.flatnonzero(ok)] = np.rint(c) if np.issubdtype(colors.dtype, np.integer) else c
     return DepthMap(z.reshape(h, w), n.reshape(h, w, 3) if n is not None else None,
                     f"ray-cast grid mesh ({len(tris):,} triangles)",
                     colors.reshape(h, w, -1) if colors is not None else None, back_facing=back if knows_sides else None)
