@@ -44,7 +44,30 @@ def test_right_result_is_ok_and_the_pose_file_carries_the_evidence(scene, tmp_pa
     assert ev["repeatability"]["starts"] == 4 and ev["repeatability"]["spread_px"] < 0.5
     assert 0 < ev["uncertainty"]["translation_mm"] < 5 and ev["uncertainty"]["condition"] >= 1
     assert ev["convergence"]["levels"][-1]["level"] == 0
+    # the camera file is right: freed, the focal length stays (0.02% at most on the synthetic scenes)
+    assert abs(ev["camera"]["focal_change"]) < 0.001, ev["camera"]
     assert "verdict" in proc.stdout
+
+
+def test_a_camera_file_two_percent_off_is_not_ok(scene, tmp_path):
+    """A wrong focal length is absorbed by the pose (the camera slides along its axis): without
+    the camera check this result was `ok` 60 mm off. Freed, the focal moves back to the photo's."""
+    from rgbd_gt.io import read_camera
+    from rgbd_gt.io.camera_file import write_camera
+    from rgbd_gt.pose import translation_error_m
+
+    cam = read_camera(scene / "camera.yaml")
+    write_camera(tmp_path / "camera.yaml", Camera(cam.width, cam.height, cam.fx * 1.02, cam.fy * 1.02, cam.cx, cam.cy,
+                                                  cam.distortion))
+    proc = run_cli("refine", "--scan", scene / "scan.ply", "--image", scene / "photo.png", "--camera",
+                   tmp_path / "camera.yaml", "--init", scene / "init_pose.yaml", "-o", tmp_path / "pose.yaml",
+                   "--repeats", "1")
+    assert proc.returncode == 0, proc.stderr
+    T, doc = read_pose(tmp_path / "pose.yaml")
+    assert translation_error_m(T, read_pose(scene / "gt_pose.yaml")[0]) > 0.02  # the pose did absorb it
+    assert doc["verdict"] != "ok"
+    assert any("camera file disagrees with the photo" in r for r in doc["reasons"]), doc["reasons"]
+    assert -0.022 < doc["evidence"]["camera"]["focal_change"] < -0.01  # toward 1/1.02 - 1 (3 iterations)
 
 
 def test_mirrored_photo_is_failed_and_strict_exits_3(scene, tmp_path):

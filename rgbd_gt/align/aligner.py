@@ -2,18 +2,13 @@
 pyramid, with Levenberg-Marquardt, Adam (the paper's) or L-BFGS, and for objectives with spurious
 far minima a wide search on the coarsest level.
 
-An objective (align/photometric.py, align/nid_objective.py) keeps its data in a local frame
-(`centre`: float32 stays exact for georeferenced coordinates) and evaluates a batch of local-frame
-poses (one pose is a batch of one) with the shared camera corrections q (5,)
-(`render.project.project_corrected`):
-- `prepare(T)`: choose the points of every level once, around the first pose; returns the levels;
-- `evaluate(level, Ts, q, prev, jacobian, free, lost_is_error)`: terms with per pose `loss` (B,),
-  `visible` (B,), and with the Jacobian the Gauss-Newton system `H` (B, P, P) and `g` (B, P) of the
-  6 pose parameters (`pose.apply_update`) and the first `free` of q; `where(keep, other)` and
-  `record(b)`;
-- `trial(level, Ts, q, at)`: (B,) the loss at other poses on the points and fits of `at`;
-- for L-BFGS (`method == "lbfgs"`): `units(level, T, at)` and `value_and_gradient(level, T, delta, at)`;
-- `covariance`, `summary`, `residuals`, `visible_scan_points` for the result and the verdict.
+An objective (align/photometric.py, align/nid_objective.py; the interface: align/objective.py)
+keeps its data in a local frame (`centre`: float32 stays exact for georeferenced coordinates) and
+evaluates a batch of local-frame poses (one pose is a batch of one) with the shared camera
+corrections q (5,) (`render.project.project_corrected`): `prepare` chooses every level's points
+once, `evaluate` gives per pose the loss and, for LM, the Gauss-Newton system, `trial` the loss at
+other poses on the same points and fits; L-BFGS (`method == "lbfgs"`) takes `units` and
+`value_and_gradient` besides.
 The driver holds no state between calls: every refine starts from the camera file's intrinsics.
 """
 
@@ -28,6 +23,7 @@ import numpy as np
 import torch
 
 from rgbd_gt.align import lbfgs
+from rgbd_gt.align.objective import Objective
 from rgbd_gt.errors import InputError
 from rgbd_gt.pose import apply_update, random_starts, rotation_error_deg, translated
 
@@ -77,7 +73,7 @@ def refine_each(aligner, starts: list[np.ndarray], **refine_args) -> list[np.nda
 class Aligner:
     """Refines poses against one objective (see the module's docstring)."""
 
-    def __init__(self, objective):
+    def __init__(self, objective: Objective):
         self.objective = objective
         self.cfg = objective.cfg
         self.device = objective.device

@@ -11,6 +11,7 @@ the Gauss-Newton terms of the 6 pose parameters and of the shared camera correct
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
@@ -233,6 +234,14 @@ class Photometric:
         self.free = INTRINSICS[cfg.refine_intrinsics]
         self.method = cfg.optimizer  # 'lm' or 'adam' (align/aligner.py)
         self.levels: list[Level] | None = None
+
+    def freeing(self, free: int) -> "Photometric":
+        """This objective with the first `free` camera corrections refined with the pose: the
+        same points, levels and photo (the verdict's camera check frees the focal length of a
+        result refined without it)."""
+        other = copy.copy(self)
+        other.free = free
+        return other
 
     def prepare(self, T_local: np.ndarray) -> int:
         """Per level: a random subset of the points near the initial view (`near_view`; nested

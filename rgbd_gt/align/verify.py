@@ -148,6 +148,21 @@ def sharpness(aligner: Aligner, T: np.ndarray, M: np.ndarray, step_px: float, le
     return {"min_rise": float(rise.min()), "median_rise": float(np.median(rise)), "step_px": step_px}
 
 
+def camera_check(aligner: Aligner, result: RefineResult, view: _View, cfg: VerifyConfig) -> dict | None:
+    """Whether the camera file agrees with the photo: the result refined again from its pose with
+    the focal length free as well (`Photometric.freeing`). A wrong focal length is absorbed by the
+    pose (the camera moves along its axis, the scan still lines up), so the pose alone cannot tell;
+    freed, the focal moves back toward the photo's. None where the focal was refined already or
+    the objective has no camera corrections (NID)."""
+    obj = aligner.objective
+    if result.intrinsics is not None or not hasattr(obj, "freeing"):
+        return None
+    freed = Aligner(obj.freeing(1)).refine(result.T_cam_from_scan, coarsest=0, iterations=cfg.camera_iterations)
+    change, sigma = float(freed.intrinsics[0]), float(freed.intrinsics_sigma[0])
+    return {"focal_change": change, "focal_sigma": sigma, "focal_sigmas": abs(change) / max(sigma, 1e-12),
+            "pose_moved_px": view.motion_px(freed.T_cam_from_scan, result.T_cam_from_scan)}
+
+
 def check_pairs(pairs: tuple[np.ndarray, np.ndarray], camera: Camera, T_init: np.ndarray, T: np.ndarray) -> dict:
     """RMS reprojection error (px) of held-out picked pairs (img (n, 2), scan points (n, 3)) at the
     init and at the result."""
@@ -201,6 +216,10 @@ def decide(ev: dict, cfg: VerifyConfig) -> tuple[str, list[str]]:
             failed.append(f"the check points are {chk['rms_px']:.1f} px off ({chk['rms_init_px']:.1f} px at the init{keep})")
         elif chk["rms_px"] > max(cfg.check_ok_px, chk["rms_init_px"]):
             suspect.append(f"the check points are {chk['rms_px']:.1f} px off ({chk['rms_init_px']:.1f} px at the init)")
+    cam = ev.get("camera")
+    if cam is not None and cam["focal_sigmas"] > cfg.camera_sigmas and abs(cam["focal_change"]) > cfg.camera_min_change:
+        suspect.append(f"the camera file disagrees with the photo: freed, the focal length moves "
+                       f"{cam['focal_change']:+.2%} ({cam['focal_sigmas']:.0f} sigma)")
     ch = ev.get("change_in_init_sigmas")
     if ch is not None and ch > cfg.change_max_sigmas:
         suspect.append(f"refine moved {ch:.1f} times the init's own uncertainty")
@@ -242,6 +261,11 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
     if result.objective != "nid":  # NID's values rise by 1e-5..1e-3: its uncertainty, from their Hessian, stands for it
         ev["sharpness"] = timed("sharpness", sharpness, aligner, T, M, cfg.sharpness_step_px, cfg.sharpness_level,
                                  result.intrinsics)
+
+    if cfg.camera_check:
+        camera_ev = timed("camera", camera_check, aligner, result, view, cfg)
+        if camera_ev is not None:
+            ev["camera"] = camera_ev
 
     def edge_check():
         drawn = working_view(renders, photo, camera, T, cfg.edge_max_side, cfg.edge_shift_px)

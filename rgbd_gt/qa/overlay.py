@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from rgbd_gt.camera import Camera, rescale
+from rgbd_gt.camera import Camera, project, rescale, without_distortion
+from rgbd_gt.pose import transform_points
 from rgbd_gt.render.cells import cell_for_density
 from rgbd_gt.render.renders import Renders
 from rgbd_gt.scan import Scan, scan_colors
@@ -22,10 +23,9 @@ def render_scale(scan: Scan, camera: Camera, T: np.ndarray, per_step: float = 2.
     points in view: finer rendering only interpolates. Measured in the image: the side of the
     square cells whose occupied ones hold 3 points at the median (`render.cells.cell_for_density`),
     over sqrt(3)."""
-    p = scan.xyz @ T[:3, :3].T + T[:3, 3]
-    z = np.maximum(p[:, 2], 1e-9)
     # pinhole: the lens distortion hardly changes how densely points land
-    uv = np.stack([camera.fx * p[:, 0] / z + camera.cx, camera.fy * p[:, 1] / z + camera.cy], 1)[p[:, 2] > 0]
+    uv, z = project(without_distortion(camera), transform_points(T, scan.xyz))
+    uv = uv[z > 0]
     if int(((uv >= 0) & (uv <= np.array(camera.size) - 1)).all(1).sum()) < 100:
         return 1.0
     return float(min(1.0, per_step * np.sqrt(3) / cell_for_density(uv, camera.size, largest=256)))

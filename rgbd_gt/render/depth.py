@@ -186,10 +186,9 @@ def grid_mesh(scan: Scan, camera: Camera, poses: list[np.ndarray], cells: list |
     centre = scan.origins[0] if len(scan.origins) else scan.xyz.mean(axis=0) if len(scan) else np.zeros(3)
     scene = o3d.t.geometry.RaycastingScene()
     if len(tris):
-        used = np.unique(tris)
         mesh = o3d.t.geometry.TriangleMesh()
-        mesh.vertex.positions = o3d.core.Tensor((scan.xyz[used] - centre).astype(np.float32))
-        mesh.triangle.indices = o3d.core.Tensor(np.searchsorted(used, tris).astype(np.int32))
+        mesh.vertex.positions = o3d.core.Tensor((scan.xyz - centre).astype(np.float32))
+        mesh.triangle.indices = o3d.core.Tensor(tris)
         scene.add_triangles(mesh)
         scene.cast_rays(o3d.core.Tensor(np.array([[0, 0, 0, 0, 0, 1]], np.float32)))  # builds the hierarchy now
     return GridMesh(tris, scene, centre, origin)
