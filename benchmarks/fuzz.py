@@ -161,7 +161,7 @@ def make_seeds(folder: Path, data: Path | None) -> dict[str, Path]:
                       {"scan": str(pjlab / "calib.pcd"), "camera": str(pjlab / "calib.txt"), "init": str(pjlab / "calib.txt"),
                        "photos": [str(pjlab / "calib.jpg")], "name": "street"}]}, sort_keys=False))
         seeds["site_cfg"] = site
-    synth_cfg = Path(__file__).resolve().parents[2] / "configs" / "synth.yaml"
+    synth_cfg = Path(__file__).resolve().parents[1] / "configs" / "synth.yaml"
     if synth_cfg.is_file():
         seeds["synth_cfg"] = synth_cfg
     if data is not None and data.is_dir() and (data / "lidar_camera/pjlab_1/calib.pcd").is_file():
