@@ -27,6 +27,15 @@ class Camera:
     cy: float
     distortion: tuple[float, ...] = ()
 
+    def __post_init__(self):
+        # plain Python numbers, whatever made them (numpy scalars would turn the float32 arithmetic
+        # they meet into float64, and they key the renders of a camera: render/renders.py)
+        for name in ("width", "height"):
+            object.__setattr__(self, name, int(getattr(self, name)))
+        for name in ("fx", "fy", "cx", "cy"):
+            object.__setattr__(self, name, float(getattr(self, name)))
+        object.__setattr__(self, "distortion", tuple(float(d) for d in self.distortion))
+
     @property
     def K(self) -> np.ndarray:
         """(3, 3) float64 intrinsic matrix."""

@@ -277,10 +277,10 @@ class QA:
 def qa_step(view, photo: np.ndarray, camera: Camera, T: np.ndarray, around: np.ndarray,
             T_before: np.ndarray | None = None, pose_path: PathLike | None = None,
             before_path: PathLike | None = None) -> QA:
-    """How well the view (`renders_of`, with the scan's colors) rendered at T lines up with the photo: the structural edges against chance, the Canny
-    distances (`qa.edges`) and the verticals check (`qa.verticals`, on `around`: (n, 3) scan
-    points around the camera); the same for T_before with keys prefixed before_. A pose that sees
-    no scan edge is an error naming it."""
+    """How well the view (`renders_of`, with the scan's colors) rendered at T lines up with the
+    photo: the structural edges against chance, the Canny distances (`qa.edges`) and the
+    verticals check (`qa.verticals`, on `around`: (n, 3) scan points around the camera); the same
+    for T_before with keys prefixed before_. A pose that sees no scan edge is an error naming it."""
     from rgbd_gt.qa.edges import qa, side_by_side, structural_qa, working_view
     from rgbd_gt.qa.verticals import verticals_qa
 
@@ -318,8 +318,9 @@ class Overlay:
 
 def overlay_step(view, photo: np.ndarray, camera: Camera, T: np.ndarray, max_depth: float | None = None,
                  points: bool | None = None, pose_path: PathLike | None = None) -> Overlay:
-    """The view (`renders_of`, with the scan's colors) rendered at T over the photo; points=None draws the points picture for LiDAR sweeps
-    (`render.points.as_points`). Nothing of the scan in view is an error naming the pose."""
+    """The view (`renders_of`, with the scan's colors) rendered at T over the photo; points=None
+    draws the points picture for LiDAR sweeps (`render.points.as_points`). Nothing of the scan in
+    view is an error naming the pose."""
     from rgbd_gt.qa.overlay import overlay, points_image
     from rgbd_gt.render.points import as_points
 
