@@ -157,8 +157,11 @@ def camera_check(aligner: Aligner, result: RefineResult, view: _View, cfg: Verif
     obj = aligner.objective
     if result.intrinsics is not None or not hasattr(obj, "freeing"):
         return None
-    freed = Aligner(obj.freeing(1)).refine(result.T_cam_from_scan, coarsest=0, iterations=cfg.camera_iterations)
-    change, sigma = float(freed.intrinsics[0]), float(freed.intrinsics_sigma[0])
+    aligner = Aligner(obj.freeing(1))
+    level = cfg.camera_level
+    freed = aligner.refine(result.T_cam_from_scan, finest=level, coarsest=level, iterations=cfg.camera_iterations)
+    cov = aligner.covariance(freed.T_cam_from_scan, freed.intrinsics, level)
+    change, sigma = float(freed.intrinsics[0]), float(np.sqrt(cov[6, 6])) if cov is not None else float("inf")
     return {"focal_change": change, "focal_sigma": sigma, "focal_sigmas": abs(change) / max(sigma, 1e-12),
             "pose_moved_px": view.motion_px(freed.T_cam_from_scan, result.T_cam_from_scan)}
 

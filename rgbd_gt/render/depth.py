@@ -300,7 +300,7 @@ def _raycast_mesh(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray 
     z = np.zeros(h * w, np.float32)
     n = np.zeros((h * w, 3), np.float32) if want_normals else None
     colors = np.zeros((h * w, values.shape[1]), values.dtype) if values is not None else None
-    vals = values.astype(np.float32) if values is not None else None
+    vals = values.astype(np.float32, copy=False) if values is not None else None
     back = 0
     rows = max(1, block // w)
     xy = normalised_map(camera)
