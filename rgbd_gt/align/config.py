@@ -44,12 +44,12 @@ class VerifyConfig:
     check_ok_px: float = 2.0
     change_max_sigmas: float = 10.0
     # the camera check: a result refined with the camera file as it is, refined again with the
-    # focal length free (on pyramid level camera_level, the photo's own pixels where the finest
-    # samples it enlarged: a quarter of the cost, the same answer; camera_iterations: 3 take a
-    # focal 2% off 1.5-1.95% back, ten times what the check needs); suspect when the focal moves
+    # focal length free (on pyramid level camera_level: level 1, the photo's own pixels, costs a
+    # quarter but moved right cameras up to 0.45% on the labelled set, docs/trust-method.md;
+    # camera_iterations: 3 take a focal 2% off 1.5-1.95% back); suspect when the focal moves
     # more than camera_sigmas of its own 1-sigma and more than camera_min_change (relative)
     camera_check: bool = True
-    camera_level: int = 1
+    camera_level: int = 0
     camera_iterations: int = 3
     camera_sigmas: float = 5.0
     camera_min_change: float = 0.002
