@@ -108,3 +108,17 @@ def test_a_photos_steps_render_each_camera_and_pose_once(monkeypatch, refined_ph
     rgbd_gt.qa_step(renders, inputs.photo, inputs.camera, refined.T, inputs.around, inputs.T_init)
     rgbd_gt.overlay_step(renders, inputs.photo, inputs.camera, refined.T)
     assert len(asked) >= 2 and len(asked) == len(set(asked)), asked
+
+
+def test_a_drawn_render_asked_for_more_stays_drawn():
+    """Depth first (splats drawn, no colors), then the edge check (colors, narrow splats only):
+    the render made again with colors keeps its splats, and the edge check is handed it cut."""
+    scan = dataclasses.replace(_wall_scan(), row=None, col=None)
+    renders = Renders(scan)
+    T = _pose(0.0)
+    depth = renders.surfaces(CAMERA, T)
+    cut = renders.surfaces(CAMERA, T, colors=True, max_splat_px=0)
+    assert not cut.drawn and not cut.z.any()
+    both = renders.surfaces(CAMERA, T)
+    assert both.drawn and both.colors is not None
+    np.testing.assert_array_equal(both.z, depth.z)

@@ -158,7 +158,7 @@ def camera_check(aligner: Aligner, result: RefineResult, view: _View, cfg: Verif
     if result.intrinsics is not None or not hasattr(obj, "freeing"):
         return None
     aligner = Aligner(obj.freeing(1))
-    level = cfg.camera_level
+    level = min(cfg.camera_level, aligner.prepare(result.T_cam_from_scan) - 1)
     freed = aligner.refine(result.T_cam_from_scan, finest=level, coarsest=level, iterations=cfg.camera_iterations)
     cov = aligner.covariance(freed.T_cam_from_scan, freed.intrinsics, level)
     change, sigma = float(freed.intrinsics[0]), float(np.sqrt(cov[6, 6])) if cov is not None else float("inf")

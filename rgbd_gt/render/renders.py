@@ -61,7 +61,7 @@ class Renders:
             have = render_depth(self.scan, camera, T, None,
                                 values=self.colors if colors or (keep and have.colors is not None) else None,
                                 normals=normals or (keep and have.normals is not None),
-                                max_splat_px=None if keep and not have.drawn else max_splat_px,
+                                max_splat_px=None if keep and have.drawn else max_splat_px,  # drawn stays drawn
                                 mesh=self._mesh(camera, T) if self.scan.has_grid else None)
             self._surfaces[key] = have
         return _cut(have, max_depth, max_splat_px)
