@@ -166,14 +166,6 @@ class Aligner:
         """(n, 3) float64 scan-frame points of the finest level visible at pose T."""
         return self.objective.visible_scan_points(self._local(T), self._q(intrinsics)) + self.objective.centre
 
-    def covariance(self, T: np.ndarray, intrinsics: np.ndarray | None = None, level: int = 0) -> np.ndarray | None:
-        """(P, P) the covariance of the pose's 6 parameters and the free camera corrections at
-        pose T (4x4 T_cam_from_scan) on a pyramid level (the objective's `covariance`)."""
-        obj, q = self.objective, self._q(intrinsics)
-        T_local = self._local(T)
-        level = min(level, obj.prepare(T_local) - 1)
-        return obj.covariance(level, T_local, q, obj.evaluate(level, [T_local], q, jacobian=True))
-
     def loss_profile(self, T: np.ndarray, deltas: np.ndarray, level: int = 0,
                      intrinsics: np.ndarray | None = None) -> tuple[float, np.ndarray]:
         """The loss at pose T and at T moved by each update of deltas (k, 6) (`apply_update`), on a

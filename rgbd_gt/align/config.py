@@ -44,12 +44,10 @@ class VerifyConfig:
     check_ok_px: float = 2.0
     change_max_sigmas: float = 10.0
     # the camera check: a result refined with the camera file as it is, refined again with the
-    # focal length free (on pyramid level camera_level: level 1, the photo's own pixels, costs a
-    # quarter but moved right cameras up to 0.45% on the labelled set, docs/trust-method.md;
-    # camera_iterations: 3 take a focal 2% off 1.5-1.95% back); suspect when the focal moves
-    # more than camera_sigmas of its own 1-sigma and more than camera_min_change (relative)
+    # focal length free (on the finest level; camera_iterations: 3 take a focal 2% off 1.5-1.95%
+    # back); suspect when the focal moves more than camera_sigmas of its own 1-sigma and more
+    # than camera_min_change (relative)
     camera_check: bool = True
-    camera_level: int = 0
     camera_iterations: int = 3
     camera_sigmas: float = 5.0
     camera_min_change: float = 0.002
@@ -59,8 +57,8 @@ class VerifyConfig:
             v = getattr(self, f.name)
             if not isinstance(v, bool) and not (v == v and abs(v) != float("inf")):
                 raise ValueError(f"verify.{f.name} must be a finite number, got {v}")
-        if self.camera_iterations < 1 or self.camera_level < 0:
-            raise ValueError("verify.camera_iterations must be at least 1 and verify.camera_level at least 0")
+        if self.camera_iterations < 1:
+            raise ValueError("verify.camera_iterations must be at least 1")
         if self.repeats < 0 or self.repeat_iterations < 1 or self.repeat_finest < 0 or self.sharpness_level < 0 or self.repeat_coarsest < self.repeat_finest:
             raise ValueError("verify: repeats >= 0, repeat_iterations >= 1 and 0 <= repeat_finest <= repeat_coarsest")
         if self.repeats > 64 or self.repeat_iterations > 1_000 or self.repeat_coarsest > 12 or self.sharpness_level > 12:
