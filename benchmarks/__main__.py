@@ -25,6 +25,8 @@ BENCHMARKS = {
     "verticals": ("verticals", "the verticals check against the references (printed)", lambda out, data: ["--data", data]),
     "intrinsics": ("intrinsics", "refining the camera with the pose: intrinsics.md",
                    lambda out, data: ["--out", out / "intrinsics.md"]),
+    "bundle": ("bundle", "the joint solve against per-photo refines: bundle.md",
+               lambda out, data: ["--out", out / "bundle.md", "--icl", data / "icl_nuim_livingroom1"]),
     "big_photo": ("big_photo", "every command on a 24-megapixel photo: big_photo.md",
                   lambda out, data: ["--out", out / "big_photo.md"]),
     "scale": ("scale", "a 40-million-point scan with ten photos, workers and Ray: scale.md",

@@ -170,10 +170,13 @@ def synth(
     seed: int = typer.Option(0, "--seed", help="Random seed: the same seed gives the same files."),
     size: str = typer.Option("default", "--size", help="'default' (1280x960 photo, 0.1 deg scan) or 'small' (640x480, 0.15 deg)."),
     config: Optional[Path] = typer.Option(None, "--config", help="Scene settings YAML (default: configs/synth.yaml)."),
-    photos: int = typer.Option(1, "--photos", help="Photos of the scan from nearby places (photo.png, photo_1.png, ...)."),
+    photos: int = typer.Option(1, "--photos", help="Photos of the scan from nearby places (photo.png, photo_1.png, ...); with --rig, shots of the rig."),
+    rig: Optional[str] = typer.Option(None, "--rig", help="'stereo': every shot is taken by a stereo rig, whose second camera (camera_right.yaml, right.png, right_1.png, ...) has its own lens and colors; rig_gt.yaml holds the true T_right_from_left."),
+    baseline: float = typer.Option(0.12, "--baseline", help="With --rig stereo: the distance between the rig's cameras, metres."),
 ) -> None:
     """Generate a synthetic scene with exact ground truth: a laser scan (E57 + PLY), a photo,
-    its camera file, the true and a rough initial pose, and the board's 3D corners."""
+    its camera file, the true and a rough initial pose, and the board's 3D corners. With several
+    photos or a rig, bundle.yaml lists them for `refine --bundle` (docs/bundle.md)."""
     from rgbd_gt.config import load_config
     from rgbd_gt.io.outputs import Outputs
     from rgbd_gt.synth.generate import FILES, SynthConfig, generate
@@ -185,10 +188,13 @@ def synth(
         raise InputError(f"--photos must be at least 1, got {photos}")
     if seed < 0:
         raise InputError(f"--seed must be 0 or more, got {seed}")
+    if not 0.01 <= baseline <= 2.0:
+        raise InputError(f"--baseline must lie in 0.01..2 m, got {baseline}")
     start = time.perf_counter()
     with _progress() as bar, outs:
         task = bar.add_task("synth", total=None)
-        info = generate(staged, seed, size, cfg, progress=lambda stage: bar.update(task, description=stage), photos=photos)
+        info = generate(staged, seed, size, cfg, progress=lambda stage: bar.update(task, description=stage), photos=photos,
+                        rig=rig, baseline_m=baseline)
     table = Table(title=f"Synthetic scene (seed {seed}, {size})", show_header=False)
     table.add_row("scan points", f"{info['scanner']['points']:,} ({info['scanner']['grid']['rows']} x {info['scanner']['grid']['cols']} grid, {info['scanner']['step_deg']} deg)")
     table.add_row("photo", f"{info['image']['width']} x {info['image']['height']}")
@@ -376,9 +382,10 @@ def pick(
 def refine(
     scan: Optional[Path] = typer.Option(None, "--scan", help="The scan (.ply, .e57, .pcd or KITTI .bin; colored, or with intensity only), in the scan/world frame. Required unless --pairs lists the pairs."),
     image: Optional[Path] = typer.Option(None, "--image", help="The photo (its size must match the camera file). Required with --scan."),
-    camera: Path = typer.Option(..., "--camera", help="Camera file: YAML, ROS camera_info YAML, OpenCV calibration (Autoware's too), Kalibr's camchain of one camera, a calibration text file with K and D lines (PJLab, KITTI P2) or koide3's calib.json (docs/formats.md)."),
-    init: Path = typer.Option(..., "--init", help="Initial pose file (T_cam_from_scan), e.g. from init-pose, or a calibration text file with a T / Tr_velo_to_cam line, koide3's calib.json (results.T_lidar_camera), Autoware's calibration YAML (CameraExtrinsicMat) or a camchain with T_cam_lidar (docs/formats.md)."),
-    output: Path = typer.Option(..., "-o", "--output", help="Refined pose file to write."),
+    camera: Optional[Path] = typer.Option(None, "--camera", help="Camera file: YAML, ROS camera_info YAML, OpenCV calibration (Autoware's too), Kalibr's camchain of one camera, a calibration text file with K and D lines (PJLab, KITTI P2) or koide3's calib.json (docs/formats.md). Required unless --bundle."),
+    init: Optional[Path] = typer.Option(None, "--init", help="Initial pose file (T_cam_from_scan), e.g. from init-pose, or a calibration text file with a T / Tr_velo_to_cam line, koide3's calib.json (results.T_lidar_camera), Autoware's calibration YAML (CameraExtrinsicMat) or a camchain with T_cam_lidar (docs/formats.md). Required unless --bundle."),
+    output: Path = typer.Option(..., "-o", "--output", help="Refined pose file to write (with --bundle: a folder)."),
+    bundle: Optional[Path] = typer.Option(None, "--bundle", help="A bundle file: several photos of one scan with their cameras, inits and (optionally) a rig, solved together: every pose, the camera corrections each camera's photos share, the rig's relative poses (docs/bundle.md). -o is then a folder: PHOTO/pose.yaml per photo, cameras/NAME.yaml, rig.yaml, bundle.json."),
     objective: Optional[str] = typer.Option(None, "--objective", help="photometric (the colored-scan aligner), nid (normalised information distance of intensity or gray against the photo's gray, for scans whose values relate to the photo only statistically: intensity-only LiDAR and laser scans) or auto (default: nid for intensity-only scans)."),
     pairs: Optional[Path] = typer.Option(None, "--pairs", help="YAML listing further (scan, image[, camera]) pairs that share the one pose (a LiDAR-camera rig over several frames): `pairs: [{scan: a.pcd, image: a.jpg}, ...]`, paths relative to the file. Solved jointly (nid)."),
     max_depth: Optional[float] = typer.Option(None, "--max-depth", help="Leave out scan points farther than this from the initial camera (metres; 0 = none)."),
@@ -415,6 +422,20 @@ def refine(
     from rgbd_gt.steps import load_inputs, refine_config, refine_step
 
     start = time.perf_counter()
+    if bundle is not None:
+        given = [name for name, v in (("--scan", scan), ("--image", image), ("--camera", camera), ("--init", init),
+                                      ("--pairs", pairs), ("--check", check), ("--camera-out", camera_out), ("--mask", mask),
+                                      ("--report", report), ("--refine-intrinsics", refine_intrinsics)) if v is not None]
+        if given:
+            raise InputError(f"--bundle lists the photos, cameras and inits: leave out {', '.join(given)} (a camera's "
+                             "refine: and a photo's mask: go in the bundle file)")
+        cfg = refine_config(config, repeats, color_model=color_model, gradient=gradient, optimizer=optimizer, levels=levels,
+                            upsample=upsample, iterations=iterations, max_points=max_points, beta_max=beta_max,
+                            objective=objective, max_depth=max_depth)
+        return _refine_bundle(bundle, output, cfg, device, cache, strict, start)
+    for name, value in (("--camera", camera), ("--init", init)):
+        if value is None:
+            raise InputError(f"{name} is required (or give --bundle)")
     if (scan is None) != (image is None):
         raise InputError("--scan and --image go together" + ("" if pairs else " (or list the pairs in --pairs)"))
     if scan is None and pairs is None:
@@ -497,6 +518,69 @@ def refine(
     if camera_out is not None:
         out.print(f"wrote {camera_out}")
     if strict and verification.verdict == "failed":
+        raise typer.Exit(3)
+
+
+def _refine_bundle(bundle: Path, output: Path, cfg, device: str, cache: Optional[Path], strict: bool, start: float) -> None:
+    """refine --bundle: the photos solved together (`steps.bundle_step`), their files into the folder `output`."""
+    import json
+
+    from rgbd_gt.io import write_pose
+    from rgbd_gt.io.bundle_file import read_bundle
+    from rgbd_gt.io.camera_file import write_camera
+    from rgbd_gt.io.outputs import Outputs
+    from rgbd_gt.steps import bundle_step
+
+    spec = read_bundle(bundle)
+    outs = Outputs([bundle, spec.scan] + [c.file for c in spec.cameras.values()]
+                   + [p for e in spec.photos for p in (e.image, e.init, e.mask) if p is not None]
+                   + [p.pose for p in spec.priors.values()])
+    staged = outs.folder(output, "-o")
+    outs.checked_folder(cache, "--cache")
+    with _progress() as bar:
+        task = bar.add_task("bundle", total=None)
+        done = bundle_step(spec, cfg, device, cache, progress=lambda message: bar.update(task, description=message))
+    with outs:
+        for entry, refined in zip(spec.photos, done.photos):
+            (staged / entry.image.stem).mkdir(parents=True, exist_ok=True)
+            write_pose(staged / entry.image.stem / "pose.yaml", refined.T, **refined.meta)
+        (staged / "cameras").mkdir(exist_ok=True)
+        for name, (camera, keys) in done.cameras.items():
+            write_camera(staged / "cameras" / f"{name}.yaml", camera, **keys)
+        if done.rig is not None:
+            import yaml
+
+            (staged / "rig.yaml").write_text(yaml.safe_dump(done.rig, sort_keys=False, default_flow_style=None))
+        r = done.result
+        summary = {"bundle": str(bundle), "photos": [
+            {"image": str(e.image), "pose": f"{e.image.stem}/pose.yaml", "camera": e.camera, "shot": e.shot,
+             "verdict": d.verification.verdict, "reasons": d.verification.reasons, **d.verification.evidence["bundle"]}
+            for e, d in zip(spec.photos, done.photos)], "iterations": r.iterations, "levels": r.levels,
+            "seconds": round(r.seconds, 3), "total_seconds": round(time.perf_counter() - start, 3)}
+        (staged / "bundle.json").write_text(json.dumps(summary, indent=1))
+    table = Table(title=f"refine --bundle: {len(spec.photos)} photos", show_lines=False)
+    for col in ("photo", "verdict", "moved from init", "left out", "residual vs others"):
+        table.add_column(col)
+    for e, d in zip(spec.photos, done.photos):
+        ev, moved = d.verification.evidence["bundle"], d.meta["change_from_init"]
+        loo = ev.get("leave_one_out_sigmas")
+        table.add_row(e.image.name, _verdict_text(d.verification.verdict),
+                      f"{moved['translation_mm']:.2f} mm, {moved['rotation_deg']:.4f} deg",
+                      "-" if loo is None else f"{loo:.1f} sigma", f"{ev['residual_vs_others']:.2f}")
+    out.print(table)
+    for e, d in zip(spec.photos, done.photos):
+        for reason in d.verification.reasons:
+            out.print(f"  {e.image.name}: {reason}")
+    for name, (camera, keys) in done.cameras.items():
+        if keys["refined"] != "none":
+            out.print(f"camera {name}: fx {camera.fx:.2f} px (1 sigma {keys['sigma'].get('focal_px', float('nan')):.2f}), "
+                      f"cx {camera.cx:.1f}, cy {camera.cy:.1f}, distortion {[round(v, 4) for v in camera.distortion]}")
+    if done.rig is not None:
+        for name, rel in done.rig["relative"].items():
+            out.print(f"rig {name} from {done.rig['reference']}: baseline {rel['baseline_m'] * 1e3:.2f} mm "
+                      f"(1 sigma {max(rel['sigma']['translation_mm']):.3f} mm)")
+    out.print(f"solved in {r.seconds:.1f} s ({r.iterations} iterations), {time.perf_counter() - start:.1f} s in all; wrote {output}")
+    if strict and any(d.verification.verdict == "failed" for d in done.photos):
         raise typer.Exit(3)
 
 

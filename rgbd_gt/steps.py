@@ -65,14 +65,15 @@ def open_photo(image: PathLike, camera: PathLike | Camera, mask: PathLike | None
 
 
 def load_inputs(scan_path: PathLike, image_path: PathLike, camera_path: PathLike, init_path: PathLike,
-                mask_path: PathLike | None = None, cache: PathLike | None = None):
+                mask_path: PathLike | None = None, cache: PathLike | None = None, prepared=None):
     """The refine step's inputs (`align.refine.RefineInputs`): the photo and its camera
     (`open_photo`), the init, and the scan's points in view of the init and around its camera,
-    from the prepared scan under `cache` when given (`prepared.view_and_around`), else from the
-    file."""
+    from `prepared` (`prepared.PreparedScan`, of several photos of one scan) or the scan
+    prepared under `cache` when given, else from the file."""
     from rgbd_gt.align.refine import RefineInputs
     from rgbd_gt.io import read_pose
-    from rgbd_gt.prepared import view_and_around
+    from rgbd_gt.pose import camera_centre
+    from rgbd_gt.prepared import prepare_scan
     from rgbd_gt.qa.verticals import MAX_POINTS, REACH
     from rgbd_gt.render.renders import Renders
     from rgbd_gt.scan import scan_colors
@@ -84,7 +85,8 @@ def load_inputs(scan_path: PathLike, image_path: PathLike, camera_path: PathLike
     # was prepared): the renders then cost what the photo sees. The view `run` takes
     # (render.blocks.VIEW_MARGIN), of the same prepared arrays: both hand the aligner the same
     # points and get the same pose.
-    scan, around = view_and_around(scan_path, camera, [T_init], REACH, MAX_POINTS, cache)
+    prepared = prepared or prepare_scan(Path(scan_path), cache)
+    scan, around = prepared.views(camera, [T_init]), prepared.xyz_around(camera_centre(T_init), REACH, MAX_POINTS)
     if len(scan) == 0:
         raise InputError("no scan points in view of the initial pose (nor near it): check the pose, the camera file "
                          "and the scan", init_path)
@@ -337,3 +339,104 @@ def overlay_step(view, photo: np.ndarray, camera: Camera, T: np.ndarray, max_dep
 def overlay_paths(output: Path) -> dict[str, Path]:
     """Where the overlay's pictures go: OVERLAY.png, OVERLAY_blend.png, OVERLAY_points.png."""
     return {"checker": output, **{k: output.with_name(f"{output.stem}_{k}{output.suffix}") for k in ("blend", "points")}}
+
+
+@dataclass
+class Bundled:
+    """bundle_step's result: per photo its `Refined` (pose file keys with the cross-photo
+    evidence), per camera name the camera and the file's keys with each refined value's 1-sigma,
+    and for a rig rig.yaml's keys (None without one)."""
+
+    photos: list[Refined]
+    cameras: dict[str, tuple[Camera, dict]]
+    rig: dict | None
+    result: object  # align.bundle.BundleResult
+
+
+def bundle_step(spec, cfg, device: str = "auto", cache: PathLike | None = None,
+                progress: Callable[[str], None] = lambda message: None) -> Bundled:
+    """Refine every photo of `spec` (`io.bundle_file.BundleSpec`) in one solve
+    (`align.bundle.Bundle`: the poses, each camera's free corrections, the rig), then judge each
+    photo: its own verdict (as refine_step's, with its camera as solved) and the cross-photo
+    evidence (`align.verify.bundle_reasons`)."""
+    import dataclasses
+
+    from rgbd_gt.align.aligner import Aligner, RefineResult
+    from rgbd_gt.align.bundle import Bundle, BundlePhoto, RigPrior
+    from rgbd_gt.align.photometric import Photometric
+    from rgbd_gt.align.pyramid import photo_pyramid
+    from rgbd_gt.align.refine import objective_of, refine_meta, refined_camera, resolve_device
+    from rgbd_gt.align.verify import bundle_reasons, verify
+    from rgbd_gt.io import read_pose
+    from rgbd_gt.prepared import prepare_scan
+    from rgbd_gt.qa.verticals import verticals_qa
+
+    progress("reading the scan")
+    prepared = prepare_scan(Path(spec.scan), cache)
+    names = list(spec.cameras)
+    order = spec.rig + [n for n in names if n not in spec.rig]  # rig cameras first: their index is their place in the rig
+    inputs, photos = [], []
+    for k, entry in enumerate(spec.photos):
+        progress(f"{entry.image.name}: reading")
+        inp = load_inputs(spec.scan, entry.image, spec.cameras[entry.camera].file, entry.init, entry.mask, cache, prepared)
+        if objective_of(cfg, inp.colors) != "photometric":
+            raise InputError("a bundle is solved with the photometric objective: the scan needs colors", spec.scan)
+        mode_cfg = dataclasses.replace(cfg, refine_intrinsics=spec.cameras[entry.camera].refine)
+        dev = resolve_device(device)
+        pyramid = photo_pyramid(inp.photo, inp.camera, cfg.levels, dev, inp.ignore, cfg.upsample)
+        photos.append(BundlePhoto(Photometric(inp.points, inp.colors, pyramid, mode_cfg, inp.normals), inp.T_init,
+                                  order.index(entry.camera), entry.shot, entry.image.name))
+        inputs.append(inp)
+    for k, entry in enumerate(spec.photos):  # one camera file per name: its photos must agree on its size
+        first = next(i for i, e in enumerate(spec.photos) if e.camera == entry.camera)
+        if inputs[k].camera != inputs[first].camera:
+            raise InputError(f"camera {entry.camera}: {entry.image.name} and {spec.photos[first].image.name} read it "
+                             "differently (a file without an image size, photos of two sizes?)")
+    priors = {order.index(name): RigPrior(read_pose(p.pose)[0], np.radians(p.sigma_rotation_deg), p.sigma_translation_mm / 1e3)
+              for name, p in spec.priors.items()}
+    progress(f"solving {len(photos)} photos together")
+    result = Bundle(photos, len(order), len(spec.rig), priors).solve()
+    out = []
+    for k, (entry, inp, photo) in enumerate(zip(spec.photos, inputs, photos)):
+        progress(f"{entry.image.name}: verdict")
+        c, obj = photo.camera, photo.objective
+        refined = RefineResult(T_cam_from_scan=result.poses[k], iterations=result.iterations, seconds=result.seconds / len(photos),
+                               levels=result.levels, covariance=result.pose_covariance[k], objective=obj.name,
+                               intrinsics=result.q[c] if obj.free else None,
+                               intrinsics_sigma=result.q_sigma[c] if obj.free else None, **obj.summary(result.terms[k]))
+        finite("refine", "the refined pose", refined.T_cam_from_scan)
+        camera = refined_camera(inp.camera, refined)
+        verification = verify(Aligner(obj), refined, inp.T_init, camera, inp.photo, inp.the_renders(), cfg.verify, cfg.seed,
+                              inp.init_meta, shared_camera=True)
+        ev = result.evidence[k] | {"photos": len(photos), "camera": entry.camera} | ({"shot": entry.shot} if entry.shot is not None else {})
+        verification.evidence["bundle"] = ev
+        extra = bundle_reasons(ev, cfg.verify)
+        if extra and verification.verdict == "ok":
+            verification.verdict = "suspect"
+        verification.reasons += extra
+        meta = refine_meta(refined, dataclasses.replace(cfg, refine_intrinsics=spec.cameras[entry.camera].refine),
+                           inp.T_init, entry.init, verification, camera=inp.camera)
+        upright, upright_init = verticals_qa(inp.around, inp.photo, camera, [refined.T_cam_from_scan, inp.T_init])
+        meta |= upright.as_dict() | upright_init.as_dict("init_")
+        out.append(Refined(refined, verification, camera, meta, upright, upright_init))
+    cameras = {}
+    for name in names:
+        c = order.index(name)
+        k = next(i for i, e in enumerate(spec.photos) if e.camera == name)
+        sigma = {"focal_px": result.q_sigma[c, 0] * inputs[k].camera.fx, "cx_px": result.q_sigma[c, 1] * inputs[k].camera.fx,
+                 "cy_px": result.q_sigma[c, 2] * inputs[k].camera.fy, "k1": result.q_sigma[c, 3], "k2": result.q_sigma[c, 4]}
+        keys = {"refined": spec.cameras[name].refine, "photos": sum(e.camera == name for e in spec.photos),
+                "sigma": {key: float(v) for key, v in sigma.items() if np.isfinite(v)}}
+        cameras[name] = (out[k].camera, keys)
+    rig = None
+    if spec.rig:
+        from rgbd_gt.pose import invert
+
+        rig = {"cameras": spec.rig, "reference": spec.rig[0], "relative": {}}
+        for name in spec.rig[1:]:
+            c = order.index(name)
+            sd = np.sqrt(np.diag(result.rig_covariance[c]))
+            rig["relative"][name] = {
+                "T_cam_from_reference": result.rig[c].tolist(), "baseline_m": float(np.linalg.norm(invert(result.rig[c])[:3, 3])),
+                "sigma": {"rotation_deg": np.degrees(sd[:3]).tolist(), "translation_mm": (sd[3:] * 1e3).tolist()}}
+    return Bundled(out, cameras, rig, result)

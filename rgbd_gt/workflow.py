@@ -380,17 +380,21 @@ def board_corners(board: BoardConfig) -> np.ndarray | None:
 
 
 def shared_camera(job: ScanJob, prepared, camera, cfg: RunConfig, progress: Callable[[str], None] = lambda step: None):
-    """With cfg.refine.refine_intrinsics, the one camera of all of job's photos: per photo its initial
-    pose (kept for the run) and the camera corrections refined with its pose, then their
-    inverse-variance weighted mean. Each photo's variance already includes what its pose leaves
-    open, so to first order this is the joint solve of all poses and one camera. Written to
-    job.out/camera.yaml with the per-photo estimates in intrinsics.json beside it; reused when there.
-    Returns the camera."""
-    from rgbd_gt.align.refine import RefineInputs, make_aligner
+    """With cfg.refine.refine_intrinsics, the one camera of all of job's photos: every photo's
+    pose and the camera's corrections in one solve (`align.bundle.Bundle`) from the photos'
+    initial poses (kept for the run). Each photo's pose given that camera is then its own refine
+    (`run_photo`): at the joint solution each pose is optimal for the shared camera. Written to
+    job.out/camera.yaml with intrinsics.json beside it (the shared corrections, their 1-sigma,
+    each photo's cross-photo evidence); reused when there. Returns the camera."""
+    from rgbd_gt.align.bundle import Bundle, BundlePhoto
+    from rgbd_gt.align.photometric import Photometric
+    from rgbd_gt.align.pyramid import photo_pyramid
+    from rgbd_gt.align.refine import objective_of, resolve_device
     from rgbd_gt.camera import corrected
     from rgbd_gt.io import read_camera
     from rgbd_gt.io.atomic import atomic_output
     from rgbd_gt.io.camera_file import write_camera
+    from rgbd_gt.pose import translated
     from rgbd_gt.scan import scan_colors
     from rgbd_gt.steps import made_from, open_photo
 
@@ -398,35 +402,39 @@ def shared_camera(job: ScanJob, prepared, camera, cfg: RunConfig, progress: Call
     made = made_from(prepared.source, prepared.sha1, {"camera": job.camera})
     if (out / "camera.yaml").exists() and made_from_other(_json_or_empty(out / "intrinsics.json").get("made_from", {}), made) is None:
         return read_camera(out / "camera.yaml")  # else refined again: the camera file or the scan has changed
-    estimates, errors = [], []
+    photos, names, errors = [], [], []
+    device = resolve_device(cfg.device)
     for photo in job.photos:
         progress(f"{photo.name}: camera")
         try:
             image = open_photo(photo, camera, to_align=True, camera_path=job.camera).image
             (out / photo.stem).mkdir(parents=True, exist_ok=True)
-            T_init, init_meta = initial_pose(photo, image, prepared, camera, job, out / photo.stem / "init.yaml")
+            T_init, _ = initial_pose(photo, image, prepared, camera, job, out / photo.stem / "init.yaml")
             scan = prepared.view(camera, T_init)
-            inputs = RefineInputs(scan.xyz, scan_colors(scan, prepared.source, to_align=True), image, camera, T_init, None, scan, init_meta)
-            r = make_aligner(inputs, cfg.refine, cfg.device).refine(T_init)
+            colors = scan_colors(scan, prepared.source, to_align=True)
+            if objective_of(cfg.refine, colors) != "photometric":
+                raise InputError("refine_intrinsics works with the photometric objective (a colored scan) only", job.scan)
+            pyramid = photo_pyramid(image, camera, cfg.refine.levels, device, None, cfg.refine.upsample)
+            objective = Photometric(scan.xyz, colors, pyramid, cfg.refine, scan.normals)
+            objective.prepare(translated(T_init, objective.centre))  # a photo that sees too little of the scan drops out here
         except InputError as exc:
             errors.append(str(exc))  # and the photo's own run reports it
             continue
-        if r.intrinsics is not None and np.isfinite(r.intrinsics_sigma[0]):
-            estimates.append({"photo": photo.name, "q": r.intrinsics.tolist(), "sigma": r.intrinsics_sigma})
-    if not estimates:
+        photos.append(BundlePhoto(objective, T_init, name=photo.name))
+        names.append(photo.name)
+    if not photos:
         raise InputError("no photo gave a camera estimate (refine_intrinsics): " + (errors[0] if errors else "check the boards and the camera file"))
-    q = np.array([e["q"] for e in estimates])
-    w = 1 / np.square(np.array([e["sigma"] for e in estimates]))  # inf sigma (not refined): weight 0
-    for e in estimates:  # JSON has no inf: null where not refined
-        e["sigma"] = [float(v) if np.isfinite(v) else None for v in e["sigma"]]
-    shared = np.where(w.sum(0) > 0, (w * q).sum(0) / np.maximum(w.sum(0), 1e-300), 0.0)
-    sigma = np.where(w.sum(0) > 0, 1 / np.sqrt(np.maximum(w.sum(0), 1e-300)), np.inf)
-    result = corrected(camera, shared)
+    progress(f"{len(photos)} photos: one camera")
+    solved = Bundle(photos, 1).solve()
+    q, sigma = solved.q[0], solved.q_sigma[0]
+    result = corrected(camera, q)
     write_camera(out / "camera.yaml", result)
     with atomic_output(out / "intrinsics.json") as tmp:
-        tmp.write_text(json.dumps({"mode": cfg.refine.refine_intrinsics, "photos": estimates, "shared": shared.tolist(),
-                                   "shared_sigma": [None if not np.isfinite(v) else float(v) for v in sigma],
-                                   "camera": out.name + "/camera.yaml", "made_from": made}, indent=1))
+        tmp.write_text(json.dumps({
+            "mode": cfg.refine.refine_intrinsics, "solve": "joint",
+            "photos": [{"photo": n, **ev} for n, ev in zip(names, solved.evidence)],
+            "shared": q.tolist(), "shared_sigma": [None if not np.isfinite(v) else float(v) for v in sigma],
+            "camera": out.name + "/camera.yaml", "made_from": made}, indent=1))
     return result
 
 

@@ -34,17 +34,19 @@ def checkerboard_dir() -> Path:
 
 @pytest.fixture(scope="session")
 def synth_scene(tmp_path_factory):
-    """synth_scene(dest, seed, photos=1) -> dest: a copy of the small synthetic scene of that seed,
-    made once per session (about 3 s each), so that a test may change its files."""
-    made: dict[tuple[int, int], Path] = {}
+    """synth_scene(dest, seed, photos=1, rig=None) -> dest: a copy of the small synthetic scene of
+    that seed (with rig 'stereo': `photos` shots of a stereo rig), made once per session (about 3 s
+    each), so that a test may change its files."""
+    made: dict[tuple, Path] = {}
 
-    def copy(dest: Path, seed: int, photos: int = 1) -> Path:
-        if (seed, photos) not in made:
-            src = tmp_path_factory.mktemp(f"synth{seed}x{photos}") / "scene"
-            proc = run_cli("synth", src, "--size", "small", "--seed", seed, "--photos", photos)
+    def copy(dest: Path, seed: int, photos: int = 1, rig: str | None = None) -> Path:
+        key = (seed, photos, rig)
+        if key not in made:
+            src = tmp_path_factory.mktemp(f"synth{seed}x{photos}{rig or ''}") / "scene"
+            proc = run_cli("synth", src, "--size", "small", "--seed", seed, "--photos", photos, *(["--rig", rig] if rig else []))
             assert proc.returncode == 0, proc.stderr
-            made[seed, photos] = src
-        shutil.copytree(made[seed, photos], dest, dirs_exist_ok=True)
+            made[key] = src
+        shutil.copytree(made[key], dest, dirs_exist_ok=True)
         return dest
 
     return copy

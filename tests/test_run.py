@@ -159,8 +159,8 @@ def test_run_bad_config(tmp_path):
 
 
 def test_run_refines_one_camera_for_all_photos(tmp_path, synth_scene):
-    """refine_intrinsics in a run: one camera from all photos (their estimates weighted by their
-    variances), then every pose with it; the camera file's focal is 2% off."""
+    """refine_intrinsics in a run: one camera from all photos (one solve of every pose and the
+    camera), then every pose with it; the camera file's focal is 2% off."""
     scene = tmp_path / "scene"
     synth_scene(scene, 8, 2)
     cam = yaml.safe_load((scene / "camera.yaml").read_text())
@@ -175,6 +175,7 @@ def test_run_refines_one_camera_for_all_photos(tmp_path, synth_scene):
     assert abs(shared["fx"] / cam["fx"] - 1) < 0.003, (shared["fx"], cam["fx"])
     estimates = __import__("json").loads((tmp_path / "out" / "intrinsics.json").read_text())
     assert [e["photo"] for e in estimates["photos"]] == ["photo.png", "photo_1.png"]
+    assert estimates["solve"] == "joint" and all(e["residual_vs_others"] > 0 for e in estimates["photos"])
     for photo, truth in (("photo", "gt_pose.yaml"), ("photo_1", "gt_pose_1.yaml")):
         T = read_pose(tmp_path / "out" / photo / "pose.yaml")[0]
         gt = read_pose(scene / truth)[0]

@@ -98,18 +98,19 @@ class Aligner:
     # -- refine ------------------------------------------------------------------------------------
     def refine(self, T_init: np.ndarray, progress: Callable[[dict], None] | None = None,
                keep_residuals: bool = False, finest: int = 0, coarsest: int | None = None,
-               iterations: int | None = None) -> RefineResult:
+               iterations: int | None = None, intrinsics: np.ndarray | None = None) -> RefineResult:
         """Refine T_init (4x4 T_cam_from_scan). progress(record) is called after each iteration
         (after each level with L-BFGS).
 
         finest, coarsest: the pyramid levels to run (0 = full resolution; default all);
-        iterations: another cap per level than the config's."""
+        iterations: another cap per level than the config's; intrinsics: the camera corrections
+        q (5,) to start from (default: the camera file's, zeros)."""
         start = time.perf_counter()
         obj = self.objective
         T = self._local(T_init)
         n_levels = obj.prepare(T)
         top = n_levels - 1 if coarsest is None else min(coarsest, n_levels - 1)
-        q = self._q(None)
+        q = self._q(intrinsics)
         start_res = obj.residuals(0, obj.evaluate(0, [T], q, jacobian=False)) if keep_residuals else None
         if obj.method == "lbfgs":
             T, history, level_info = self._searched(T, top, finest, iterations or self.cfg.iterations, progress)

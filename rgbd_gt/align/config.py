@@ -51,6 +51,11 @@ class VerifyConfig:
     camera_iterations: int = 3
     camera_sigmas: float = 5.0
     camera_min_change: float = 0.002
+    # a photo of a bundle (`refine --bundle`): suspect when, left out, the others' shared camera
+    # and rig move its pose more than bundle_sigmas of its sigma, when freed from its rig its pose
+    # moves more than that, or when its residual scale exceeds bundle_residual_ratio x the others'
+    bundle_sigmas: float = 15.0
+    bundle_residual_ratio: float = 2.0
 
     def check(self) -> "VerifyConfig":
         for f in fields(self):

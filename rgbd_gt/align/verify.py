@@ -148,19 +148,23 @@ def sharpness(aligner: Aligner, T: np.ndarray, M: np.ndarray, step_px: float, le
     return {"min_rise": float(rise.min()), "median_rise": float(np.median(rise)), "step_px": step_px}
 
 
-def camera_check(aligner: Aligner, result: RefineResult, view: _View, cfg: VerifyConfig) -> dict | None:
-    """Whether the camera file agrees with the photo: the result refined again from its pose with
-    the focal length free as well (`Photometric.freeing`). A wrong focal length is absorbed by the
-    pose (the camera moves along its axis, the scan still lines up), so the pose alone cannot tell;
-    freed, the focal moves back toward the photo's. None where the focal was refined already or
-    the objective has no camera corrections (NID)."""
+def camera_check(aligner: Aligner, result: RefineResult, view: _View, cfg: VerifyConfig,
+                 shared: bool = False) -> dict | None:
+    """Whether the camera agrees with the photo: the result refined again from its pose with the
+    focal length free as well (`Photometric.freeing`), from the camera file's (or, shared: from
+    the camera the result's intrinsics make, solved with other photos). A wrong focal length is
+    absorbed by the pose (the camera moves along its axis, the scan still lines up), so the pose
+    alone cannot tell; freed, the focal moves back toward the photo's. None where the focal was
+    refined on this photo alone already or the objective has no camera corrections (NID)."""
     obj = aligner.objective
-    if result.intrinsics is not None or not hasattr(obj, "freeing"):
+    if (result.intrinsics is not None and not shared) or not hasattr(obj, "freeing"):
         return None
     # the finest level: on level 1 (the photo's own pixels) right cameras moved up to 0.45%
     # (docs/trust-method.md); its sigma comes with the refine's final evaluation there
-    freed = Aligner(obj.freeing(1)).refine(result.T_cam_from_scan, coarsest=0, iterations=cfg.camera_iterations)
-    change, sigma = float(freed.intrinsics[0]), float(freed.intrinsics_sigma[0])
+    start = np.zeros(5) if result.intrinsics is None else np.asarray(result.intrinsics, np.float64)
+    freed = Aligner(obj.freeing(1)).refine(result.T_cam_from_scan, coarsest=0, iterations=cfg.camera_iterations,
+                                           intrinsics=start)
+    change, sigma = float((1 + freed.intrinsics[0]) / (1 + start[0]) - 1), float(freed.intrinsics_sigma[0])
     return {"focal_change": change, "focal_sigma": sigma, "focal_sigmas": abs(change) / max(sigma, 1e-12),
             "pose_moved_px": view.motion_px(freed.T_cam_from_scan, result.T_cam_from_scan)}
 
@@ -232,13 +236,14 @@ def decide(ev: dict, cfg: VerifyConfig) -> tuple[str, list[str]]:
 
 def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: Camera, photo: np.ndarray,
            renders, cfg: VerifyConfig, seed: int = 0, init_meta: dict | None = None,
-           check: tuple[np.ndarray, np.ndarray] | None = None) -> Verification:
+           check: tuple[np.ndarray, np.ndarray] | None = None, shared_camera: bool = False) -> Verification:
     """The evidence on `result` (refined from T_init by `aligner`) and the verdict.
 
     camera, photo: the photo's own (distorted) camera and image (H, W, 3) uint8; renders: the
     scan's `render.renders.Renders` (with its colors), for the structural image check; init_meta: the
     init pose file's other keys (its `uncertainty`, when it states one); check: held-out pairs
-    (img (n, 2) px, scan points (n, 3)).
+    (img (n, 2) px, scan points (n, 3)); shared_camera: the result's intrinsics were solved with
+    other photos (`refine --bundle`), and the camera check asks whether this photo agrees with them.
     """
     from rgbd_gt.qa.edges import structural_qa, working_view
 
@@ -265,7 +270,7 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
                                  result.intrinsics)
 
     if cfg.camera_check:
-        camera_ev = timed("camera", camera_check, aligner, result, view, cfg)
+        camera_ev = timed("camera", camera_check, aligner, result, view, cfg, shared_camera)
         if camera_ev is not None:
             ev["camera"] = camera_ev
 
@@ -285,3 +290,22 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
     ev["seconds"] = seconds
     verdict, reasons = decide(ev, cfg)
     return Verification(verdict, reasons, ev, time.perf_counter() - start)
+
+
+def bundle_reasons(ev: dict, cfg: VerifyConfig) -> list[str]:
+    """The reasons a photo of a bundle is suspect from its cross-photo evidence (`align.bundle`):
+    left out, the other photos' shared camera and rig move its pose by more than
+    cfg.bundle_sigmas of its sigma; freed from its rig it moves by more than that; its residual
+    scale exceeds cfg.bundle_residual_ratio times the other photos'."""
+    reasons = []
+    loo = ev.get("leave_one_out_sigmas")
+    if loo is not None and loo > cfg.bundle_sigmas:
+        reasons.append(f"the other photos disagree with this one: their shared camera (and rig) moves its pose by "
+                       f"{loo:.1f} sigma (its camera or zoom differs from theirs?)")
+    freed = ev.get("freed_from_rig_sigmas")
+    if freed is not None and freed > cfg.bundle_sigmas:
+        reasons.append(f"the shot disagrees with the rig: freed from it, this photo's pose moves {freed:.1f} sigma")
+    ratio = ev.get("residual_vs_others", 1.0)
+    if ratio > cfg.bundle_residual_ratio:
+        reasons.append(f"its residuals are {ratio:.1f}x the other photos' (a photo of another scene or time?)")
+    return reasons

@@ -206,10 +206,11 @@ def camera_to_dict(camera: Camera) -> dict:
     return d
 
 
-def write_camera(path: str | os.PathLike, camera: Camera) -> None:
-    """Write the project's camera YAML (atomically)."""
+def write_camera(path: str | os.PathLike, camera: Camera, **extra) -> None:
+    """Write the project's camera YAML (atomically); `extra`: further keys after the camera's
+    (readers ignore them: a solved camera's 1-sigma)."""
     with atomic_output(path) as tmp:
-        tmp.write_text(yaml.safe_dump(camera_to_dict(camera), sort_keys=False))
+        tmp.write_text(yaml.safe_dump(camera_to_dict(camera) | extra, sort_keys=False, default_flow_style=None))
 
 
 def check_image_matches(camera: Camera, image_shape: tuple[int, ...], image_path, camera_path) -> None:

@@ -169,14 +169,45 @@ def _seen_points(rc, camera: Camera, pose: np.ndarray) -> np.ndarray:
     return pose[:3, 3] + t[np.isfinite(t), None] * d[np.isfinite(t)]
 
 
+RIGS = ("stereo",)
+
+
+def stereo_rig(rng: np.random.Generator, baseline_m: float) -> np.ndarray:
+    """T_right_from_left (4x4) of a stereo rig: the right camera `baseline_m` along the left's x
+    axis, turned by a few tenths of a degree (as a real rig's cameras are)."""
+    from rgbd_gt.pose import so3_exp
+
+    R = so3_exp(np.deg2rad(rng.normal(0, 0.3, 3)))
+    return rigid(R, -R @ np.array([baseline_m, 0.0, 0.0]))
+
+
+def bundle_file(photos: list[dict], cameras: dict[str, str], rig: list[str] | None) -> str:
+    """The text of a `refine --bundle` file (docs/bundle.md) of the scene's photos."""
+    import yaml
+
+    doc = {"scan": "scan.ply", "cameras": {name: {"file": f, "refine": "none"} for name, f in cameras.items()}}
+    if rig:
+        doc["rig"] = {"cameras": rig}
+    doc["photos"] = photos
+    return "# rgbd-gt refine --bundle bundle.yaml -o OUT: the scene's photos, solved together (docs/bundle.md)\n" + \
+        yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)
+
+
 def generate(out_dir: Path, seed: int, size: str, cfg: SynthConfig,
-             progress: Callable[[str], None] | None = None, photos: int = 1) -> dict:
+             progress: Callable[[str], None] | None = None, photos: int = 1, rig: str | None = None,
+             baseline_m: float = 0.12) -> dict:
     """Generate one scene into `out_dir` (the FILES; with photos > 1 also photo_K.png,
     gt_pose_K.yaml, init_pose_K.yaml for K = 1 .. photos-1, taken by the same camera from
-    nearby places). Returns the scene's numbers (also in scene.json). Deterministic: the same
-    seed, size, photos and config give byte-identical files."""
+    nearby places). rig 'stereo': each photo is a shot of a stereo rig whose second camera
+    (camera_right.yaml, its own lens and color response) sits baseline_m to the right: also
+    right.png, right_K.png with their gt_ and init_pose_right[_K].yaml, and rig_gt.yaml (the
+    true T_right_from_left). With several photos or a rig, bundle.yaml lists them for `refine
+    --bundle`. Returns the scene's numbers (also in scene.json). Deterministic: the same seed,
+    size, photos, rig and config give byte-identical files."""
     if size not in cfg.sizes:
         raise InputError(f"unknown size '{size}' (choose from {', '.join(cfg.sizes)})")
+    if rig is not None and rig not in RIGS:
+        raise InputError(f"unknown rig '{rig}' (choose from {', '.join(RIGS)})")
     preset = cfg.sizes[size]
     say = progress or (lambda _msg: None)
     rng = np.random.default_rng(seed)
@@ -211,9 +242,20 @@ def generate(out_dir: Path, seed: int, size: str, cfg: SynthConfig,
     more_photos = [color.camera_forward(cam_resp, render_photo_radiance(
         scene, rc, camera, pose, preset.supersample, more_rng), more_rng) for pose in more_poses]
 
+    right = None
+    if rig is not None:  # its own generator: the left photos stay those of the scene without a rig
+        rig_rng = np.random.default_rng([seed, 11])
+        right_cam = random_camera(rig_rng, preset, cfg.hfov_deg)
+        T_rl = stereo_rig(rig_rng, baseline_m)
+        right_resp = color.random_camera_response(rig_rng)
+        right_poses = [pose @ np.linalg.inv(T_rl) for pose in [cam_pose] + more_poses]  # world_from_right
+        right = (right_cam, T_rl, right_poses, [color.camera_forward(right_resp, render_photo_radiance(
+            scene, rc, right_cam, pose, preset.supersample, rig_rng), rig_rng) for pose in right_poses])
+
     say("scan")
     # the scanner covers what the cameras see, with a margin
-    seen = np.concatenate([_seen_points(rc, camera, pose) for pose in [cam_pose] + more_poses])
+    seen = np.concatenate([_seen_points(rc, camera, pose) for pose in [cam_pose] + more_poses]
+                          + ([_seen_points(rc, right[0], pose) for pose in right[2]] if right else []))
     Rws, s = scan_pose[:3, :3], scan_pose[:3, 3]
     grid = grid_covering((seen - s) @ Rws, np.deg2rad(preset.scan_step_deg), np.deg2rad(cfg.scan_margin_deg))
     if preset.scan_fov_deg is not None:
@@ -242,6 +284,27 @@ def generate(out_dir: Path, seed: int, size: str, cfg: SynthConfig,
         write_pose(out_dir / f"gt_pose_{k}.yaml", T_k, method="synthetic ground truth", seed=seed)
         write_pose(out_dir / f"init_pose_{k}.yaml", perturb_pose(T_k, more_rng, cfg.init_translation_m, cfg.init_rotation_deg),
                    method="ground truth perturbed (synthetic)", seed=seed)
+    listed = [{"image": "photo.png" if k == 0 else f"photo_{k}.png", "camera": "left" if right else "camera",
+               "init": "init_pose.yaml" if k == 0 else f"init_pose_{k}.yaml"} | ({"shot": k} if right else {})
+              for k in range(photos)]
+    if right is not None:
+        right_cam, T_rl, right_poses, right_photos = right
+        write_camera(out_dir / "camera_right.yaml", right_cam)
+        write_pose(out_dir / "rig_gt.yaml", T_rl, method="synthetic ground truth: T_right_from_left", seed=seed,
+                   baseline_m=baseline_m)
+        for k, (pose, img) in enumerate(zip(right_poses, right_photos)):
+            tail = "" if k == 0 else f"_{k}"
+            write_image(out_dir / f"right{tail}.png", img)
+            T_k = np.linalg.inv(pose)
+            write_pose(out_dir / f"gt_pose_right{tail}.yaml", T_k, method="synthetic ground truth", seed=seed)
+            write_pose(out_dir / f"init_pose_right{tail}.yaml", perturb_pose(T_k, rig_rng, cfg.init_translation_m,
+                                                                             cfg.init_rotation_deg),
+                       method="ground truth perturbed (synthetic)", seed=seed)
+            listed.append({"image": f"right{tail}.png", "camera": "right", "init": f"init_pose_right{tail}.yaml", "shot": k})
+    if photos > 1 or right is not None:
+        cams = {"left": "camera.yaml", "right": "camera_right.yaml"} if right else {"camera": "camera.yaml"}
+        with atomic_output(out_dir / "bundle.yaml") as tmp:
+            tmp.write_text(bundle_file(listed, cams, ["left", "right"] if right else None))
     corners = board.corners()
     with atomic_output(out_dir / "board_corners.csv") as tmp:
         np.savetxt(tmp, corners, delimiter=",", header="x,y,z", comments="", fmt="%.9f")
@@ -269,6 +332,10 @@ def generate(out_dir: Path, seed: int, size: str, cfg: SynthConfig,
         "layout_attempts": attempt + 1,
         "more_photos": [{"photo": f"photo_{k}.png", "T_world_from_camera": p.tolist()} for k, p in enumerate(more_poses, start=1)],
     }
+    if right is not None:
+        info["rig"] = {"kind": rig, "baseline_m": baseline_m, "T_right_from_left": right[1].tolist(),
+                       "right_photos": [{"photo": "right.png" if k == 0 else f"right_{k}.png", "T_world_from_camera": p.tolist()}
+                                        for k, p in enumerate(right[2])]}
     with atomic_output(out_dir / "scene.json") as tmp:
         tmp.write_text(json.dumps(info, indent=1))
     return info

@@ -1,0 +1,399 @@
+"""Several photos of one scan in one solve: every photo's pose, per camera the corrections its
+file leaves open (shared by all that camera's photos), and per rig the relative pose of each
+camera to the rig's first (shared by all shots). One Levenberg-Marquardt over all of it, coarse to
+fine, as ETH3D's pipeline (Schöps et al., CVPR 2017), on the photos' own photometric objectives.
+
+Unknowns. A *body* is a pose of its own: a photo outside a rig, or a rig's shot (the pose of the
+rig's first camera). Photo i's pose is T_i = rig[c_i] @ body[b_i] (rig[0] = I; outside a rig
+T_i = body[b_i]). The *shared* parameters are the free camera corrections q_c[:free_c]
+(`render.project.project_corrected`) and the relative poses rig[c] of cameras c >= 1. The bodies'
+6 x 6 blocks are eliminated (Schur complement), so a step costs one small solve per body and one
+solve of the shared parameters: 100 photos stay cheap.
+
+Weights. Each photo's objective gives its Gauss-Newton system of the Student-t loss with its own
+scale sigma_i^2 (`align.photometric.Photometric.evaluate`); the sum of the photos' negative
+log-likelihoods sum_i rho_i has gradient sum_i g_i / sigma_i^2 and Gauss-Newton matrix
+sum_i H_i / sigma_i^2, which is what is solved: a photo with noisier residuals counts less.
+
+Cross-photo evidence (`evidence`): per body, leave-one-out (the shared parameters re-solved
+without it, linearised at the solution, and how far its pose then moves, in its sigmas); per
+photo its robust residual scale against the other photos'; per rig photo how far its pose
+moves when freed from the rig (linearised), in its own sigmas.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from rgbd_gt.errors import InputError
+from rgbd_gt.pose import apply_update, invert, translated
+
+
+@dataclass
+class RigPrior:
+    """A prior on a rig camera's pose relative to the rig's first (e.g. a stereo calibration's)."""
+
+    T: np.ndarray  # (4, 4) T_cam_c_from_cam_0
+    sigma_rotation_rad: float
+    sigma_translation_m: float
+
+
+@dataclass
+class BundlePhoto:
+    """One photo of the bundle: its objective (`Photometric`, whose `free` says which camera
+    corrections it shares), its initial pose (4x4 T_cam_from_scan, scan frame), its camera's
+    index and, in a rig, its shot (None: a body of its own). In a rig, `camera` is also the
+    photo's place in the rig (0: the rig's first camera)."""
+
+    objective: object
+    T_init: np.ndarray
+    camera: int = 0
+    shot: int | None = None
+    name: str = ""
+
+
+@dataclass
+class BundleResult:
+    poses: list[np.ndarray]  # per photo 4x4 T_cam_from_scan
+    q: np.ndarray  # (C, 5) per camera its corrections (0 where not free)
+    q_sigma: np.ndarray  # (C, 5) 1-sigma, inf where not free
+    pose_covariance: list[np.ndarray]  # per photo (6, 6) of its update (rotation vector, translation), camera frame
+    rig: np.ndarray | None  # (C, 4, 4) T_cam_c_from_cam_0 (rig[0] = I), or None without a rig
+    rig_covariance: np.ndarray | None  # (C, 6, 6) of each relative pose's update
+    terms: list  # per photo its objective's terms at the result, finest level
+    iterations: int
+    levels: list[dict]
+    seconds: float
+    evidence: list[dict] = field(default_factory=list)  # per photo: the cross-photo evidence
+
+
+def _hat(t: np.ndarray) -> np.ndarray:
+    return np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+
+
+def moved_by(A: np.ndarray) -> np.ndarray:
+    """(6, 6) M: the update of A @ B (`apply_update`, camera frame of A @ B) when B gets the
+    update d, to first order: M d. A: 4x4."""
+    R, t = A[:3, :3], A[:3, 3]
+    M = np.zeros((6, 6))
+    M[:3, :3] = R
+    M[3:, :3] = _hat(t) @ R
+    M[3:, 3:] = R
+    return M
+
+
+def _damped_solve(A: np.ndarray, b: np.ndarray, lam: float) -> np.ndarray:
+    d = np.diag(A)
+    return np.linalg.solve(A + lam * np.diag(d + 1e-12), b)
+
+
+class Bundle:
+    """The joint solve of `photos` (each a `BundlePhoto`); rig_cameras: how many cameras the rig
+    has (0: no rig); priors: {camera: RigPrior} for rig cameras >= 1."""
+
+    def __init__(self, photos: list[BundlePhoto], cameras: int, rig_cameras: int = 0,
+                 priors: dict[int, RigPrior] | None = None):
+        if not photos:
+            raise InputError("a bundle needs at least one photo")
+        self.photos = photos
+        self.cameras = cameras
+        self.rig_cameras = rig_cameras
+        self.priors = priors or {}
+        self.cfg = photos[0].objective.cfg
+        self.device = photos[0].objective.device
+        # bodies: one per shot of the rig, one per photo outside it
+        keys = [("shot", p.shot) if p.shot is not None else ("photo", i) for i, p in enumerate(photos)]
+        self.body_keys = list(dict.fromkeys(keys))
+        self.body_of = np.array([self.body_keys.index(k) for k in keys])
+        self.free = np.zeros(cameras, int)
+        for p in photos:
+            self.free[p.camera] = p.objective.free
+        # shared parameters: each camera's free corrections, then each rig camera's relative pose
+        self.q_at = np.r_[0, np.cumsum(self.free)][:-1]
+        self.rig_at = int(self.free.sum()) + 6 * np.arange(-1, max(rig_cameras, 1) - 1)  # rig_at[c] for c >= 1
+        self.shared = int(self.free.sum()) + 6 * max(rig_cameras - 1, 0)
+
+    # -- the photos' poses from the unknowns -------------------------------------------------------
+    def _in_rig(self, i: int) -> bool:
+        return self.photos[i].shot is not None and self.rig_cameras > 0
+
+    def pose(self, i: int, bodies: list[np.ndarray], rig: np.ndarray) -> np.ndarray:
+        """Photo i's 4x4 T_cam_from_scan (scan frame)."""
+        T = bodies[self.body_of[i]]
+        return rig[self.photos[i].camera] @ T if self._in_rig(i) else T
+
+    def _initial(self) -> tuple[list[np.ndarray], np.ndarray]:
+        """The bodies and the rig from the photos' inits: a shot's body from its first camera's
+        photo (else another's, moved back through the rig); the rig from its prior, else from the
+        first shot holding both cameras."""
+        rig = np.stack([np.eye(4)] * max(self.rig_cameras, 1))
+        for c in range(1, self.rig_cameras):
+            if c in self.priors:
+                rig[c] = self.priors[c].T
+                continue
+            for k in self.body_keys:
+                members = {p.camera: p.T_init for p in self.photos if p.shot is not None and ("shot", p.shot) == k}
+                if 0 in members and c in members:
+                    rig[c] = members[c] @ invert(members[0])
+                    break
+            else:
+                raise InputError(f"rig camera {c}: no shot has photos of it and of the rig's first camera, and the "
+                                 "rig gives no prior for it")
+        bodies: list[np.ndarray | None] = [None] * len(self.body_keys)
+        for i, p in sorted(enumerate(self.photos), key=lambda ip: ip[1].camera):
+            b = self.body_of[i]
+            if bodies[b] is None:
+                bodies[b] = invert(rig[p.camera]) @ p.T_init if self._in_rig(i) else p.T_init
+        return bodies, rig
+
+    def _q(self, q: np.ndarray, c: int) -> torch.Tensor:
+        return torch.as_tensor(q[c], dtype=torch.float32, device=self.device)
+
+    # -- evaluation --------------------------------------------------------------------------------
+    def _evaluate(self, level: int, bodies, rig, q, prev=None) -> list:
+        out = []
+        for i, p in enumerate(self.photos):
+            T = translated(self.pose(i, bodies, rig), p.objective.centre)
+            try:
+                out.append(p.objective.evaluate(level, [T], self._q(q, p.camera), None if prev is None else prev[i], True))
+            except InputError as exc:
+                raise InputError(f"{p.name or f'photo {i + 1}'}: {exc}") from None
+        return out
+
+    @staticmethod
+    def _rho(at) -> float:
+        """The photo's sum of negative log-likelihoods (its loss is their mean per residual)."""
+        return float(at.loss[0]) * float(at.count[0])
+
+    def _prior_terms(self, rig: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        """The rig priors' energy, gradient (S,) and matrix (S, S) over the shared parameters."""
+        g, H, energy = np.zeros(self.shared), np.zeros((self.shared, self.shared)), 0.0
+        for c, prior in self.priors.items():
+            e = _log(rig[c] @ invert(prior.T))
+            w = np.r_[[1 / prior.sigma_rotation_rad**2] * 3, [1 / prior.sigma_translation_m**2] * 3]
+            s = slice(self.rig_at[c], self.rig_at[c] + 6)
+            g[s] += w * e
+            H[s, s] += np.diag(w)
+            energy += 0.5 * float(e @ (w * e))
+        return energy, g, H
+
+    def _maps(self, i: int, rig: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Photo i's parameters (pose 6, its free corrections) as linear maps of its body's
+        update (P, 6) and of the shared update (P, S)."""
+        p = self.photos[i]
+        P = 6 + p.objective.free
+        Jb, Js = np.zeros((P, 6)), np.zeros((P, self.shared))
+        c = p.camera
+        if self._in_rig(i):
+            Jb[:6] = moved_by(rig[c])
+            if c >= 1:
+                Js[:6, self.rig_at[c]:self.rig_at[c] + 6] = np.eye(6)
+        else:
+            Jb[:6] = np.eye(6)
+        for k in range(p.objective.free):
+            Js[6 + k, self.q_at[c] + k] = 1.0
+        return Jb, Js
+
+    def _system(self, terms: list, rig: np.ndarray, scale: list[float]):
+        """The joint Gauss-Newton system, each photo's terms divided by its scale, per body:
+        U (nb, 6, 6), W (nb, 6, S), gb (nb, 6) and its share of the shared parameters' block
+        Vb (nb, S, S) and gradient gsb (nb, S)."""
+        nb, S = len(self.body_keys), self.shared
+        U, W, gb = np.zeros((nb, 6, 6)), np.zeros((nb, 6, S)), np.zeros((nb, 6))
+        Vb, gsb = np.zeros((nb, S, S)), np.zeros((nb, S))
+        for i, at in enumerate(terms):
+            Jb, Js = self._maps(i, rig)
+            H, g = at.H[0] / scale[i], at.g[0] / scale[i]
+            b = self.body_of[i]
+            U[b] += Jb.T @ H @ Jb
+            W[b] += Jb.T @ H @ Js
+            gb[b] += Jb.T @ g
+            Vb[b] += Js.T @ H @ Js
+            gsb[b] += Js.T @ g
+        return U, W, gb, Vb, gsb
+
+    def _step(self, system, prior, lam: float) -> tuple[np.ndarray, np.ndarray]:
+        """The damped Gauss-Newton step: bodies' updates (nb, 6) and the shared update (S,),
+        the bodies eliminated first (Schur complement)."""
+        U, W, gb, Vb, gsb = system
+        _, pg, pH = prior
+        V, gs = Vb.sum(0) + pH, gsb.sum(0) + pg
+        reduced, rhs = V.copy(), -gs.copy()
+        Ud = [U[b] + lam * np.diag(np.diag(U[b]) + 1e-12) for b in range(len(U))]
+        Ui_W = [np.linalg.solve(Ud[b], W[b]) for b in range(len(U))]
+        Ui_g = [np.linalg.solve(Ud[b], gb[b]) for b in range(len(U))]
+        for b in range(len(U)):
+            reduced -= W[b].T @ Ui_W[b]
+            rhs += W[b].T @ Ui_g[b]
+        xs = _damped_solve(reduced, rhs, lam) if self.shared else np.zeros(0)
+        xb = np.stack([-Ui_g[b] - Ui_W[b] @ xs for b in range(len(U))])
+        return xb, xs
+
+    def _moved(self, bodies, rig, q, xb, xs):
+        bodies = [apply_update(T, d) for T, d in zip(bodies, xb)]
+        rig, q = rig.copy(), q.copy()
+        for c in range(1, self.rig_cameras):
+            rig[c] = apply_update(rig[c], xs[self.rig_at[c]:self.rig_at[c] + 6])
+        for c in range(self.cameras):
+            q[c, :self.free[c]] += xs[self.q_at[c]:self.q_at[c] + self.free[c]]
+        return bodies, rig, q
+
+    def _converged(self, xb: np.ndarray, xs: np.ndarray, level: int) -> bool:
+        """Every body, rig pose and camera moves less than the stop thresholds at this level's
+        pixel size (a camera correction by its effect at the image's edge, taken as 0.5 in
+        normalised units)."""
+        scale = 2.0**level
+        poses = [xb[b] for b in range(len(xb))] + [xs[self.rig_at[c]:self.rig_at[c] + 6] for c in range(1, self.rig_cameras)]
+        still = all(np.degrees(np.linalg.norm(d[:3])) < self.cfg.stop_rotation_deg * scale
+                    and np.linalg.norm(d[3:]) < self.cfg.stop_translation_m * scale for d in poses)
+        for c in range(self.cameras):
+            dq = xs[self.q_at[c]:self.q_at[c] + self.free[c]]
+            if len(dq):
+                fx = float(self.photos[[p.camera for p in self.photos].index(c)].objective.pyramid[0].K[0, 0])
+                still &= bool(np.abs(dq).max() * 0.5 * fx < 0.01 * scale)
+        return still
+
+    # -- the solve ---------------------------------------------------------------------------------
+    def solve(self, progress=None) -> BundleResult:
+        """Coarse to fine, Levenberg-Marquardt on all the unknowns at once; then the covariance
+        and the cross-photo evidence at the result."""
+        start = time.perf_counter()
+        bodies, rig = self._initial()
+        q = np.zeros((self.cameras, 5))
+        levels = [p.objective.prepare(translated(self.pose(i, bodies, rig), p.objective.centre))
+                  for i, p in enumerate(self.photos)]
+        top = min(levels) - 1
+        level_info, total = [], 0
+        for level in range(top, -1, -1):
+            bodies, rig, q, its, stop = self._lm(level, bodies, rig, q, self.cfg.iterations, progress)
+            level_info.append({"level": level, "iterations": its, "stop": stop})
+            total += its
+        terms = self._evaluate(0, bodies, rig, q)
+        result = BundleResult([self.pose(i, bodies, rig) for i in range(len(self.photos))], q, np.full_like(q, np.inf),
+                              [np.full((6, 6), np.inf)] * len(self.photos), rig if self.rig_cameras else None, None,
+                              terms, total, level_info, 0.0)
+        self._uncertainty_and_evidence(result, bodies, rig, terms)
+        result.seconds = time.perf_counter() - start
+        return result
+
+    def _lm(self, level, bodies, rig, q, iterations, progress):
+        at = self._evaluate(level, bodies, rig, q)
+        prior = self._prior_terms(rig)
+        loss = sum(self._rho(a) for a in at) + prior[0]
+        lam, stop, it = 1e-4, "iteration cap", 0
+        for it in range(1, iterations + 1):
+            scale = [float(a.sigma2.reshape(-1)[0]) for a in at]
+            xb, xs = self._step(self._system(at, rig, scale), prior, lam)
+            nb, nr, nq = self._moved(bodies, rig, q, xb, xs)
+            trial = sum(float(p.objective.trial(level, [translated(self.pose(i, nb, nr), p.objective.centre)],
+                                                self._q(nq, p.camera), a)[0]) * float(a.count[0])
+                        for i, (p, a) in enumerate(zip(self.photos, at)))
+            new_prior = self._prior_terms(nr)
+            accepted = trial + new_prior[0] <= loss
+            if accepted:
+                bodies, rig, q, prior = nb, nr, nq, new_prior
+                at = self._evaluate(level, bodies, rig, q, at)
+                loss = sum(self._rho(a) for a in at) + prior[0]
+                lam = max(lam / 4, 1e-7)
+            else:
+                lam *= 8
+            if progress is not None:
+                progress({"level": level, "iteration": it, "loss": loss, "accepted": accepted})
+            if accepted and self._converged(xb, xs, level):
+                stop = "converged"
+                break
+            if lam > 1e6:
+                stop = "damping ran away"
+                break
+        return bodies, rig, q, it, stop
+
+    # -- what the result is worth ------------------------------------------------------------------
+    def _uncertainty_and_evidence(self, result: BundleResult, bodies, rig, terms) -> None:
+        """The covariance of every unknown from the joint Gauss-Newton matrix at the result (each
+        photo's residual variance as its own covariance does: `photometric.covariance`), and the
+        cross-photo evidence (the module's docstring)."""
+        nb, S = len(self.body_keys), self.shared
+        scale = [float(a.wrr[0]) / max(float(a.count[0]) - a.H.shape[1], 1) for a in terms]
+        system = self._system(terms, rig, scale)
+        U, W, _, Vb, _ = system
+        prior = self._prior_terms(rig)
+        n = 6 * nb + S
+        A = np.zeros((n, n))
+        for b in range(nb):
+            A[6 * b:6 * b + 6, 6 * b:6 * b + 6] = U[b]
+            A[6 * b:6 * b + 6, 6 * nb:] = W[b]
+            A[6 * nb:, 6 * b:6 * b + 6] = W[b].T
+        A[6 * nb:, 6 * nb:] = Vb.sum(0) + prior[2]
+        cov = _inverse(A)
+        for i in range(len(self.photos)):
+            Jb, Js = self._maps(i, rig)
+            J = np.zeros((6, n))
+            J[:, 6 * self.body_of[i]:6 * self.body_of[i] + 6] = Jb[:6]
+            J[:, 6 * nb:] = Js[:6]
+            result.pose_covariance[i] = J @ cov @ J.T
+        for c in range(self.cameras):
+            s = slice(6 * nb + self.q_at[c], 6 * nb + self.q_at[c] + self.free[c])
+            result.q_sigma[c, :self.free[c]] = np.sqrt(np.diag(cov[s, s]))
+        if self.rig_cameras:
+            result.rig_covariance = np.zeros((self.rig_cameras, 6, 6))
+            for c in range(1, self.rig_cameras):
+                s = slice(6 * nb + self.rig_at[c], 6 * nb + self.rig_at[c] + 6)
+                result.rig_covariance[c] = cov[s, s]
+        result.evidence = self._evidence(terms, rig, scale, system, prior, cov)
+
+    def _evidence(self, terms, rig, scale, system, prior, cov) -> list[dict]:
+        """Per photo: leave its body out, its residual scale against the others', and (in a rig)
+        its pose freed from the rig; see the module's docstring."""
+        U, W, gb, Vb, gsb = system
+        nb = len(self.body_keys)
+        ev = [dict() for _ in self.photos]
+        if self.shared:
+            # the reduced problem of the shared parameters is a sum over bodies (and the prior):
+            # without body b, its part is taken out and the others' Newton step taken
+            Ui = [_inverse(U[b]) for b in range(nb)]
+            S_b = [Vb[b] - W[b].T @ Ui[b] @ W[b] for b in range(nb)]
+            r_b = [gsb[b] - W[b].T @ Ui[b] @ gb[b] for b in range(nb)]
+            S, r = sum(S_b) + prior[2], sum(r_b) + prior[1]
+            for b in range(nb):
+                others = _inverse(S - S_b[b])
+                d_shared = -others @ (r - r_b[b])
+                d_body = -Ui[b] @ (gb[b] + W[b] @ d_shared)
+                C = cov[6 * b:6 * b + 6, 6 * b:6 * b + 6]
+                sig = float(np.sqrt(max(d_body @ _inverse(C) @ d_body, 0.0))) if np.isfinite(d_body).all() \
+                    and np.isfinite(C).all() else None  # None: the others alone do not fix the shared parameters
+                for i in np.nonzero(self.body_of == b)[0]:
+                    ev[i]["leave_one_out_sigmas"] = sig
+        spread = np.sqrt([float(a.sigma2.reshape(-1)[0]) for a in terms])
+        for i in range(len(self.photos)):
+            others = np.delete(spread, i)
+            ev[i]["residual_vs_others"] = float(spread[i] / np.median(others)) if len(others) else 1.0
+        for i, at in enumerate(terms):
+            if self._in_rig(i):
+                Hp = at.H[0][:6, :6] / scale[i]
+                step = -np.linalg.solve(Hp, at.g[0][:6] / scale[i])
+                ev[i]["freed_from_rig_sigmas"] = float(np.sqrt(max(step @ Hp @ step, 0.0)))
+        return ev
+
+
+def _inverse(A: np.ndarray) -> np.ndarray:
+    """A's inverse with its parameters scaled to unit diagonal (rotations, metres and camera
+    corrections differ by orders of magnitude); all inf where A is singular."""
+    s = 1.0 / np.sqrt(np.clip(np.diag(A), 1e-30, None))
+    As = A * s[:, None] * s[None, :]
+    eig = np.linalg.eigvalsh(As)
+    if eig[0] <= eig[-1] * 1e-12:
+        return np.full(A.shape, np.inf)
+    return s[:, None] * np.linalg.inv(As) * s[None, :]
+
+
+def _log(T: np.ndarray) -> np.ndarray:
+    """The update d (6,) with apply_update(I, d) = T: (rotation vector, translation)."""
+    R = T[:3, :3]
+    angle = np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    w = w * (0.5 if angle < 1e-8 else angle / (2 * np.sin(angle)))
+    return np.r_[w, T[:3, 3]]

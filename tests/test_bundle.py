@@ -1,0 +1,160 @@
+"""refine --bundle: several photos of one scan in one solve (rgbd_gt/align/bundle.py), on
+synthetic scenes with exact truth."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from conftest import run_cli
+from rgbd_gt.io import read_camera, read_pose
+from rgbd_gt.pose import invert, rotation_error_deg, translation_error_m
+
+
+@pytest.fixture(scope="module")
+def rig_run(synth_scene, tmp_path_factory):
+    """A stereo rig's 2 shots solved together by the command: (scene folder, output folder)."""
+    d = synth_scene(tmp_path_factory.mktemp("rig") / "scene", 0, photos=2, rig="stereo")
+    out = d.parent / "out"
+    proc = run_cli("refine", "--bundle", d / "bundle.yaml", "-o", out, "--device", "cpu", "--repeats", "1")
+    assert proc.returncode == 0, proc.stderr + proc.stdout
+    return d, out
+
+
+def test_stereo_rig_poses_and_baseline(rig_run):
+    d, out = rig_run
+    for stem, truth in (("photo", "gt_pose"), ("photo_1", "gt_pose_1"), ("right", "gt_pose_right"),
+                        ("right_1", "gt_pose_right_1")):
+        T = read_pose(out / stem / "pose.yaml")[0]
+        T_true = read_pose(d / f"{truth}.yaml")[0]
+        # from inits 20-40 mm and 0.7-1.2 deg off; per-photo refines land within ~1 mm here
+        assert translation_error_m(T, T_true) < 3e-3 and rotation_error_deg(T, T_true) < 0.03, stem
+    rig = yaml.safe_load((out / "rig.yaml").read_text())
+    T_rl = np.array(rig["relative"]["right"]["T_cam_from_reference"])
+    T_true = read_pose(d / "rig_gt.yaml")[0]
+    assert abs(rig["relative"]["right"]["baseline_m"] - np.linalg.norm(invert(T_true)[:3, 3])) < 1e-3
+    assert rotation_error_deg(T_rl, T_true) < 0.02
+    # every photo's pose is the rig's relative pose applied to its shot's first camera
+    for k in ("", "_1"):
+        T_l, T_r = read_pose(out / f"photo{k}" / "pose.yaml")[0], read_pose(out / f"right{k}" / "pose.yaml")[0]
+        assert np.allclose(T_r, T_rl @ T_l, atol=1e-9)
+
+
+def test_bundle_files(rig_run):
+    d, out = rig_run
+    summary = json.loads((out / "bundle.json").read_text())
+    assert [p["pose"] for p in summary["photos"]] == ["photo/pose.yaml", "photo_1/pose.yaml", "right/pose.yaml",
+                                                      "right_1/pose.yaml"]
+    for p in summary["photos"]:
+        assert p["verdict"] in ("ok", "suspect", "failed") and p["photos"] == 4
+        assert p["freed_from_rig_sigmas"] >= 0 and p["residual_vs_others"] > 0
+    doc = yaml.safe_load((out / "photo" / "pose.yaml").read_text())
+    assert doc["evidence"]["bundle"]["shot"] == 0 and doc["evidence"]["bundle"]["camera"] == "left"
+    assert "camera" in doc["evidence"]  # the camera check runs on each photo of the bundle
+    cam = read_camera(out / "cameras" / "right.yaml")
+    assert cam == read_camera(d / "camera_right.yaml")  # refine: none keeps the file's camera
+    assert yaml.safe_load((out / "cameras" / "right.yaml").read_text())["refined"] == "none"
+
+
+def test_one_photo_bundle_is_a_refine(synth_scene, tmp_path):
+    """A bundle of one photo with nothing shared is the photo's own refine: the same pose."""
+    from rgbd_gt.align.aligner import Aligner
+    from rgbd_gt.align.bundle import Bundle, BundlePhoto
+    from rgbd_gt.align.config import RefineConfig
+    from rgbd_gt.align.photometric import Photometric
+    from rgbd_gt.align.pyramid import photo_pyramid
+    from rgbd_gt.io import load_scan
+    from rgbd_gt.io.image import read_image
+    from rgbd_gt.render.normals import with_normals
+
+    import torch
+
+    d = synth_scene(tmp_path / "s", 0)
+    scan = with_normals(load_scan(d / "scan.ply"))
+    cam, cfg = read_camera(d / "camera.yaml"), RefineConfig()
+    T_init = read_pose(d / "init_pose.yaml")[0]
+
+    def objective():
+        pyr = photo_pyramid(read_image(d / "photo.png"), cam, cfg.levels, torch.device("cpu"), None, cfg.upsample)
+        return Photometric(scan.xyz, scan.rgb, pyr, cfg, scan.normals)
+
+    alone = Aligner(objective()).refine(T_init)
+    joint = Bundle([BundlePhoto(objective(), T_init)], cameras=1).solve()
+    assert translation_error_m(joint.poses[0], alone.T_cam_from_scan) < 2e-4
+    assert rotation_error_deg(joint.poses[0], alone.T_cam_from_scan) < 0.003
+    # its covariance is the refine's (the same Gauss-Newton matrix and residual variance)
+    assert np.allclose(np.sqrt(np.diag(joint.pose_covariance[0])), np.sqrt(np.diag(alone.covariance)), rtol=0.1)
+
+
+def test_shared_focal_and_zoomed_photo(synth_scene, tmp_path):
+    """Two photos share the camera file's focal, the second taken 2 % zoomed: the solved focal
+    lies between, and the camera check of each photo against the shared camera says which
+    disagrees; a right photo of a held camera stays ok."""
+    import cv2
+
+    d = synth_scene(tmp_path / "s", 0, photos=2)
+    cam = read_camera(d / "camera.yaml")
+    img = cv2.imread(str(d / "photo_1.png"))
+    M = np.array([[1.02, 0, -0.02 * cam.cx], [0, 1.02, -0.02 * cam.cy]])
+    cv2.imwrite(str(d / "zoomed.png"), cv2.warpAffine(img, M, (img.shape[1], img.shape[0]), flags=cv2.INTER_CUBIC))
+    spec = yaml.safe_load((d / "bundle.yaml").read_text())
+    spec["photos"][1]["image"] = "zoomed.png"
+    (d / "bundle.yaml").write_text(yaml.safe_dump(spec))
+    proc = run_cli("refine", "--bundle", d / "bundle.yaml", "-o", tmp_path / "held", "--device", "cpu", "--repeats", "1")
+    assert proc.returncode == 0, proc.stderr
+    held = json.loads((tmp_path / "held" / "bundle.json").read_text())["photos"]
+    assert held[0]["verdict"] == "ok", held[0]["reasons"]
+    assert held[1]["verdict"] != "ok" and any("camera" in r for r in held[1]["reasons"])
+
+    spec["cameras"]["camera"]["refine"] = "focal"
+    (d / "bundle.yaml").write_text(yaml.safe_dump(spec))
+    proc = run_cli("refine", "--bundle", d / "bundle.yaml", "-o", tmp_path / "shared", "--device", "cpu", "--repeats", "1")
+    assert proc.returncode == 0, proc.stderr
+    solved = read_camera(tmp_path / "shared" / "cameras" / "camera.yaml")
+    assert 1.002 < solved.fx / cam.fx < 1.018  # between the two photos' focal lengths
+    doc = [yaml.safe_load((tmp_path / "shared" / s / "pose.yaml").read_text()) for s in ("photo", "zoomed")]
+    changes = [x["evidence"]["camera"]["focal_change"] for x in doc]
+    assert changes[0] < 0 < changes[1]  # each photo freed moves its focal towards its own
+
+
+def test_bundle_file_errors(synth_scene, tmp_path):
+    d = synth_scene(tmp_path / "s", 0, photos=2)
+    cases = [
+        ("cameras: {a: {file: camera.yaml, refine: zoom}}\nphotos: [{image: photo.png, init: init_pose.yaml}]\nscan: scan.ply",
+         "refine must be one of"),
+        ("scan: scan.ply\ncameras: {a: camera.yaml}\nphotos: [{image: photo.png, camera: b, init: init_pose.yaml}]",
+         "camera must name one of a"),
+        ("scan: scan.ply\ncameras: {a: camera.yaml}\nrig: {cameras: [a]}\nphotos: [{image: photo.png, init: init_pose.yaml}]",
+         "rig.cameras must list two or more"),
+        ("scan: scan.ply\ncameras: {a: camera.yaml}\nphotos: [{image: photo.png, init: init_pose.yaml}, "
+         "{image: sub/photo.png, init: init_pose.yaml}]", "two photos named photo"),
+        ("scan: scan.ply\ncameras: {a: camera.yaml}\nphotos: [{image: missing.png, init: init_pose.yaml}]", "missing.png"),
+    ]
+    for text, message in cases:
+        (d / "b.yaml").write_text(text)
+        proc = run_cli("refine", "--bundle", d / "b.yaml", "-o", tmp_path / "out")
+        assert proc.returncode == 2 and message in proc.stderr and "Traceback" not in proc.stderr, (text, proc.stderr)
+        assert not (tmp_path / "out").exists()
+    proc = run_cli("refine", "--bundle", d / "bundle.yaml", "--init", d / "init_pose.yaml", "-o", tmp_path / "out")
+    assert proc.returncode == 2 and "leave out --init" in proc.stderr
+    proc = run_cli("refine", "--scan", d / "scan.ply", "--image", d / "photo.png", "-o", tmp_path / "p.yaml")
+    assert proc.returncode == 2 and "--camera is required" in proc.stderr
+
+
+def test_rig_prior_holds_the_rig(rig_run, tmp_path):
+    """A tight prior on the rig's relative pose (the truth, to 1 um and 1e-5 deg) keeps it there,
+    and rig.yaml's 1-sigma is the prior's or less."""
+    d, _ = rig_run
+    spec = yaml.safe_load((d / "bundle.yaml").read_text())
+    spec["rig"]["prior"] = {"right": {"pose": "rig_gt.yaml", "sigma_rotation_deg": 1e-5, "sigma_translation_mm": 1e-3}}
+    (d / "prior.yaml").write_text(yaml.safe_dump(spec))
+    proc = run_cli("refine", "--bundle", d / "prior.yaml", "-o", tmp_path / "out", "--device", "cpu", "--repeats", "0")
+    assert proc.returncode == 0, proc.stderr
+    rel = yaml.safe_load((tmp_path / "out" / "rig.yaml").read_text())["relative"]["right"]
+    T_true = read_pose(d / "rig_gt.yaml")[0]
+    assert translation_error_m(np.array(rel["T_cam_from_reference"]), T_true) < 1e-5
+    assert rotation_error_deg(np.array(rel["T_cam_from_reference"]), T_true) < 1e-4
+    assert max(rel["sigma"]["translation_mm"]) <= 1e-3 * 1.01
