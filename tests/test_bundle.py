@@ -158,3 +158,44 @@ def test_rig_prior_holds_the_rig(rig_run, tmp_path):
     assert translation_error_m(np.array(rel["T_cam_from_reference"]), T_true) < 1e-5
     assert rotation_error_deg(np.array(rel["T_cam_from_reference"]), T_true) < 1e-4
     assert max(rel["sigma"]["translation_mm"]) <= 1e-3 * 1.01
+
+
+def test_agreement_gradient_matches_its_loss(synth_scene, tmp_path):
+    """The agreement term's gradient by the rig's relative pose is the derivative of its loss
+    (central differences, the points, fits and scale held)."""
+    from rgbd_gt.align.bundle import Bundle, BundlePhoto
+    from rgbd_gt.align.config import RefineConfig
+    from rgbd_gt.align.photometric import Photometric
+    from rgbd_gt.align.pyramid import photo_pyramid
+    from rgbd_gt.io import load_scan
+    from rgbd_gt.io.image import read_image
+    from rgbd_gt.pose import apply_update, translated
+    from rgbd_gt.render.normals import with_normals
+
+    import torch
+
+    d = synth_scene(tmp_path / "s", 0, photos=2, rig="stereo")
+    scan = with_normals(load_scan(d / "scan.ply"))
+    cfg = RefineConfig(bundle_agreement=1.0)
+    photos = []
+    for img, cam, c, truth in (("photo", "camera", 0, "gt_pose"), ("right", "camera_right", 1, "gt_pose_right")):
+        pyr = photo_pyramid(read_image(d / f"{img}.png"), read_camera(d / f"{cam}.yaml"), cfg.levels, torch.device("cpu"),
+                            None, cfg.upsample)
+        photos.append(BundlePhoto(Photometric(scan.xyz, scan.rgb, pyr, cfg, scan.normals), read_pose(d / f"{truth}.yaml")[0],
+                                  c, 0, img))
+    bundle = Bundle(photos, 2, 2)
+    bodies, rig = bundle._initial()
+    q = np.zeros((2, 5))
+    for i, p in enumerate(photos):
+        p.objective.prepare(translated(bundle.pose(i, bodies, rig), p.objective.centre))
+    at = bundle._evaluate(0, bodies, rig, q)
+    (pair,) = bundle._agreement(0, bodies, rig, q, at)
+    analytic = pair["g"][6:12] / pair["scale"]  # photo j's pose part: the rig's relative pose
+    for k, eps in enumerate([2e-5] * 3 + [2e-5] * 3):
+        moved = []
+        for sign in (1, -1):
+            r2 = rig.copy()
+            r2[1] = apply_update(rig[1], sign * eps * np.eye(6)[k])
+            moved.append(bundle._agreement(0, bodies, r2, q, at, [pair])[0]["rho"])
+        numeric = (moved[0] - moved[1]) / (2 * eps)
+        assert abs(numeric - analytic[k]) < 0.1 * abs(analytic).max(), (k, numeric, analytic)

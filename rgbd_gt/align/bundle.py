@@ -15,6 +15,12 @@ scale sigma_i^2 (`align.photometric.Photometric.evaluate`); the sum of the photo
 log-likelihoods sum_i rho_i has gradient sum_i g_i / sigma_i^2 and Gauss-Newton matrix
 sum_i H_i / sigma_i^2, which is what is solved: a photo with noisier residuals counts less.
 
+Agreement (rigs, cfg.bundle_agreement > 0): ETH3D's multi-view term, for the photos of one shot:
+at the scan points the shot's first photo sees, its colors and another photo's, each mapped into
+the scan's colors by its own color fit, should agree (Student-t, its own scale, times the weight).
+Both photos belong to one body, so it keeps the Schur structure; it pins the rig's relative pose
+to the photos' own detail, finer than the scan's (docs/bundle.md measures it).
+
 Cross-photo evidence (`evidence`): per body, leave-one-out (the shared parameters re-solved
 without it, linearised at the solution, and how far its pose then moves, in its sigmas); per
 photo its robust residual scale against the other photos'; per rig photo how far its pose
@@ -31,6 +37,10 @@ import torch
 
 from rgbd_gt.errors import InputError
 from rgbd_gt.pose import apply_update, invert, translated
+
+# the agreement term runs on the finest levels alone: on the coarse ones, blurred, the photos
+# agree wherever the scan lands, and the pose is not yet close enough for it to say more
+AGREEMENT_FINEST_LEVELS = 2
 
 
 @dataclass
@@ -116,6 +126,13 @@ class Bundle:
         self.q_at = np.r_[0, np.cumsum(self.free)][:-1]
         self.rig_at = int(self.free.sum()) + 6 * np.arange(-1, max(rig_cameras, 1) - 1)  # rig_at[c] for c >= 1
         self.shared = int(self.free.sum()) + 6 * max(rig_cameras - 1, 0)
+        # the agreement term's pairs: in each rig shot, its first photo with each other one
+        self.weight = self.cfg.bundle_agreement
+        self.pairs = []
+        if self.weight > 0 and rig_cameras:
+            for b in range(len(self.body_keys)):
+                members = sorted((self.photos[i].camera, i) for i in np.nonzero(self.body_of == b)[0] if self._in_rig(i))
+                self.pairs += [(members[0][1], i) for _, i in members[1:]]
 
     # -- the photos' poses from the unknowns -------------------------------------------------------
     def _in_rig(self, i: int) -> bool:
@@ -164,6 +181,39 @@ class Bundle:
                 raise InputError(f"{p.name or f'photo {i + 1}'}: {exc}") from None
         return out
 
+    def _agreement(self, level: int, bodies, rig, q, at: list, held: list | None = None) -> list[dict]:
+        """The agreement term of each pair (i, j) of a shot (ETH3D's multi-view term): at the
+        points photo i sees, photo i's colors mapped into the scan's by its color fit minus photo
+        j's by its own, Student-t weighted. Per pair: its sum of negative log-likelihoods `rho`,
+        and (without `held`) its Gauss-Newton system over photo i's parameters then photo j's,
+        its points and scale. held: the pairs' terms a trial step keeps (points, scale)."""
+        from rgbd_gt.align.robust import student_t_loss, student_t_weights
+
+        out = []
+        if level > AGREEMENT_FINEST_LEVELS - 1:
+            return out
+        for k, (i, j) in enumerate(self.pairs):
+            pi, pj = self.photos[i], self.photos[j]
+            pts = pi.objective.levels[level].points[at[i].mask[0]]
+            shift = torch.as_tensor(pi.objective.centre - pj.objective.centre, dtype=pts.dtype, device=pts.device)
+            Ti = translated(self.pose(i, bodies, rig), pi.objective.centre)
+            Tj = translated(self.pose(j, bodies, rig), pj.objective.centre)
+            jac = held is None
+            ci, ok_i, Ji = pi.objective.seen_colors(level, Ti, self._q(q, pi.camera), pts, at[i].D[0], jac)
+            cj, ok_j, Jj = pj.objective.seen_colors(level, Tj, self._q(q, pj.camera), pts + shift, at[j].D[0], jac)
+            ok = (ok_i & ok_j) if jac else held[k]["ok"]
+            r = (ci - cj)[ok]
+            if not jac:
+                out.append({"rho": float(student_t_loss(r, self.cfg.nu, held[k]["sigma2"])) * r.numel()})
+                continue
+            w, sigma2 = student_t_weights(r, self.cfg.nu)
+            J = torch.cat([Ji[ok], -Jj[ok]], 2).reshape(-1, Ji.shape[2] + Jj.shape[2]).double()
+            wf, rf = w.reshape(-1).double(), r.reshape(-1).double()
+            out.append({"ok": ok, "sigma2": sigma2, "rho": float(student_t_loss(r, self.cfg.nu, sigma2)) * r.numel(),
+                        "H": (J.T @ (wf[:, None] * J)).cpu().numpy(), "g": (J.T @ (wf * rf)).cpu().numpy(),
+                        "wrr": float((wf * rf * rf).sum()), "count": r.numel(), "scale": float(sigma2)})
+        return out
+
     @staticmethod
     def _rho(at) -> float:
         """The photo's sum of negative log-likelihoods (its loss is their mean per residual)."""
@@ -198,16 +248,27 @@ class Bundle:
             Js[6 + k, self.q_at[c] + k] = 1.0
         return Jb, Js
 
-    def _system(self, terms: list, rig: np.ndarray, scale: list[float]):
+    def _system(self, terms: list, rig: np.ndarray, scale: list[float], pairs: list[dict] = ()):
         """The joint Gauss-Newton system, each photo's terms divided by its scale, per body:
         U (nb, 6, 6), W (nb, 6, S), gb (nb, 6) and its share of the shared parameters' block
-        Vb (nb, S, S) and gradient gsb (nb, S)."""
+        Vb (nb, S, S) and gradient gsb (nb, S); with the agreement term's pairs (`_agreement`,
+        each weighted by cfg.bundle_agreement over its scale)."""
         nb, S = len(self.body_keys), self.shared
         U, W, gb = np.zeros((nb, 6, 6)), np.zeros((nb, 6, S)), np.zeros((nb, 6))
         Vb, gsb = np.zeros((nb, S, S)), np.zeros((nb, S))
         for i, at in enumerate(terms):
             Jb, Js = self._maps(i, rig)
             H, g = at.H[0] / scale[i], at.g[0] / scale[i]
+            b = self.body_of[i]
+            U[b] += Jb.T @ H @ Jb
+            W[b] += Jb.T @ H @ Js
+            gb[b] += Jb.T @ g
+            Vb[b] += Js.T @ H @ Js
+            gsb[b] += Js.T @ g
+        for (i, j), pair in zip(self.pairs, pairs):  # both photos of one shot: one body
+            (Jbi, Jsi), (Jbj, Jsj) = self._maps(i, rig), self._maps(j, rig)
+            Jb, Js = np.vstack([Jbi, Jbj]), np.vstack([Jsi, Jsj])
+            H, g = pair["H"] * self.weight / pair["scale"], pair["g"] * self.weight / pair["scale"]
             b = self.body_of[i]
             U[b] += Jb.T @ H @ Jb
             W[b] += Jb.T @ H @ Js
@@ -280,24 +341,30 @@ class Bundle:
         result.seconds = time.perf_counter() - start
         return result
 
+    def _loss(self, at: list, pairs: list[dict], prior) -> float:
+        return sum(self._rho(a) for a in at) + self.weight * sum(p["rho"] for p in pairs) + prior[0]
+
     def _lm(self, level, bodies, rig, q, iterations, progress):
         at = self._evaluate(level, bodies, rig, q)
+        pairs = self._agreement(level, bodies, rig, q, at)
         prior = self._prior_terms(rig)
-        loss = sum(self._rho(a) for a in at) + prior[0]
+        loss = self._loss(at, pairs, prior)
         lam, stop, it = 1e-4, "iteration cap", 0
         for it in range(1, iterations + 1):
             scale = [float(a.sigma2.reshape(-1)[0]) for a in at]
-            xb, xs = self._step(self._system(at, rig, scale), prior, lam)
+            xb, xs = self._step(self._system(at, rig, scale, pairs), prior, lam)
             nb, nr, nq = self._moved(bodies, rig, q, xb, xs)
             trial = sum(float(p.objective.trial(level, [translated(self.pose(i, nb, nr), p.objective.centre)],
                                                 self._q(nq, p.camera), a)[0]) * float(a.count[0])
                         for i, (p, a) in enumerate(zip(self.photos, at)))
+            trial += self.weight * sum(p["rho"] for p in self._agreement(level, nb, nr, nq, at, pairs))
             new_prior = self._prior_terms(nr)
             accepted = trial + new_prior[0] <= loss
             if accepted:
                 bodies, rig, q, prior = nb, nr, nq, new_prior
                 at = self._evaluate(level, bodies, rig, q, at)
-                loss = sum(self._rho(a) for a in at) + prior[0]
+                pairs = self._agreement(level, bodies, rig, q, at)
+                loss = self._loss(at, pairs, prior)
                 lam = max(lam / 4, 1e-7)
             else:
                 lam *= 8
@@ -318,7 +385,10 @@ class Bundle:
         cross-photo evidence (the module's docstring)."""
         nb, S = len(self.body_keys), self.shared
         scale = [float(a.wrr[0]) / max(float(a.count[0]) - a.H.shape[1], 1) for a in terms]
-        system = self._system(terms, rig, scale)
+        pairs = self._agreement(0, bodies, rig, result.q, terms)
+        for pair in pairs:  # the residual variance, as for the photos
+            pair["scale"] = pair["wrr"] / max(pair["count"] - len(pair["H"]), 1)
+        system = self._system(terms, rig, scale, pairs)
         U, W, _, Vb, _ = system
         prior = self._prior_terms(rig)
         n = 6 * nb + S

@@ -111,6 +111,10 @@ class RefineConfig:
     # photometric, lm: also refine the camera (render.project.INTRINSICS): none | focal |
     # focal+principal | focal+principal+k1k2
     refine_intrinsics: str = "none"
+    # refine --bundle, rigs: the weight of the agreement term between the photos of a shot
+    # (align/bundle.py; 0: off). 0.2 measured best of 0.05-4 on the rig's relative pose at little
+    # cost to the absolute poses (docs/bundle.md)
+    bundle_agreement: float = 0.2
     verify: VerifyConfig = field(default_factory=VerifyConfig)  # the verdict's evidence and thresholds
 
     def check(self) -> "RefineConfig":

@@ -419,6 +419,35 @@ class Photometric:
         r = _times_transposed(Kk, at.D).clamp(0, 1) - lv.target[cols]
         return student_t_loss(r, self.cfg.nu, at.sigma2, mask=at.mask[:, cols]).double().cpu().numpy()
 
+    def seen_colors(self, level: int, T_local: np.ndarray, q: torch.Tensor, points: torch.Tensor, D: torch.Tensor,
+                    jacobian: bool = True):
+        """The photo's colors at `points` (n, 3), local frame, seen from T_local (4x4) with the
+        camera corrections q (5,), mapped into the scan's colors by the color fit D (m, k): the
+        prediction (n, m), whether each point lands on usable pixels in front of the camera (n,),
+        and with jacobian its derivative (n, m, 6 + free) by the pose and the free corrections.
+        For the bundle's agreement term (two photos of one scan point, `align.bundle`)."""
+        lv = self.levels[level]
+        _, uv, z = self._project_points(lv, T_local, q, points)
+        w, h = lv.photo.camera.size
+        inside = (z > 1e-6) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)
+        if lv.photo.valid is not None:
+            inside &= _valid_at(lv.photo.valid, uv)
+        uv = torch.stack([uv[:, 0].clamp(0, w - 1), uv[:, 1].clamp(0, h - 1)], 1)
+        if not jacobian:
+            return self.model.kernel(bilinear(lv.photo.image, uv)) @ D.T, inside, None
+        I, Iu, Iv = bilinear_with_gradient(lv.photo.image, uv, self.cfg.gradient, lv.grads)
+        a = self.model.kernel_derivative(I, Iu) @ D.T
+        b = self.model.kernel_derivative(I, Iv) @ D.T
+        R, t = self._pose_tensors([T_local])
+        du, dv = self._jacobian(points @ R[0].T + t[0], lv.photo.K, q, self.free)
+        return self.model.kernel(I) @ D.T, inside, a[..., None] * du[:, None] + b[..., None] * dv[:, None]
+
+    def _project_points(self, lv: Level, T_local: np.ndarray, q: torch.Tensor, points: torch.Tensor):
+        R, t = self._pose_tensors([T_local])
+        p = points @ R[0].T + t[0]
+        uv, z = project_corrected(p, lv.photo.K, q) if self.free else project_pinhole(p, lv.photo.K)
+        return p, uv, z
+
     # -- what a result reports ---------------------------------------------------------------------
     def residuals(self, level: int, at: Terms) -> tuple[np.ndarray, np.ndarray]:
         """The first pose's visible points: photo pixels (n, 2) and |r| (n,)."""
