@@ -199,3 +199,38 @@ def test_agreement_gradient_matches_its_loss(synth_scene, tmp_path):
             moved.append(bundle._agreement(0, bodies, r2, q, at, [pair])[0]["rho"])
         numeric = (moved[0] - moved[1]) / (2 * eps)
         assert abs(numeric - analytic[k]) < 0.1 * abs(analytic).max(), (k, numeric, analytic)
+
+
+def test_a_shot_off_the_rig_is_suspect(synth_scene, tmp_path):
+    """Of 3 rig shots, the one whose right photo is moved 2 px (the rig turned 0.25 deg for it)
+    is the one the cross-photo evidence calls suspect: that photo (its left photo may be too)."""
+    import cv2
+
+    from rgbd_gt.align.bundle import Bundle, BundlePhoto
+    from rgbd_gt.align.config import RefineConfig, VerifyConfig
+    from rgbd_gt.align.photometric import Photometric
+    from rgbd_gt.align.pyramid import photo_pyramid
+    from rgbd_gt.align.verify import bundle_reasons
+    from rgbd_gt.io import load_scan
+    from rgbd_gt.io.image import read_image
+    from rgbd_gt.render.normals import with_normals
+
+    import torch
+
+    d = synth_scene(tmp_path / "s", 0, photos=3, rig="stereo")
+    scan = with_normals(load_scan(d / "scan.ply"))
+    cfg = RefineConfig()
+    photos = []
+    for k in range(3):
+        tail = "" if k == 0 else f"_{k}"
+        for img, cam, c in ((f"photo{tail}", "camera", 0), (f"right{tail}", "camera_right", 1)):
+            image = read_image(d / f"{img}.png")
+            if img == "right_1":
+                image = cv2.warpAffine(image, np.array([[1.0, 0, 2.0], [0, 1.0, 0]]), image.shape[1::-1],
+                                       flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+            pyr = photo_pyramid(image, read_camera(d / f"{cam}.yaml"), cfg.levels, torch.device("cpu"), None, cfg.upsample)
+            init = read_pose(d / f"{img.replace('photo', 'init_pose').replace('right', 'init_pose_right')}.yaml")[0]
+            photos.append(BundlePhoto(Photometric(scan.xyz, scan.rgb, pyr, cfg, scan.normals), init, c, k, img))
+    result = Bundle(photos, 2, 2).solve()
+    flagged = [p.name for p, ev in zip(photos, result.evidence) if bundle_reasons(ev, VerifyConfig())]
+    assert "right_1" in flagged and set(flagged) <= {"photo_1", "right_1"}, "\n".join(f"{p.name} {ev}" for p, ev in zip(photos, result.evidence))

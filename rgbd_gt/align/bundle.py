@@ -24,7 +24,7 @@ to the photos' own detail, finer than the scan's (docs/bundle.md measures it).
 Cross-photo evidence (`evidence`): per body, leave-one-out (the shared parameters re-solved
 without it, linearised at the solution, and how far its pose then moves, in its sigmas); per
 photo its robust residual scale against the other photos'; per rig photo how far its pose
-moves when freed from the rig (linearised), in its own sigmas.
+moves when freed from the rig (linearised), in its own sigmas and against the median photo's.
 """
 
 from __future__ import annotations
@@ -446,6 +446,12 @@ class Bundle:
                 Hp = at.H[0][:6, :6] / scale[i]
                 step = -np.linalg.solve(Hp, at.g[0][:6] / scale[i])
                 ev[i]["freed_from_rig_sigmas"] = float(np.sqrt(max(step @ Hp @ step, 0.0)))
+        # a shot off the rig pulls the rig, so that every shot moves when freed: how far each moves
+        # against the typical shot tells the one that pulls
+        freed = [e["freed_from_rig_sigmas"] for e in ev if "freed_from_rig_sigmas" in e]
+        for e in ev:
+            if "freed_from_rig_sigmas" in e:
+                e["freed_vs_others"] = e["freed_from_rig_sigmas"] / max(float(np.median(freed)), 1e-9)
         return ev
 
 

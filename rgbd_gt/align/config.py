@@ -56,6 +56,7 @@ class VerifyConfig:
     # moves more than that, or when its residual scale exceeds bundle_residual_ratio x the others'
     bundle_sigmas: float = 15.0
     bundle_residual_ratio: float = 2.0
+    bundle_freed_ratio: float = 3.0  # ... and freed from the rig, a photo moves this many times the median photo's
 
     def check(self) -> "VerifyConfig":
         for f in fields(self):

@@ -296,15 +296,18 @@ def bundle_reasons(ev: dict, cfg: VerifyConfig) -> list[str]:
     """The reasons a photo of a bundle is suspect from its cross-photo evidence (`align.bundle`):
     left out, the other photos' shared camera and rig move its pose by more than
     cfg.bundle_sigmas of its sigma; freed from its rig it moves by more than that; its residual
-    scale exceeds cfg.bundle_residual_ratio times the other photos'."""
+    scale exceeds cfg.bundle_residual_ratio times the other photos'. Freed from its rig, a photo
+    must also move cfg.bundle_freed_ratio times the median photo's: one shot off the rig pulls the
+    rig, and every shot then moves some (docs/bundle.md)."""
     reasons = []
     loo = ev.get("leave_one_out_sigmas")
     if loo is not None and loo > cfg.bundle_sigmas:
         reasons.append(f"the other photos disagree with this one: their shared camera (and rig) moves its pose by "
                        f"{loo:.1f} sigma (its camera or zoom differs from theirs?)")
     freed = ev.get("freed_from_rig_sigmas")
-    if freed is not None and freed > cfg.bundle_sigmas:
-        reasons.append(f"the shot disagrees with the rig: freed from it, this photo's pose moves {freed:.1f} sigma")
+    if freed is not None and freed > cfg.bundle_sigmas and ev.get("freed_vs_others", 0.0) > cfg.bundle_freed_ratio:
+        reasons.append(f"the shot disagrees with the rig: freed from it, this photo's pose moves {freed:.1f} sigma, "
+                       f"{ev['freed_vs_others']:.1f}x the median photo's")
     ratio = ev.get("residual_vs_others", 1.0)
     if ratio > cfg.bundle_residual_ratio:
         reasons.append(f"its residuals are {ratio:.1f}x the other photos' (a photo of another scene or time?)")
