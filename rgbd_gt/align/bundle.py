@@ -256,20 +256,13 @@ class Bundle:
         nb, S = len(self.body_keys), self.shared
         U, W, gb = np.zeros((nb, 6, 6)), np.zeros((nb, 6, S)), np.zeros((nb, 6))
         Vb, gsb = np.zeros((nb, S, S)), np.zeros((nb, S))
-        for i, at in enumerate(terms):
-            Jb, Js = self._maps(i, rig)
-            H, g = at.H[0] / scale[i], at.g[0] / scale[i]
-            b = self.body_of[i]
-            U[b] += Jb.T @ H @ Jb
-            W[b] += Jb.T @ H @ Js
-            gb[b] += Jb.T @ g
-            Vb[b] += Js.T @ H @ Js
-            gsb[b] += Js.T @ g
-        for (i, j), pair in zip(self.pairs, pairs):  # both photos of one shot: one body
+        # (body, maps of its parameters, H, g): each photo, then each pair (both photos of one shot: one body)
+        parts = [(self.body_of[i], self._maps(i, rig), at.H[0] / scale[i], at.g[0] / scale[i]) for i, at in enumerate(terms)]
+        for (i, j), pair in zip(self.pairs, pairs):
             (Jbi, Jsi), (Jbj, Jsj) = self._maps(i, rig), self._maps(j, rig)
-            Jb, Js = np.vstack([Jbi, Jbj]), np.vstack([Jsi, Jsj])
-            H, g = pair["H"] * self.weight / pair["scale"], pair["g"] * self.weight / pair["scale"]
-            b = self.body_of[i]
+            w = self.weight / pair["scale"]
+            parts.append((self.body_of[i], (np.vstack([Jbi, Jbj]), np.vstack([Jsi, Jsj])), pair["H"] * w, pair["g"] * w))
+        for b, (Jb, Js), H, g in parts:
             U[b] += Jb.T @ H @ Jb
             W[b] += Jb.T @ H @ Js
             gb[b] += Jb.T @ g
