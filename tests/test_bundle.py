@@ -234,3 +234,51 @@ def test_a_shot_off_the_rig_is_suspect(synth_scene, tmp_path):
     result = Bundle(photos, 2, 2).solve()
     flagged = [p.name for p, ev in zip(photos, result.evidence) if bundle_reasons(ev, VerifyConfig())]
     assert "right_1" in flagged and set(flagged) <= {"photo_1", "right_1"}, "\n".join(f"{p.name} {ev}" for p, ev in zip(photos, result.evidence))
+
+
+def test_schur_step_and_covariance_are_the_dense_ones():
+    """The bundle's Schur-complement step and its block covariance equal a dense solve and a
+    dense inverse of the same joint system (a rig of two cameras, three shots, three free
+    corrections per camera; random positive definite photo systems)."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from rgbd_gt.align.bundle import Bundle, BundlePhoto, BundleResult
+    from rgbd_gt.align.config import RefineConfig
+
+    rng = np.random.default_rng(1)
+    cfg = RefineConfig(bundle_agreement=0.0)
+    n = 6
+    photos = [BundlePhoto(SimpleNamespace(free=3, cfg=cfg, device="cpu", centre=np.zeros(3)), np.eye(4), k % 2, k // 2)
+              for k in range(n)]
+    bundle = Bundle(photos, 2, 2)
+    terms = []
+    for _ in range(n):
+        A = rng.normal(size=(9, 40))
+        terms.append(SimpleNamespace(H=(A @ A.T)[None], g=rng.normal(size=(1, 9)), wrr=np.array([100.0]),
+                                     count=np.array([109]), sigma2=torch.tensor([[[1.0]]])))
+    rig = np.stack([np.eye(4), np.eye(4)])
+    rig[1, :3, 3] = [-0.12, 0.01, 0.0]
+    system = bundle._system(terms, rig, [1.0] * n)
+    U, W, gb, Vb, gsb = system
+    nb, S = 3, bundle.shared
+    A = np.zeros((6 * nb + S,) * 2)
+    for b in range(nb):
+        A[6 * b:6 * b + 6, 6 * b:6 * b + 6] = U[b]
+        A[6 * b:6 * b + 6, 6 * nb:] = W[b]
+        A[6 * nb:, 6 * b:6 * b + 6] = W[b].T
+    A[6 * nb:, 6 * nb:] = Vb.sum(0)
+    g = np.concatenate([gb.ravel(), gsb.sum(0)])
+    xb, xs = bundle._step(system, bundle._prior_terms(rig), 1e-12)
+    assert np.allclose(np.concatenate([xb.ravel(), xs]), -np.linalg.solve(A, g), rtol=1e-6, atol=1e-9)
+    result = BundleResult([None] * n, np.zeros((2, 5)), np.full((2, 5), np.inf), [None] * n, rig, None, terms, 0, [], 0.0)
+    bundle._uncertainty_and_evidence(result, [np.eye(4)] * nb, rig, terms)
+    cov = np.linalg.inv(A) * (100.0 / (109 - 9))  # each photo's residual variance: wrr / (count - P)
+    for i in range(n):
+        Jb, Js = (m[:6] for m in bundle._maps(i, rig))
+        J = np.zeros((6, len(A)))
+        J[:, 6 * bundle.body_of[i]:6 * bundle.body_of[i] + 6] = Jb
+        J[:, 6 * nb:] = Js
+        assert np.allclose(result.pose_covariance[i], J @ cov @ J.T, rtol=1e-8, atol=1e-14)
+    assert np.allclose(result.rig_covariance[1], cov[6 * nb + 6:, 6 * nb + 6:], rtol=1e-8)

@@ -374,9 +374,10 @@ class Bundle:
     # -- what the result is worth ------------------------------------------------------------------
     def _uncertainty_and_evidence(self, result: BundleResult, bodies, rig, terms) -> None:
         """The covariance of every unknown from the joint Gauss-Newton matrix at the result (each
-        photo's residual variance as its own covariance does: `photometric.covariance`), and the
-        cross-photo evidence (the module's docstring)."""
-        nb, S = len(self.body_keys), self.shared
+        photo's residual variance as its own covariance does: `photometric.covariance`), by blocks
+        through the Schur complement (the shared parameters' covariance is its inverse), so that it
+        costs what a step does; and the cross-photo evidence (the module's docstring)."""
+        nb = len(self.body_keys)
         scale = [float(a.wrr[0]) / max(float(a.count[0]) - a.H.shape[1], 1) for a in terms]
         pairs = self._agreement(0, bodies, rig, result.q, terms)
         for pair in pairs:  # the residual variance, as for the photos
@@ -384,31 +385,26 @@ class Bundle:
         system = self._system(terms, rig, scale, pairs)
         U, W, _, Vb, _ = system
         prior = self._prior_terms(rig)
-        n = 6 * nb + S
-        A = np.zeros((n, n))
-        for b in range(nb):
-            A[6 * b:6 * b + 6, 6 * b:6 * b + 6] = U[b]
-            A[6 * b:6 * b + 6, 6 * nb:] = W[b]
-            A[6 * nb:, 6 * b:6 * b + 6] = W[b].T
-        A[6 * nb:, 6 * nb:] = Vb.sum(0) + prior[2]
-        cov = _inverse(A)
+        Ui = [_inverse(U[b]) for b in range(nb)]
+        UiW = [Ui[b] @ W[b] for b in range(nb)]
+        Si = _inverse(Vb.sum(0) + prior[2] - sum(W[b].T @ UiW[b] for b in range(nb))) if self.shared else np.zeros((0, 0))
+        cov_body = [Ui[b] + UiW[b] @ Si @ UiW[b].T for b in range(nb)]  # each body's 6 x 6 block
         for i in range(len(self.photos)):
-            Jb, Js = self._maps(i, rig)
-            J = np.zeros((6, n))
-            J[:, 6 * self.body_of[i]:6 * self.body_of[i] + 6] = Jb[:6]
-            J[:, 6 * nb:] = Js[:6]
-            result.pose_covariance[i] = J @ cov @ J.T
+            Jb, Js = (m[:6] for m in self._maps(i, rig))
+            b = self.body_of[i]
+            cross = -Jb @ UiW[b] @ Si @ Js.T
+            result.pose_covariance[i] = Jb @ cov_body[b] @ Jb.T + cross + cross.T + Js @ Si @ Js.T
         for c in range(self.cameras):
-            s = slice(6 * nb + self.q_at[c], 6 * nb + self.q_at[c] + self.free[c])
-            result.q_sigma[c, :self.free[c]] = np.sqrt(np.diag(cov[s, s]))
+            s = slice(self.q_at[c], self.q_at[c] + self.free[c])
+            result.q_sigma[c, :self.free[c]] = np.sqrt(np.diag(Si[s, s]))
         if self.rig_cameras:
             result.rig_covariance = np.zeros((self.rig_cameras, 6, 6))
             for c in range(1, self.rig_cameras):
-                s = slice(6 * nb + self.rig_at[c], 6 * nb + self.rig_at[c] + 6)
-                result.rig_covariance[c] = cov[s, s]
-        result.evidence = self._evidence(terms, rig, scale, system, prior, cov)
+                s = slice(self.rig_at[c], self.rig_at[c] + 6)
+                result.rig_covariance[c] = Si[s, s]
+        result.evidence = self._evidence(terms, scale, system, prior, Ui, cov_body)
 
-    def _evidence(self, terms, rig, scale, system, prior, cov) -> list[dict]:
+    def _evidence(self, terms, scale, system, prior, Ui, cov_body) -> list[dict]:
         """Per photo: leave its body out, its residual scale against the others', and (in a rig)
         its pose freed from the rig; see the module's docstring."""
         U, W, gb, Vb, gsb = system
@@ -417,7 +413,6 @@ class Bundle:
         if self.shared:
             # the reduced problem of the shared parameters is a sum over bodies (and the prior):
             # without body b, its part is taken out and the others' Newton step taken
-            Ui = [_inverse(U[b]) for b in range(nb)]
             S_b = [Vb[b] - W[b].T @ Ui[b] @ W[b] for b in range(nb)]
             r_b = [gsb[b] - W[b].T @ Ui[b] @ gb[b] for b in range(nb)]
             S, r = sum(S_b) + prior[2], sum(r_b) + prior[1]
@@ -425,7 +420,7 @@ class Bundle:
                 others = _inverse(S - S_b[b])
                 d_shared = -others @ (r - r_b[b])
                 d_body = -Ui[b] @ (gb[b] + W[b] @ d_shared)
-                C = cov[6 * b:6 * b + 6, 6 * b:6 * b + 6]
+                C = cov_body[b]
                 sig = float(np.sqrt(max(d_body @ _inverse(C) @ d_body, 0.0))) if np.isfinite(d_body).all() \
                     and np.isfinite(C).all() else None  # None: the others alone do not fix the shared parameters
                 for i in np.nonzero(self.body_of == b)[0]:
