@@ -191,13 +191,14 @@ def rescale(camera: Camera, width: int, height: int) -> Camera:
 
 
 def corrected(camera: Camera, q) -> Camera:
-    """The camera with the corrections q (5,) of `render.project.project_corrected` applied:
-    focal scaled by 1 + q0, principal point moved by (fx q1, fy q2), k1 and k2 added."""
-    q = [float(v) for v in q]
+    """The camera with the corrections q of `render.project.project_corrected` applied (5 or 8
+    values): focal scaled by 1 + q0, principal point moved by (fx q1, fy q2), k1, k2 (and p1, p2,
+    k3) added to the file's (OpenCV's order: k1, k2, p1, p2, k3)."""
+    q = [float(v) for v in q] + [0.0] * max(0, 8 - len(q))
     dist = list(camera.distortion) + [0.0] * max(0, 5 - len(camera.distortion))
-    if q[3] or q[4]:
-        dist[0] += q[3]
-        dist[1] += q[4]
+    if any(q[3:8]):
+        for k, v in enumerate(q[3:8]):  # q's order is OpenCV's
+            dist[k] += v
     else:
         dist = list(camera.distortion)
     return dataclasses.replace(camera, fx=camera.fx * (1 + q[0]), fy=camera.fy * (1 + q[0]),

@@ -12,17 +12,18 @@ from rgbd_gt.render.project import corrected_jacobian, project_corrected
 
 
 def test_corrected_projection_jacobian():
-    """The analytic Jacobian of the corrected projection against finite differences."""
+    """The analytic Jacobian of the corrected projection (the full OpenCV model) against finite
+    differences, and the model against OpenCV's own projection."""
     from rgbd_gt.pose import apply_update
 
     rng = np.random.default_rng(0)
     p = np.c_[rng.uniform(-1, 1, (50, 2)), rng.uniform(2, 4, 50)]
     K = torch.tensor([[500.0, 0, 320], [0, 510.0, 240], [0, 0, 1]], dtype=torch.float64)
-    q = torch.tensor([0.01, 0.002, -0.003, -0.05, 0.01], dtype=torch.float64)
-    du, dv = corrected_jacobian(torch.as_tensor(p), K, q, 5)
+    q = torch.tensor([0.01, 0.002, -0.003, -0.05, 0.01, 0.002, -0.003, 0.004], dtype=torch.float64)
+    du, dv = corrected_jacobian(torch.as_tensor(p), K, q, 8)
     h = 1e-6
-    for k in range(11):
-        e = np.zeros(11)
+    for k in range(14):
+        e = np.zeros(14)
         e[k] = h
         moved = []
         for s in (1, -1):
@@ -32,6 +33,16 @@ def test_corrected_projection_jacobian():
         num = (moved[0] - moved[1]) / (2 * h)
         torch.testing.assert_close(du[:, k], num[:, 0], rtol=1e-5, atol=1e-4)
         torch.testing.assert_close(dv[:, k], num[:, 1], rtol=1e-5, atol=1e-4)
+    import cv2
+
+    Kq = K.numpy().copy()
+    Kq[:2, :2] *= 1 + float(q[0])
+    Kq[0, 2] += float(K[0, 0] * q[1])
+    Kq[1, 2] += float(K[1, 1] * q[2])
+    dist = np.array([q[3], q[4], q[5], q[6], q[7]], dtype=np.float64)  # OpenCV: k1 k2 p1 p2 k3
+    ours = project_corrected(torch.as_tensor(p), K, q)[0].numpy()
+    theirs = cv2.projectPoints(p, np.zeros(3), np.zeros(3), Kq, dist)[0][:, 0]
+    np.testing.assert_allclose(ours, theirs, atol=1e-6)
 
 
 @pytest.fixture(scope="module")

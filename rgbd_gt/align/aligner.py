@@ -5,7 +5,7 @@ far minima a wide search on the coarsest level.
 An objective (align/photometric.py, align/nid_objective.py; the interface: align/objective.py)
 keeps its data in a local frame (`centre`: float32 stays exact for georeferenced coordinates) and
 evaluates a batch of local-frame poses (one pose is a batch of one) with the shared camera
-corrections q (5,) (`render.project.project_corrected`): `prepare` chooses every level's points
+corrections q (Q_SIZE,) (`render.project.project_corrected`): `prepare` chooses every level's points
 once, `evaluate` gives per pose the loss and, for LM, the Gauss-Newton system, `trial` the loss at
 other poses on the same points and fits; L-BFGS (`method == "lbfgs"`) takes `units` and
 `value_and_gradient` besides.
@@ -26,6 +26,7 @@ from rgbd_gt.align import lbfgs
 from rgbd_gt.align.objective import Objective
 from rgbd_gt.errors import InputError
 from rgbd_gt.pose import apply_update, random_starts, rotation_error_deg, translated
+from rgbd_gt.render.project import Q_SIZE
 
 # An L-BFGS level moves each pose parameter by at most this many of its pixels and at most the
 # search size (smoothly, through tanh): NID has spurious minima far away, where other structure
@@ -50,7 +51,7 @@ class RefineResult:
     # (rotation vector, translation) in the camera frame (`apply_update`); inf where undetermined
     covariance: np.ndarray | None = None
     objective: str = "photometric"  # or "nid" (align/nid_objective.py); loss is then the mean NID
-    # with cfg.refine_intrinsics: the camera corrections q (5,) (`render.project.project_corrected`)
+    # with cfg.refine_intrinsics: the camera corrections q (Q_SIZE,) (`render.project.project_corrected`)
     # and their 1-sigma (inf where not refined)
     intrinsics: np.ndarray | None = None
     intrinsics_sigma: np.ndarray | None = None
@@ -79,7 +80,7 @@ class Aligner:
         self.device = objective.device
 
     def _q(self, intrinsics: np.ndarray | None) -> torch.Tensor:
-        q = np.zeros(5) if intrinsics is None else np.asarray(intrinsics, np.float64)
+        q = np.zeros(Q_SIZE) if intrinsics is None else np.asarray(intrinsics, np.float64)
         return torch.as_tensor(q, dtype=torch.float32, device=self.device)
 
     def _local(self, T: np.ndarray) -> np.ndarray:
@@ -104,7 +105,7 @@ class Aligner:
 
         finest, coarsest: the pyramid levels to run (0 = full resolution; default all);
         iterations: another cap per level than the config's; intrinsics: the camera corrections
-        q (5,) to start from (default: the camera file's, zeros)."""
+        q (Q_SIZE,) to start from (default: the camera file's, zeros)."""
         start = time.perf_counter()
         obj = self.objective
         T = self._local(T_init)
@@ -127,7 +128,7 @@ class Aligner:
         cov = obj.covariance(finest, T, q, final) if finest == 0 else None
         sigma = None
         if obj.free and cov is not None:
-            sigma = np.full(5, np.inf)
+            sigma = np.full(Q_SIZE, np.inf)
             sigma[:obj.free] = np.sqrt(np.diag(cov)[6:])
         return RefineResult(
             T_cam_from_scan=self._scan(T), iterations=sum(info["iterations"] for info in level_info),
@@ -141,7 +142,7 @@ class Aligner:
     def refine_many(self, starts: list[np.ndarray], finest: int = 0, coarsest: int | None = None,
                     iterations: int | None = None, intrinsics: np.ndarray | None = None) -> list[np.ndarray | None]:
         """`refine` from each of several starts (4x4 T_cam_from_scan) on the prepared points, with
-        the camera corrections `intrinsics` (5,) held (a result's). With Levenberg-Marquardt all at
+        the camera corrections `intrinsics` (Q_SIZE,) held (a result's). With Levenberg-Marquardt all at
         once, in one set of tensor operations (each keeps its own damping, acceptance and stop);
         otherwise one after another (L-BFGS with its wide search: a repeat that skips it answers
         another question). Returns the poses, None for a start that lost the scan."""

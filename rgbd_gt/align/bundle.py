@@ -37,6 +37,7 @@ import torch
 
 from rgbd_gt.errors import InputError
 from rgbd_gt.pose import apply_update, invert, translated
+from rgbd_gt.render.project import Q_SIZE
 
 # the agreement term runs on the finest levels alone: on the coarse ones, blurred, the photos
 # agree wherever the scan lands, and the pose is not yet close enough for it to say more
@@ -69,8 +70,8 @@ class BundlePhoto:
 @dataclass
 class BundleResult:
     poses: list[np.ndarray]  # per photo 4x4 T_cam_from_scan
-    q: np.ndarray  # (C, 5) per camera its corrections (0 where not free)
-    q_sigma: np.ndarray  # (C, 5) 1-sigma, inf where not free
+    q: np.ndarray  # (C, Q_SIZE) per camera its corrections (0 where not free)
+    q_sigma: np.ndarray  # (C, Q_SIZE) 1-sigma, inf where not free
     pose_covariance: list[np.ndarray]  # per photo (6, 6) of its update (rotation vector, translation), camera frame
     rig: np.ndarray | None  # (C, 4, 4) T_cam_c_from_cam_0 (rig[0] = I), or None without a rig
     rig_covariance: np.ndarray | None  # (C, 6, 6) of each relative pose's update
@@ -317,7 +318,7 @@ class Bundle:
         and the cross-photo evidence at the result."""
         start = time.perf_counter()
         bodies, rig = self._initial()
-        q = np.zeros((self.cameras, 5))
+        q = np.zeros((self.cameras, Q_SIZE))
         levels = [p.objective.prepare(translated(self.pose(i, bodies, rig), p.objective.centre))
                   for i, p in enumerate(self.photos)]
         top = min(levels) - 1

@@ -110,7 +110,7 @@ class RefineConfig:
     search_iterations: int = 10  # ... for at most this many iterations each ...
     search_keep: int = 3  # ... and this many of lowest NID go on to level 1, where the lowest NID wins
     # photometric, lm: also refine the camera (render.project.INTRINSICS): none | focal |
-    # focal+principal | focal+principal+k1k2
+    # focal+principal | focal+principal+k1k2 | full (k1 k2 p1 p2 k3)
     refine_intrinsics: str = "none"
     # refine --bundle, rigs: the weight of the agreement term between the photos of a shot
     # (align/bundle.py; 0: off). 0.2 measured best of 0.05-4 on the rig's relative pose at little

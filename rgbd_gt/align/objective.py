@@ -1,6 +1,6 @@
 """What the driver (align/aligner.py) asks of an objective: the interface that
 align/photometric.py (`Photometric`) and align/nid_objective.py (`Nid`) implement. Poses are
-4x4 float64 in the objective's local frame (scan points minus `centre`); q (5,) is the camera
+4x4 float64 in the objective's local frame (scan points minus `centre`); q (Q_SIZE,) is the camera
 corrections every pose of a batch shares (`render.project.project_corrected`)."""
 
 from __future__ import annotations

@@ -305,7 +305,7 @@ class Photometric:
 
     def _project(self, lv: Level, Ts: list[np.ndarray], q: torch.Tensor, cols: torch.Tensor | None = None):
         """The level's points (or those of cols) at each pose: camera frame (B, n, 3), pixels and
-        depths (B*n, 2), (B*n,) through the camera corrected by q (5,)."""
+        depths (B*n, 2), (B*n,) through the camera corrected by q (Q_SIZE,)."""
         R, t = self._pose_tensors(Ts)
         pts = lv.points if cols is None else lv.points[cols]
         p = _times_transposed(pts, R) + t[:, None]
@@ -351,7 +351,7 @@ class Photometric:
     def evaluate(self, level: int, Ts: list[np.ndarray], q: torch.Tensor, prev: Terms | None = None,
                  jacobian: bool = True, free: int | None = None, lost_is_error: bool = True) -> Terms:
         """Visibility, color fit, robust weights and (with jacobian) the Gauss-Newton system at
-        each local-frame pose of Ts (B of 4x4), with the camera corrections q (5,). prev (the last
+        each local-frame pose of Ts (B of 4x4), with the camera corrections q (Q_SIZE,). prev (the last
         accepted terms) seeds the inliers and sigma. free: the camera corrections differentiated
         (default: those refined; 0 for the verification's repeats, which keep q)."""
         cfg, lv = self.cfg, self.levels[level]
@@ -422,7 +422,7 @@ class Photometric:
     def seen_colors(self, level: int, T_local: np.ndarray, q: torch.Tensor, points: torch.Tensor, D: torch.Tensor,
                     jacobian: bool = True):
         """The photo's colors at `points` (n, 3), local frame, seen from T_local (4x4) with the
-        camera corrections q (5,), mapped into the scan's colors by the color fit D (m, k): the
+        camera corrections q (Q_SIZE,), mapped into the scan's colors by the color fit D (m, k): the
         prediction (n, m), whether each point lands on usable pixels in front of the camera (n,),
         and with jacobian its derivative (n, m, 6 + free) by the pose and the free corrections.
         For the bundle's agreement term (two photos of one scan point, `align.bundle`)."""

@@ -191,6 +191,8 @@ def intrinsics_meta(camera, result: RefineResult) -> dict:
         meta["sigma"].update(cx_px=float(s[1] * camera.fx), cy_px=float(s[2] * camera.fy))
     if np.isfinite(s[3]):
         meta["sigma"].update(k1=float(s[3]), k2=float(s[4]))
+    if np.isfinite(s[5]):
+        meta["sigma"].update(p1=float(s[5]), p2=float(s[6]), k3=float(s[7]))
     meta["change"] = {"focal_percent": float(q[0] * 100), "principal_px": [float(q[1] * camera.fx), float(q[2] * camera.fy)],
-                      "k1": float(q[3]), "k2": float(q[4])}
+                      "k1": float(q[3]), "k2": float(q[4]), "p1": float(q[5]), "p2": float(q[6]), "k3": float(q[7])}
     return meta

@@ -25,6 +25,7 @@ from rgbd_gt.align.aligner import Aligner, RefineResult
 from rgbd_gt.align.config import VerifyConfig
 from rgbd_gt.camera import Camera, backproject, project, without_distortion
 from rgbd_gt.pose import random_starts, rotation_error_deg, transform_points, translation_error_m, worst_sigmas
+from rgbd_gt.render.project import Q_SIZE
 
 VERDICTS = ("ok", "suspect", "failed")
 
@@ -161,7 +162,7 @@ def camera_check(aligner: Aligner, result: RefineResult, view: _View, cfg: Verif
         return None
     # the finest level: on level 1 (the photo's own pixels) right cameras moved up to 0.45%
     # (docs/trust-method.md); its sigma comes with the refine's final evaluation there
-    start = np.zeros(5) if result.intrinsics is None else np.asarray(result.intrinsics, np.float64)
+    start = np.zeros(Q_SIZE) if result.intrinsics is None else np.asarray(result.intrinsics, np.float64)
     freed = Aligner(obj.freeing(1)).refine(result.T_cam_from_scan, coarsest=0, iterations=cfg.camera_iterations,
                                            intrinsics=start)
     change, sigma = float((1 + freed.intrinsics[0]) / (1 + start[0]) - 1), float(freed.intrinsics_sigma[0])

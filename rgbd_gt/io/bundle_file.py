@@ -3,7 +3,7 @@ cameras (and which corrections each camera's photos share), optionally a rig.
 
     scan: scan.ply
     cameras:
-      left: {file: camera.yaml, refine: focal}     # refine: none | focal | focal+principal | focal+principal+k1k2
+      left: {file: camera.yaml, refine: focal}     # refine: none | focal | focal+principal | focal+principal+k1k2 | full
       right: {file: camera_right.yaml}             # refine: none by default
     rig:                                           # optional: cameras fixed to each other
       cameras: [left, right]                       # the first is the rig's reference
@@ -24,7 +24,7 @@ from pathlib import Path
 
 from rgbd_gt.errors import InputError, read_yaml, require_file
 
-MODES = ("none", "focal", "focal+principal", "focal+principal+k1k2")
+MODES = ("none", "focal", "focal+principal", "focal+principal+k1k2", "full")  # render.project.INTRINSICS
 
 
 @dataclass

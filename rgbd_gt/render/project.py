@@ -31,22 +31,33 @@ def projection_jacobian(points: torch.Tensor, fx, fy) -> tuple[torch.Tensor, tor
 
 
 # Camera corrections refined with the pose (`refine --refine-intrinsics`), per mode: how many of
-# q = (focal scale - 1, principal point shift x and y in normalised units, k1, k2) are free.
-INTRINSICS = {"none": 0, "focal": 1, "focal+principal": 3, "focal+principal+k1k2": 5}
+# q = (focal scale - 1, principal point shift x and y in normalised units, k1, k2, p1, p2, k3)
+# are free; `full` is OpenCV's model of five distortion coefficients.
+INTRINSICS = {"none": 0, "focal": 1, "focal+principal": 3, "focal+principal+k1k2": 5, "full": 8}
+Q_SIZE = 8
+
+
+def _distorted(x: torch.Tensor, y: torch.Tensor, q: torch.Tensor):
+    """OpenCV's distortion of normalised coordinates by q[3:8] = (k1, k2, p1, p2, k3): x_d, y_d,
+    and r^2 and the radial factor."""
+    r2 = x * x + y * y
+    radial = 1 + q[3] * r2 + q[4] * r2 * r2 + q[7] * r2 * r2 * r2
+    xd = x * radial + 2 * q[5] * x * y + q[6] * (r2 + 2 * x * x)
+    yd = y * radial + q[5] * (r2 + 2 * y * y) + 2 * q[6] * x * y
+    return xd, yd, r2, radial
 
 
 def project_corrected(points: torch.Tensor, K: torch.Tensor, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """`project_pinhole` through a corrected camera: the normalised coordinates (x, y) get the
-    radial factor 1 + k1 r^2 + k2 r^4, then u = fx (1 + q0) x_d + cx + fx q1, likewise v. q (5,)
-    is relative, so one q serves every pyramid level. (On a photo undistorted with the camera's
-    own coefficients, k1 and k2 are what is left to add to them, to first order.)"""
+    """`project_pinhole` through a corrected camera: the normalised coordinates (x, y) get
+    OpenCV's distortion by (k1, k2, p1, p2, k3) = q[3:8], then u = fx (1 + q0) x_d + cx + fx q1,
+    likewise v. q (Q_SIZE,) is relative, so one q serves every pyramid level. (On a photo
+    undistorted with the camera's own coefficients, these are what is left to add to them, to
+    first order.)"""
     z = points[:, 2]
     zs = z.clamp_min(1e-9)
-    x, y = points[:, 0] / zs, points[:, 1] / zs
-    r2 = x * x + y * y
-    radial = 1 + q[3] * r2 + q[4] * r2 * r2
-    u = K[0, 0] * ((1 + q[0]) * x * radial + q[1]) + K[0, 2]
-    v = K[1, 1] * ((1 + q[0]) * y * radial + q[2]) + K[1, 2]
+    xd, yd, _, _ = _distorted(points[:, 0] / zs, points[:, 1] / zs, q)
+    u = K[0, 0] * ((1 + q[0]) * xd + q[1]) + K[0, 2]
+    v = K[1, 1] * ((1 + q[0]) * yd + q[2]) + K[1, 2]
     return torch.stack([u, v], dim=1), z
 
 
@@ -55,14 +66,17 @@ def corrected_jacobian(points: torch.Tensor, K: torch.Tensor, q: torch.Tensor, f
     x_, y_ = projection_jacobian(points, 1.0, 1.0)  # d(x, y) / d(pose) of the normalised coordinates
     z = points[:, 2].clamp_min(1e-9)
     x, y = points[:, 0] / z, points[:, 1] / z
-    r2 = x * x + y * y
-    radial = 1 + q[3] * r2 + q[4] * r2 * r2
-    dradial = 2 * (q[3] + 2 * q[4] * r2)  # d radial / d(r^2) x 2
+    xd, yd, r2, radial = _distorted(x, y, q)
+    dradial = 2 * (q[3] + 2 * q[4] * r2 + 3 * q[7] * r2 * r2)  # d radial / d(r^2) x 2
+    dxx = radial + x * x * dradial + 2 * q[5] * y + 6 * q[6] * x
+    dxy = x * y * dradial + 2 * q[5] * x + 2 * q[6] * y  # = d y_d / d x
+    dyy = radial + y * y * dradial + 6 * q[5] * y + 2 * q[6] * x
     fu, fv = K[0, 0] * (1 + q[0]), K[1, 1] * (1 + q[0])
-    du = fu * ((radial + x * x * dradial)[:, None] * x_ + (x * y * dradial)[:, None] * y_)
-    dv = fv * ((x * y * dradial)[:, None] * x_ + (radial + y * y * dradial)[:, None] * y_)
-    zero = torch.zeros_like(x)
-    cu = [K[0, 0] * x * radial, K[0, 0] * torch.ones_like(x), zero, fu * x * r2, fu * x * r2 * r2]
-    cv = [K[1, 1] * y * radial, zero, K[1, 1] * torch.ones_like(x), fv * y * r2, fv * y * r2 * r2]
+    du = fu * (dxx[:, None] * x_ + dxy[:, None] * y_)
+    dv = fv * (dxy[:, None] * x_ + dyy[:, None] * y_)
+    zero, one = torch.zeros_like(x), torch.ones_like(x)
+    xy2, r4 = 2 * x * y, r2 * r2
+    cu = [K[0, 0] * xd, K[0, 0] * one, zero, fu * x * r2, fu * x * r4, fu * xy2, fu * (r2 + 2 * x * x), fu * x * r4 * r2]
+    cv = [K[1, 1] * yd, zero, K[1, 1] * one, fv * y * r2, fv * y * r4, fv * (r2 + 2 * y * y), fv * xy2, fv * y * r4 * r2]
     return (torch.cat([du, torch.stack(cu[:free], 1)], 1) if free else du,
             torch.cat([dv, torch.stack(cv[:free], 1)], 1) if free else dv)
