@@ -363,9 +363,7 @@ def bundle_step(spec, cfg, device: str = "auto", cache: PathLike | None = None,
 
     from rgbd_gt.align.aligner import Aligner, RefineResult
     from rgbd_gt.align.bundle import Bundle, BundlePhoto, RigPrior
-    from rgbd_gt.align.photometric import Photometric
-    from rgbd_gt.align.pyramid import photo_pyramid
-    from rgbd_gt.align.refine import objective_of, refine_meta, refined_camera, resolve_device
+    from rgbd_gt.align.refine import make_aligner, objective_of, refine_meta, refined_camera
     from rgbd_gt.align.verify import bundle_reasons, verify
     from rgbd_gt.io import read_pose
     from rgbd_gt.prepared import prepare_scan
@@ -382,10 +380,8 @@ def bundle_step(spec, cfg, device: str = "auto", cache: PathLike | None = None,
         if objective_of(cfg, inp.colors) != "photometric":
             raise InputError("a bundle is solved with the photometric objective: the scan needs colors", spec.scan)
         mode_cfg = dataclasses.replace(cfg, refine_intrinsics=spec.cameras[entry.camera].refine)
-        dev = resolve_device(device)
-        pyramid = photo_pyramid(inp.photo, inp.camera, cfg.levels, dev, inp.ignore, cfg.upsample)
-        photos.append(BundlePhoto(Photometric(inp.points, inp.colors, pyramid, mode_cfg, inp.normals), inp.T_init,
-                                  order.index(entry.camera), entry.shot, entry.image.name))
+        photos.append(BundlePhoto(make_aligner(inp, mode_cfg, device).objective, inp.T_init, order.index(entry.camera),
+                                  entry.shot, entry.image.name))
         inputs.append(inp)
     for k, entry in enumerate(spec.photos):  # one camera file per name: its photos must agree on its size
         first = next(i for i, e in enumerate(spec.photos) if e.camera == entry.camera)
@@ -425,7 +421,7 @@ def bundle_step(spec, cfg, device: str = "auto", cache: PathLike | None = None,
         k = next(i for i, e in enumerate(spec.photos) if e.camera == name)
         sigma = {"focal_px": result.q_sigma[c, 0] * inputs[k].camera.fx, "cx_px": result.q_sigma[c, 1] * inputs[k].camera.fx,
                  "cy_px": result.q_sigma[c, 2] * inputs[k].camera.fy,
-                 **{name: result.q_sigma[c, 3 + j] for j, name in enumerate(("k1", "k2", "p1", "p2", "k3"))}}
+                 **{coef: result.q_sigma[c, 3 + j] for j, coef in enumerate(("k1", "k2", "p1", "p2", "k3"))}}
         keys = {"refined": spec.cameras[name].refine, "photos": sum(e.camera == name for e in spec.photos),
                 "sigma": {key: float(v) for key, v in sigma.items() if np.isfinite(v)}}
         cameras[name] = (out[k].camera, keys)

@@ -387,14 +387,11 @@ def shared_camera(job: ScanJob, prepared, camera, cfg: RunConfig, progress: Call
     job.out/camera.yaml with intrinsics.json beside it (the shared corrections, their 1-sigma,
     each photo's cross-photo evidence); reused when there. Returns the camera."""
     from rgbd_gt.align.bundle import Bundle, BundlePhoto
-    from rgbd_gt.align.photometric import Photometric
-    from rgbd_gt.align.pyramid import photo_pyramid
-    from rgbd_gt.align.refine import objective_of, resolve_device
+    from rgbd_gt.align.refine import RefineInputs, make_aligner
     from rgbd_gt.camera import corrected
     from rgbd_gt.io import read_camera
     from rgbd_gt.io.atomic import atomic_output
     from rgbd_gt.io.camera_file import write_camera
-    from rgbd_gt.pose import translated
     from rgbd_gt.scan import scan_colors
     from rgbd_gt.steps import made_from, open_photo
 
@@ -403,7 +400,6 @@ def shared_camera(job: ScanJob, prepared, camera, cfg: RunConfig, progress: Call
     if (out / "camera.yaml").exists() and made_from_other(_json_or_empty(out / "intrinsics.json").get("made_from", {}), made) is None:
         return read_camera(out / "camera.yaml")  # else refined again: the camera file or the scan has changed
     photos, names, errors = [], [], []
-    device = resolve_device(cfg.device)
     for photo in job.photos:
         progress(f"{photo.name}: camera")
         try:
@@ -411,16 +407,13 @@ def shared_camera(job: ScanJob, prepared, camera, cfg: RunConfig, progress: Call
             (out / photo.stem).mkdir(parents=True, exist_ok=True)
             T_init, _ = initial_pose(photo, image, prepared, camera, job, out / photo.stem / "init.yaml")
             scan = prepared.view(camera, T_init)
-            colors = scan_colors(scan, prepared.source, to_align=True)
-            if objective_of(cfg.refine, colors) != "photometric":
-                raise InputError("refine_intrinsics works with the photometric objective (a colored scan) only", job.scan)
-            pyramid = photo_pyramid(image, camera, cfg.refine.levels, device, None, cfg.refine.upsample)
-            objective = Photometric(scan.xyz, colors, pyramid, cfg.refine, scan.normals)
-            objective.prepare(translated(T_init, objective.centre))  # a photo that sees too little of the scan drops out here
+            inputs = RefineInputs(scan.xyz, scan_colors(scan, prepared.source, to_align=True), image, camera, T_init, None, scan)
+            aligner = make_aligner(inputs, cfg.refine, cfg.device)
+            aligner.prepare(T_init)  # a photo that sees too little of the scan drops out here
         except InputError as exc:
             errors.append(str(exc))  # and the photo's own run reports it
             continue
-        photos.append(BundlePhoto(objective, T_init, name=photo.name))
+        photos.append(BundlePhoto(aligner.objective, T_init, name=photo.name))
         names.append(photo.name)
     if not photos:
         raise InputError("no photo gave a camera estimate (refine_intrinsics): " + (errors[0] if errors else "check the boards and the camera file"))
