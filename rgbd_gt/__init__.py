@@ -19,8 +19,10 @@ except PackageNotFoundError:  # running from a source tree that was never instal
     __version__ = "0.0.0+unknown"
 
 _API = {
-    "rgbd_gt.steps": ("open_photo", "load_inputs", "refine_config", "refine_step", "depth_step", "write_depth", "qa_step",
-                      "overlay_step", "Photo", "Refined", "QA", "Overlay"),
+    "rgbd_gt.steps": ("open_photo", "load_inputs", "refine_config", "refine_step", "bundle_step", "depth_step", "write_depth",
+                      "qa_step", "overlay_step", "Photo", "Refined", "Bundled", "QA", "Overlay"),
+    "rgbd_gt.io.bundle_file": ("read_bundle",),
+    "rgbd_gt.align.bundle": ("Bundle", "BundlePhoto"),
     "rgbd_gt.align.refine": ("RefineInputs",),
     "rgbd_gt.render.renders": ("Renders",),
     "rgbd_gt.prepared": ("prepare_scan", "scan_in_view", "view_and_around"),
