@@ -199,16 +199,27 @@ def refine_step(inputs, cfg, init_path: PathLike, device: str = "auto", camera_p
     """Refine inputs.T_init (`align.refine.RefineInputs`), judge the result and measure it and
     the init against the scan's vertical (around: inputs.around). check: held-out pairs (img (n, 2)
     px, scan points (n, 3)); more: further pairs that share the pose (solved jointly)."""
-    from rgbd_gt.align.refine import camera_disagreement, refine_meta, refine_verified, refined_camera
+    from rgbd_gt.align.refine import refine_verified
+
+    result, verification = refine_verified(inputs, cfg, device, progress, keep_residuals=keep_residuals, check=check,
+                                           more=more)
+    return judged(inputs, result, verification, cfg, init_path, camera_path, pairs=1 + len(more))
+
+
+def judged(inputs, result, verification, cfg, init_path: PathLike, camera_path: PathLike | None = None,
+           pairs: int = 1) -> Refined:
+    """A result (`align.aligner.RefineResult`) of inputs.T_init with its verdict as the pose
+    file holds it: the camera it goes with, the aligner's figures, the verticals check of the
+    result and the init, a warning when init-pose estimated another focal length (refine_step's
+    and bundle_step's)."""
+    from rgbd_gt.align.refine import camera_disagreement, refine_meta, refined_camera
     from rgbd_gt.qa.verticals import verticals_qa
 
     warnings = [w for w in [camera_disagreement(inputs.camera, inputs.init_meta, camera_path or "camera")] if w]
-    result, verification = refine_verified(inputs, cfg, device, progress, keep_residuals=keep_residuals, check=check,
-                                           more=more)
     camera = refined_camera(inputs.camera, result)
     finite("refine", "the refined pose", result.T_cam_from_scan)
     finite("refine", "the refined camera", np.r_[camera.K.ravel(), camera.distortion])
-    meta = refine_meta(result, cfg, inputs.T_init, init_path, verification, pairs=1 + len(more), camera=inputs.camera)
+    meta = refine_meta(result, cfg, inputs.T_init, init_path, verification, pairs=pairs, camera=inputs.camera)
     # geometry alone, outside the verdict (one of six parameters): the one check a sweep's pose has
     upright, upright_init = verticals_qa(inputs.around, inputs.photo, camera, [result.T_cam_from_scan, inputs.T_init])
     meta |= upright.as_dict() | upright_init.as_dict("init_")
@@ -363,11 +374,10 @@ def bundle_step(spec, cfg, device: str = "auto", cache: PathLike | None = None,
 
     from rgbd_gt.align.aligner import Aligner, RefineResult
     from rgbd_gt.align.bundle import Bundle, BundlePhoto, RigPrior
-    from rgbd_gt.align.refine import make_aligner, objective_of, refine_meta, refined_camera
+    from rgbd_gt.align.refine import make_aligner, objective_of, refined_camera
     from rgbd_gt.align.verify import bundle_reasons, verify
     from rgbd_gt.io import read_pose
     from rgbd_gt.prepared import prepare_scan
-    from rgbd_gt.qa.verticals import verticals_qa
 
     progress("reading the scan")
     prepared = prepare_scan(Path(spec.scan), cache)
@@ -400,21 +410,16 @@ def bundle_step(spec, cfg, device: str = "auto", cache: PathLike | None = None,
                                levels=result.levels, covariance=result.pose_covariance[k], objective=obj.name,
                                intrinsics=result.q[c] if obj.free else None,
                                intrinsics_sigma=result.q_sigma[c] if obj.free else None, **obj.summary(result.terms[k]))
-        finite("refine", "the refined pose", refined.T_cam_from_scan)
-        camera = refined_camera(inp.camera, refined)
-        verification = verify(Aligner(obj), refined, inp.T_init, camera, inp.photo, inp.the_renders(), cfg.verify, cfg.seed,
-                              inp.init_meta, shared_camera=True)
+        finite("refine", "the refined pose", refined.T_cam_from_scan)  # before the verdict works on it
+        verification = verify(Aligner(obj), refined, inp.T_init, refined_camera(inp.camera, refined), inp.photo,
+                              inp.the_renders(), cfg.verify, cfg.seed, inp.init_meta, shared_camera=True)
         ev = result.evidence[k] | {"photos": len(photos), "camera": entry.camera} | ({"shot": entry.shot} if entry.shot is not None else {})
         verification.evidence["bundle"] = ev
         extra = bundle_reasons(ev, cfg.verify)
         if extra and verification.verdict == "ok":
             verification.verdict = "suspect"
         verification.reasons += extra
-        meta = refine_meta(refined, dataclasses.replace(cfg, refine_intrinsics=spec.cameras[entry.camera].refine),
-                           inp.T_init, entry.init, verification, camera=inp.camera)
-        upright, upright_init = verticals_qa(inp.around, inp.photo, camera, [refined.T_cam_from_scan, inp.T_init])
-        meta |= upright.as_dict() | upright_init.as_dict("init_")
-        out.append(Refined(refined, verification, camera, meta, upright, upright_init))
+        out.append(judged(inp, refined, verification, obj.cfg, entry.init, spec.cameras[entry.camera].file))
     cameras = {}
     for name in names:
         c = order.index(name)
