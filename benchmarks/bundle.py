@@ -198,7 +198,8 @@ def icl_section(folder: Path) -> list[str]:
 def main(argv: list[str] | None = None) -> None:
     from rgbd_gt.align.config import VerifyConfig
     from rgbd_gt.align.verify import bundle_reasons
-    from rgbd_gt.io import atomic_output, read_pose
+    from benchmarks import write_keeping
+    from rgbd_gt.io import read_pose
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
@@ -358,10 +359,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.icl is not None and (args.icl / "trajectory.log").exists():
         lines += icl_section(args.icl)
     lines += [f"{time.perf_counter() - start:.0f} s in all.", ""]
-    kept = args.out.read_text() if args.out.exists() else ""
-    kept = kept[kept.find("\n## Notes"):] if "\n## Notes" in kept else ""
-    with atomic_output(args.out) as tmp:
-        tmp.write_text("\n".join(lines) + kept)
+    write_keeping(args.out, "\n".join(lines), "\n## Notes")
     print("\n".join(lines))
 
 

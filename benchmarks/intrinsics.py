@@ -49,8 +49,8 @@ def run_case(scene: Path, scale: float, dk1: float, mode: str) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
+    from benchmarks import write_keeping
     from benchmarks.trust import synthetic_scene
-    from rgbd_gt.io import atomic_output
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
@@ -83,11 +83,7 @@ def main(argv: list[str] | None = None) -> None:
                          f"{np.median(np.abs([r['k1_err'] for r in sel])):.4f} | {np.median([r['seconds'] for r in sel]):.2f} |")
     lines += ["", "The principal point and k1, k2 trade against the pose: refine no more of the camera than the",
               "calibration leaves open (`focal` for a camera whose lens is calibrated but whose zoom or focus is not).", ""]
-    # the sections written by hand (each a "## " heading after the table) stay
-    kept = args.out.read_text() if args.out.exists() else ""
-    kept = kept[kept.find("\n## "):] if "\n## " in kept else ""
-    with atomic_output(args.out) as tmp_out:
-        tmp_out.write_text("\n".join(lines) + kept)
+    write_keeping(args.out, "\n".join(lines))  # the sections written by hand (each a "## " heading after the table) stay
     print("\n".join(lines))
 
 
