@@ -303,11 +303,13 @@ class Photometric:
         T = torch.as_tensor(np.stack(Ts), dtype=self.dtype, device=self.device)
         return T[:, :3, :3].contiguous(), T[:, :3, 3].contiguous()  # strided views make slow products
 
-    def _project(self, lv: Level, Ts: list[np.ndarray], q: torch.Tensor, cols: torch.Tensor | None = None):
-        """The level's points (or those of cols) at each pose: camera frame (B, n, 3), pixels and
-        depths (B*n, 2), (B*n,) through the camera corrected by q (Q_SIZE,)."""
+    def _project(self, lv: Level, Ts: list[np.ndarray], q: torch.Tensor, cols: torch.Tensor | None = None,
+                 points: torch.Tensor | None = None):
+        """The level's points (or those of cols, or other local-frame `points` (n, 3)) at each
+        pose: camera frame (B, n, 3), pixels and depths (B*n, 2), (B*n,) through the camera
+        corrected by q (Q_SIZE,)."""
         R, t = self._pose_tensors(Ts)
-        pts = lv.points if cols is None else lv.points[cols]
+        pts = points if points is not None else lv.points if cols is None else lv.points[cols]
         p = _times_transposed(pts, R) + t[:, None]
         uv, z = project_corrected(p.reshape(-1, 3), lv.photo.K, q) if self.free else project_pinhole(p.reshape(-1, 3), lv.photo.K)
         return p, uv, z
@@ -427,7 +429,7 @@ class Photometric:
         and with jacobian its derivative (n, m, 6 + free) by the pose and the free corrections.
         For the bundle's agreement term (two photos of one scan point, `align.bundle`)."""
         lv = self.levels[level]
-        _, uv, z = self._project_points(lv, T_local, q, points)
+        p, uv, z = self._project(lv, [T_local], q, points=points)
         w, h = lv.photo.camera.size
         inside = (z > 1e-6) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)
         if lv.photo.valid is not None:
@@ -438,15 +440,8 @@ class Photometric:
         I, Iu, Iv = bilinear_with_gradient(lv.photo.image, uv, self.cfg.gradient, lv.grads)
         a = self.model.kernel_derivative(I, Iu) @ D.T
         b = self.model.kernel_derivative(I, Iv) @ D.T
-        R, t = self._pose_tensors([T_local])
-        du, dv = self._jacobian(points @ R[0].T + t[0], lv.photo.K, q, self.free)
+        du, dv = self._jacobian(p[0], lv.photo.K, q, self.free)
         return self.model.kernel(I) @ D.T, inside, a[..., None] * du[:, None] + b[..., None] * dv[:, None]
-
-    def _project_points(self, lv: Level, T_local: np.ndarray, q: torch.Tensor, points: torch.Tensor):
-        R, t = self._pose_tensors([T_local])
-        p = points @ R[0].T + t[0]
-        uv, z = project_corrected(p, lv.photo.K, q) if self.free else project_pinhole(p, lv.photo.K)
-        return p, uv, z
 
     # -- what a result reports ---------------------------------------------------------------------
     def residuals(self, level: int, at: Terms) -> tuple[np.ndarray, np.ndarray]:
