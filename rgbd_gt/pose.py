@@ -123,6 +123,26 @@ def apply_update(T: np.ndarray, delta: np.ndarray) -> np.ndarray:
     return rigid(so3_exp(delta[:3]), delta[3:]) @ T
 
 
+def update_of(T: np.ndarray) -> np.ndarray:
+    """The update d (6,) with apply_update(I, d) = T (4x4): (rotation vector, translation)."""
+    R = T[:3, :3]
+    angle = np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    w = w * (0.5 if angle < 1e-8 else angle / (2 * np.sin(angle)))
+    return np.r_[w, T[:3, 3]]
+
+
+def update_through(A: np.ndarray) -> np.ndarray:
+    """(6, 6) M: the update of A @ B (`apply_update`, in the camera frame of A @ B) when B gets
+    the update d, to first order: M d. A: 4x4 (the adjoint of A in apply_update's terms)."""
+    R, t = np.asarray(A[:3, :3], np.float64), np.asarray(A[:3, 3], np.float64)
+    M = np.zeros((6, 6))
+    M[:3, :3] = R
+    M[3:, :3] = _hat_and_eye(t)[1] @ R
+    M[3:, 3:] = R
+    return M
+
+
 def worst_sigmas(cov: np.ndarray) -> dict:
     """The 1-sigma of a pose along its worst-determined directions, from the covariance (6, 6)
     of the update (rotation vector, translation) of `apply_update`: `rotation_deg` and

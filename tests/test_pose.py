@@ -49,3 +49,17 @@ def test_missing_key_and_file(tmp_path):
         read_pose(tmp_path / "p.yaml")
     with pytest.raises(InputError, match="not found"):
         read_pose(tmp_path / "none.yaml")
+
+
+def test_update_of_and_through():
+    """update_of inverts apply_update at the identity; update_through carries an update of B to
+    the update of A @ B (to first order)."""
+    from rgbd_gt.pose import apply_update, update_of, update_through
+
+    rng = np.random.default_rng(3)
+    d = np.r_[rng.normal(0, 0.3, 3), rng.normal(0, 0.5, 3)]
+    np.testing.assert_allclose(update_of(apply_update(np.eye(4), d)), d, atol=1e-12)
+    A, B = apply_update(np.eye(4), rng.normal(0, 0.5, 6)), apply_update(np.eye(4), rng.normal(0, 0.5, 6))
+    small = 1e-6 * rng.normal(size=6)
+    moved = A @ apply_update(B, small) @ np.linalg.inv(A @ B)
+    np.testing.assert_allclose(update_of(moved), update_through(A) @ small, atol=1e-11)

@@ -59,6 +59,12 @@ class RefineResult:
     end_residuals: tuple[np.ndarray, np.ndarray] | None = None
 
 
+def damped(H: np.ndarray, lam: float) -> np.ndarray:
+    """Levenberg-Marquardt's matrix: H (P, P) with lam times its diagonal added (Marquardt's
+    scaling: each parameter damped in its own units)."""
+    return H + lam * np.diag(np.diag(H) + 1e-12)
+
+
 def refine_each(aligner, starts: list[np.ndarray], **refine_args) -> list[np.ndarray | None]:
     """`aligner.refine(T0, **refine_args)`'s pose from each start in turn; None for a start that
     lost the scan."""
@@ -207,7 +213,7 @@ class Aligner:
             its[active] = it
             deltas = np.zeros((B, at.H.shape[1]))
             for i in np.nonzero(active)[0]:
-                deltas[i] = -np.linalg.solve(at.H[i] + lam[i] * np.diag(np.diag(at.H[i]) + 1e-12), at.g[i])
+                deltas[i] = -np.linalg.solve(damped(at.H[i], lam[i]), at.g[i])
             T_new = [apply_update(T, d[:6]) if on else T for T, d, on in zip(Ts, deltas, active)]
             q_new = q
             if free:  # the camera corrections move with the pose (kept only when the step is)

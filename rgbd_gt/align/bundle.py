@@ -35,8 +35,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from rgbd_gt.align.aligner import damped
+from rgbd_gt.align.photometric import scaled_inverse
 from rgbd_gt.errors import InputError
-from rgbd_gt.pose import apply_update, invert, translated
+from rgbd_gt.pose import apply_update, invert, translated, update_of, update_through
 from rgbd_gt.render.project import Q_SIZE
 
 # the agreement term runs on the finest levels alone: on the coarse ones, blurred, the photos
@@ -80,26 +82,6 @@ class BundleResult:
     levels: list[dict]
     seconds: float
     evidence: list[dict] = field(default_factory=list)  # per photo: the cross-photo evidence
-
-
-def _hat(t: np.ndarray) -> np.ndarray:
-    return np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-
-
-def moved_by(A: np.ndarray) -> np.ndarray:
-    """(6, 6) M: the update of A @ B (`apply_update`, camera frame of A @ B) when B gets the
-    update d, to first order: M d. A: 4x4."""
-    R, t = A[:3, :3], A[:3, 3]
-    M = np.zeros((6, 6))
-    M[:3, :3] = R
-    M[3:, :3] = _hat(t) @ R
-    M[3:, 3:] = R
-    return M
-
-
-def _damped_solve(A: np.ndarray, b: np.ndarray, lam: float) -> np.ndarray:
-    d = np.diag(A)
-    return np.linalg.solve(A + lam * np.diag(d + 1e-12), b)
 
 
 class Bundle:
@@ -224,7 +206,7 @@ class Bundle:
         """The rig priors' energy, gradient (S,) and matrix (S, S) over the shared parameters."""
         g, H, energy = np.zeros(self.shared), np.zeros((self.shared, self.shared)), 0.0
         for c, prior in self.priors.items():
-            e = _log(rig[c] @ invert(prior.T))
+            e = update_of(rig[c] @ invert(prior.T))
             w = np.r_[[1 / prior.sigma_rotation_rad**2] * 3, [1 / prior.sigma_translation_m**2] * 3]
             s = slice(self.rig_at[c], self.rig_at[c] + 6)
             g[s] += w * e
@@ -240,7 +222,7 @@ class Bundle:
         Jb, Js = np.zeros((P, 6)), np.zeros((P, self.shared))
         c = p.camera
         if self._in_rig(i):
-            Jb[:6] = moved_by(rig[c])
+            Jb[:6] = update_through(rig[c])
             if c >= 1:
                 Js[:6, self.rig_at[c]:self.rig_at[c] + 6] = np.eye(6)
         else:
@@ -278,13 +260,13 @@ class Bundle:
         _, pg, pH = prior
         V, gs = Vb.sum(0) + pH, gsb.sum(0) + pg
         reduced, rhs = V.copy(), -gs.copy()
-        Ud = [U[b] + lam * np.diag(np.diag(U[b]) + 1e-12) for b in range(len(U))]
+        Ud = [damped(U[b], lam) for b in range(len(U))]
         Ui_W = [np.linalg.solve(Ud[b], W[b]) for b in range(len(U))]
         Ui_g = [np.linalg.solve(Ud[b], gb[b]) for b in range(len(U))]
         for b in range(len(U)):
             reduced -= W[b].T @ Ui_W[b]
             rhs += W[b].T @ Ui_g[b]
-        xs = _damped_solve(reduced, rhs, lam) if self.shared else np.zeros(0)
+        xs = np.linalg.solve(damped(reduced, lam), rhs) if self.shared else np.zeros(0)
         xb = np.stack([-Ui_g[b] - Ui_W[b] @ xs for b in range(len(U))])
         return xb, xs
 
@@ -386,9 +368,9 @@ class Bundle:
         system = self._system(terms, rig, scale, pairs)
         U, W, _, Vb, _ = system
         prior = self._prior_terms(rig)
-        Ui = [_inverse(U[b]) for b in range(nb)]
+        Ui = [scaled_inverse(U[b]) for b in range(nb)]
         UiW = [Ui[b] @ W[b] for b in range(nb)]
-        Si = _inverse(Vb.sum(0) + prior[2] - sum(W[b].T @ UiW[b] for b in range(nb))) if self.shared else np.zeros((0, 0))
+        Si = scaled_inverse(Vb.sum(0) + prior[2] - sum(W[b].T @ UiW[b] for b in range(nb))) if self.shared else np.zeros((0, 0))
         cov_body = [Ui[b] + UiW[b] @ Si @ UiW[b].T for b in range(nb)]  # each body's 6 x 6 block
         for i in range(len(self.photos)):
             Jb, Js = (m[:6] for m in self._maps(i, rig))
@@ -418,11 +400,11 @@ class Bundle:
             r_b = [gsb[b] - W[b].T @ Ui[b] @ gb[b] for b in range(nb)]
             S, r = sum(S_b) + prior[2], sum(r_b) + prior[1]
             for b in range(nb):
-                others = _inverse(S - S_b[b])
+                others = scaled_inverse(S - S_b[b])
                 d_shared = -others @ (r - r_b[b])
                 d_body = -Ui[b] @ (gb[b] + W[b] @ d_shared)
                 C = cov_body[b]
-                sig = float(np.sqrt(max(d_body @ _inverse(C) @ d_body, 0.0))) if np.isfinite(d_body).all() \
+                sig = float(np.sqrt(max(d_body @ scaled_inverse(C) @ d_body, 0.0))) if np.isfinite(d_body).all() \
                     and np.isfinite(C).all() else None  # None: the others alone do not fix the shared parameters
                 for i in np.nonzero(self.body_of == b)[0]:
                     ev[i]["leave_one_out_sigmas"] = sig
@@ -442,23 +424,3 @@ class Bundle:
             if "freed_from_rig_sigmas" in e:
                 e["freed_vs_others"] = e["freed_from_rig_sigmas"] / max(float(np.median(freed)), 1e-9)
         return ev
-
-
-def _inverse(A: np.ndarray) -> np.ndarray:
-    """A's inverse with its parameters scaled to unit diagonal (rotations, metres and camera
-    corrections differ by orders of magnitude); all inf where A is singular."""
-    s = 1.0 / np.sqrt(np.clip(np.diag(A), 1e-30, None))
-    As = A * s[:, None] * s[None, :]
-    eig = np.linalg.eigvalsh(As)
-    if eig[0] <= eig[-1] * 1e-12:
-        return np.full(A.shape, np.inf)
-    return s[:, None] * np.linalg.inv(As) * s[None, :]
-
-
-def _log(T: np.ndarray) -> np.ndarray:
-    """The update d (6,) with apply_update(I, d) = T: (rotation vector, translation)."""
-    R = T[:3, :3]
-    angle = np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    w = w * (0.5 if angle < 1e-8 else angle / (2 * np.sin(angle)))
-    return np.r_[w, T[:3, 3]]

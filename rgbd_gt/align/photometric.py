@@ -156,19 +156,25 @@ def _normal_equations(du: torch.Tensor, dv: torch.Tensor, a: torch.Tensor, b: to
     return H, (duT @ sar[..., None] + dvT @ sbr[..., None])[..., 0]
 
 
-def covariance(H: np.ndarray, energy: float, count: int) -> np.ndarray:
-    """The covariance (P, P) of the parameters (the pose's 6 first) from a Gauss-Newton matrix
-    H = J^T W J, scaled by the residual variance energy / (count - P) (energy = sum w r^2), or
-    all inf where H is singular. Inverted
-    with its parameters scaled to unit diagonal (rotation and translation differ by orders of
-    magnitude). Residuals are treated as independent: neighbouring points share photo pixels, so
-    this is a lower bound."""
+def scaled_inverse(H: np.ndarray) -> np.ndarray:
+    """The inverse of a Gauss-Newton matrix H (P, P), inverted with its parameters scaled to unit
+    diagonal (rotations, metres and camera corrections differ by orders of magnitude); all inf
+    where H is singular."""
     s = 1.0 / np.sqrt(np.clip(np.diag(H), 1e-30, None))
     Hs = H * s[:, None] * s[None, :]
     eig = np.linalg.eigvalsh(Hs)
     if eig[0] <= eig[-1] * 1e-12:
         return np.full(H.shape, np.inf)
-    return energy / max(count - len(H), 1) * (s[:, None] * np.linalg.inv(Hs) * s[None, :])
+    return s[:, None] * np.linalg.inv(Hs) * s[None, :]
+
+
+def covariance(H: np.ndarray, energy: float, count: int) -> np.ndarray:
+    """The covariance (P, P) of the parameters (the pose's 6 first) from a Gauss-Newton matrix
+    H = J^T W J, scaled by the residual variance energy / (count - P) (energy = sum w r^2), or
+    all inf where H is singular (`scaled_inverse`). Residuals are treated as independent:
+    neighbouring points share photo pixels, so this is a lower bound."""
+    inverse = scaled_inverse(H)
+    return inverse if np.isinf(inverse).all() else energy / max(count - len(H), 1) * inverse
 
 
 def _times_transposed(a: torch.Tensor, M: torch.Tensor) -> torch.Tensor:
