@@ -632,7 +632,7 @@ def export_depth(
         ("method", depth.method),
         ("size", f"{cam.width} x {cam.height}"),
         ("pixels with depth", f"{valid.mean():.1%}"),
-        ("seen from behind", "unknown (the scan records no scanner position)" if depth.back_facing is None
+        ("seen from behind", "not culled: the scan records no scanner position, so its surfaces have no known side" if depth.back_facing is None
          else f"{depth.back_facing:,} pixels ({back_facing_fraction(depth):.1%} of the scan's view), written as 0"),
         ("depth range", f"{zs.min():.3f} .. {zs.max():.3f} m (median {np.median(zs):.3f})"),
         ("time", f"{time.perf_counter() - start:.1f} s"),

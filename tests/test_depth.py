@@ -13,7 +13,7 @@ from rgbd_gt.io import read_pose, save_scan, write_camera, write_pose
 from rgbd_gt.io.depth_file import read_depth_exr
 from rgbd_gt.scan import Scan
 from rgbd_gt.pose import invert
-from rgbd_gt.render.depth import grid_mesh, render_depth
+from rgbd_gt.render.depth import grid_mesh, pixel_rays, render_depth
 from rgbd_gt.render.mesh import grid_triangles
 
 
@@ -42,6 +42,27 @@ def test_unstructured_scan_is_rendered_as_surfels(icl_dir):
     skipped = render_depth(scan, ICL_CAMERA, T, max_splat_px=out.splat_radius - 1)
     assert skipped.splat_radius == out.splat_radius and not skipped.z.any()
     assert render_depth(scan, ICL_CAMERA, T, max_splat_px=out.splat_radius).z.any()
+
+
+def test_scan_without_scanner_position_gets_surfels(icl_dir):
+    """A plain colored cloud (no grid, no scanner position: a PLY from another tool) renders as
+    surfels from unoriented normals, as good as with the position (measured 0.30 mm median, 0.47 %
+    leaks, as the scanner-position case); which side was seen is unknown, so nothing is culled."""
+    s = frame_grid_scan(icl_dir, 0)
+    T = invert(read_trajectory(icl_dir / "trajectory.log")[1])
+    out = render_depth(Scan(xyz=s.xyz, rgb=s.rgb), ICL_CAMERA, T)
+    assert out.method.startswith("surfels") and out.back_facing is None
+    both = seen_by_both(icl_dir, 0, 1)
+    truth = read_depth(icl_dir, 1, "clean")
+    filled = both & (out.z > 0)
+    assert filled.sum() > 0.95 * both.sum()
+    err = np.abs(out.z[filled] - truth[filled])
+    assert np.median(err) < 0.0005 and np.mean(err > 0.05) < 0.006
+    # normals are the winning discs', facing the camera
+    n, ray = out.normals[out.z > 0], pixel_rays(ICL_CAMERA)[(out.z > 0).ravel()]
+    known = np.abs(n).sum(1) > 0
+    assert known.mean() > 0.9 and np.allclose(np.linalg.norm(n[known], axis=1), 1, atol=1e-3)
+    assert (np.sum(n * ray, axis=1)[known] < 0).all()
 
 
 @pytest.fixture

@@ -378,7 +378,7 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None,
            max_splat_px: int | None = None) -> DepthMap:
     import torch
 
-    from rgbd_gt.render.normals import facing_camera, with_normals
+    from rgbd_gt.render.normals import facing_camera, knn_normals, with_normals
     from rgbd_gt.render.splat import Surfels, close_gaps, splat, values_at
     from rgbd_gt.render.zbuffer import estimate_spacing
 
@@ -399,8 +399,9 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None,
         return nothing("splats (nothing in view)")
     vals = values[seen].astype(np.float32) if values is not None else np.zeros((len(z), 1), np.float32)
     normals = with_normals(scan).normals
+    sided = normals is not None  # the scanner's side of each surface is known
     surfels, back = None, None
-    if normals is None:  # squares at the typical spacing
+    if not sided and len(z) < 16:  # squares at the typical spacing
         spacing = estimate_spacing(torch.as_tensor(p[seen]))
         radius = max(1, int(np.ceil(0.75 * camera.fx * spacing / max(float(np.median(z)), 1e-6))))
     else:
@@ -414,16 +415,20 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None,
         skipped = nothing(f"splats of radius {radius} px (over {max_splat_px}: not drawn)", radius)
         skipped.drawn = False
         return skipped
-    if normals is not None:
-        n_cam = normals[seen] @ T[:3, :3].T
+    if sided or len(z) >= 16:
+        # without a scanner position the side seen is unknown, but a disc needs a plane, not a
+        # side: the unoriented normals of the points in view (a surfel's slope is the same for n
+        # and -n); back faces then cannot be culled (back_facing stays None)
+        n_cam = normals[seen] @ T[:3, :3].T if sided else knn_normals(p[seen])
         slope = surfel_slope(p[seen], n_cam, z, camera, radius)
         surfels = Surfels(torch.as_tensor(slope), torch.as_tensor(reach), camera.fx, camera.fy)
     img, depth, index = splat(torch.as_tensor(uv), torch.as_tensor(z), torch.as_tensor(vals), camera.size, radius, surfels)
     zz = depth.numpy().astype(np.float32)
-    if normals is not None:
+    if surfels is not None:
         # the gaps between a scanner's columns, on one surface
         zz, idx = close_gaps(zz, index.numpy(), reach_px)
         img = values_at(torch.as_tensor(vals), torch.as_tensor(idx))
+    if sided:
         # a pixel whose nearest point faces away is seen from behind
         away = ~facing_camera(p[seen].astype(np.float32), n_cam.astype(np.float32))
         behind = (idx >= 0) & away[np.maximum(idx, 0)]
@@ -435,5 +440,11 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None,
     if values is not None:  # in the values' own type, as the mesh path gives them
         colors = img.numpy()
         colors = np.rint(colors).astype(values.dtype) if np.issubdtype(values.dtype, np.integer) else colors.astype(values.dtype)
+    nn = np.zeros(zz.shape + (3,), np.float32)
+    if surfels is not None:  # the winning disc's normal, turned to the camera
+        hit = (idx >= 0) & (zz > 0)
+        n = n_cam[idx[hit]].astype(np.float32)
+        n *= -np.sign(np.sum(n * p[seen][idx[hit]], axis=1) + 1e-12)[:, None]
+        nn[hit] = n
     kind = "surfels of radius up to" if surfels is not None else "splats of radius"
-    return DepthMap(zz, np.zeros(zz.shape + (3,), np.float32), f"{kind} {radius} px", colors, radius, back)
+    return DepthMap(zz, nn, f"{kind} {radius} px", colors, radius, back)
