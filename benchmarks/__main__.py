@@ -27,6 +27,8 @@ BENCHMARKS = {
                    lambda out, data: ["--out", out / "intrinsics.md"]),
     "bundle": ("bundle", "the joint solve against per-photo refines: bundle.md",
                lambda out, data: ["--out", out / "bundle.md", "--icl", data / "icl_nuim_livingroom1"]),
+    "export": ("export", "export's disparity against the truth, its depth 1-sigma, its cost: export.md",
+               lambda out, data: ["--out", out / "export.md"]),
     "big_photo": ("big_photo", "every command on a 24-megapixel photo: big_photo.md",
                   lambda out, data: ["--out", out / "big_photo.md"]),
     "scale": ("scale", "a 40-million-point scan with ten photos, workers and Ray: scale.md",

@@ -38,13 +38,14 @@ def seen_by_both(folder: Path, i: int, j: int) -> np.ndarray:
     return out
 
 
-def depth_errors(folder: Path, i: int, j: int, grid: bool = True) -> dict:
+def depth_errors(folder: Path, i: int, j: int, grid: bool = True, origin: bool = True) -> dict:
     """Median absolute error (m), fraction off by > 5 cm (leaks) and fraction filled, over the
     pixels both frames see. grid=False: the same points without their grid (as a merged or
-    downsampled scan would come), rendered as surfels."""
+    downsampled scan would come), rendered as surfels; origin=False: without the scanner's
+    position either (a plain colored PLY from another tool)."""
     scan = frame_grid_scan(folder, i)
     if not grid:
-        scan = Scan(xyz=scan.xyz, rgb=scan.rgb, origins=scan.origins)
+        scan = Scan(xyz=scan.xyz, rgb=scan.rgb, origins=scan.origins if origin else np.zeros((0, 3)))
     T_j = invert(read_trajectory(folder / "trajectory.log")[j])
     rendered = render_depth(scan, ICL_CAMERA, T_j).z
     both = seen_by_both(folder, i, j)

@@ -22,6 +22,11 @@ _API = {
     "rgbd_gt.steps": ("open_photo", "load_inputs", "refine_config", "refine_step", "bundle_step", "depth_step", "write_depth",
                       "qa_step", "overlay_step", "Photo", "Refined", "Bundled", "QA", "Overlay"),
     "rgbd_gt.io.bundle_file": ("read_bundle",),
+    "rgbd_gt.export.dataset": ("export_run", "products", "stereo_products", "DepthProducts", "StereoProducts", "Exported"),
+    "rgbd_gt.export.source": ("read_run", "Shot", "Source"),
+    "rgbd_gt.export.stereo": ("pinhole", "rectify"),
+    "rgbd_gt.export.uncertainty": ("pixel_sigma",),
+    "rgbd_gt.export.report": ("write_report",),
     "rgbd_gt.align.bundle": ("Bundle", "BundlePhoto"),
     "rgbd_gt.align.refine": ("RefineInputs",),
     "rgbd_gt.render.renders": ("Renders",),
@@ -29,6 +34,7 @@ _API = {
     "rgbd_gt.camera": ("Camera",),
     "rgbd_gt.scan": ("Scan", "scan_colors"),
     "rgbd_gt.io": ("load_scan", "read_camera", "read_pose", "write_pose"),
+    "rgbd_gt.io.image": ("read_image",),
     "rgbd_gt.errors": ("InputError",),
 }
 _WHERE = {name: module for module, names in _API.items() for name in names}

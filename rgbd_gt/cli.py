@@ -552,7 +552,7 @@ def _refine_bundle(bundle: Path, output: Path, cfg, device: str, cache: Optional
 
             (staged / "rig.yaml").write_text(yaml.safe_dump(done.rig, sort_keys=False, default_flow_style=None))
         r = done.result
-        summary = {"bundle": str(bundle), "photos": [
+        summary = {"bundle": str(bundle.resolve()), "photos": [
             {"image": str(e.image), "pose": f"{e.image.stem}/pose.yaml", "camera": e.camera, "shot": e.shot,
              "verdict": d.verification.verdict, "reasons": d.verification.reasons, **d.verification.evidence["bundle"]}
             for e, d in zip(spec.photos, done.photos)], "iterations": r.iterations, "levels": r.levels,
@@ -741,6 +741,68 @@ def overlay(
         _warn(f"{paths['points']} is left from an earlier run and may show another pose (--points redraws it)")
 
 
+@app.command("export")
+def export_dataset(
+    run_dir: Path = typer.Argument(..., help="A finished run: the output folder of `rgbd-gt run` (run.json) or of `rgbd-gt refine --bundle` (bundle.json; rigs give stereo pairs)."),
+    output: Path = typer.Option(..., "-o", "--output", help="Folder to write the data set into, one sub-folder per format, with export.json and report.html."),
+    formats: list[str] = typer.Option(..., "--format", "-f", help="plain | colmap | nerfstudio | middlebury | kitti; repeat the option or separate by commas for several (docs/export.md)."),
+    include: list[str] = typer.Option([], "--include", help="Also export photos with this verdict: suspect (or failed); repeatable. Only `ok` photos by default."),
+    points: Optional[bool] = typer.Option(None, "--points/--surfaces", help="Depth of the scan's points alone (sparse) or of the surfaces rendered from them; by default as export-depth chooses (points for LiDAR sweeps)."),
+    cache: Optional[Path] = typer.Option(None, "--cache", help=CACHE_HELP + " Default: the run's own cache when it has one."),
+) -> None:
+    """A finished run as a data set: per photo the undistorted pinhole photo beside the original,
+    depth (EXR metres, PNG millimetres), a validity mask, the depth's 1-sigma per pixel (the
+    pose's and camera's covariance carried to each pixel) and normals (plain); a COLMAP text
+    model; nerfstudio's transforms.json; rectified stereo pairs with disparity (middlebury,
+    kitti) from a rig. Also report.html, a page to judge the run by eye."""
+    from rgbd_gt.engine import CACHE_FOLDER
+    from rgbd_gt.export.dataset import export_run
+    from rgbd_gt.export.report import write_report
+    from rgbd_gt.export.source import read_run
+    from rgbd_gt.io.outputs import Outputs
+
+    start = time.perf_counter()
+    chosen = [f.strip() for f in ",".join(formats).split(",") if f.strip()]
+    verdicts = ("ok", *[v for v in include if v != "ok"])
+    if any(v not in ("suspect", "failed") for v in verdicts[1:]):
+        raise InputError(f"--include takes suspect or failed, got {', '.join(verdicts[1:])}")
+    sources = read_run(run_dir)
+    outs = Outputs([run_dir / n for n in ("run.json", "bundle.json")] + [s.scan for s in sources]
+                   + [p.image for s in sources for p in s.photos])
+    staged = outs.folder(output, "-o")
+    if cache is None and (run_dir / CACHE_FOLDER).is_dir():
+        cache = run_dir / CACHE_FOLDER
+    outs.checked_folder(cache, "--cache")
+    with outs, _progress() as bar:
+        task = bar.add_task("export", total=None)
+
+        def progress(what: str, done: int, total: int) -> None:
+            bar.update(task, description=f"export {what}", completed=done, total=total)
+
+        done = export_run(run_dir, staged, chosen, verdicts, cache, points, progress)
+        write_report(staged / "report.html", read_run(run_dir), staged, done)
+    table = Table(title=f"export: {len(done.photos)} photo{'s' * (len(done.photos) != 1)}"
+                  + (f", {len(done.pairs)} stereo pair{'s' * (len(done.pairs) != 1)}" if done.pairs else ""))
+    for col in ("photo", "verdict", "valid pixels", "near an edge", "depth 1-sigma p50 / p90 / p99"):
+        table.add_column(col)
+    for name, e in done.photos.items():
+        if "valid" in e:
+            s = e["depth_sigma_mm"]
+            table.add_row(name, _verdict_text(e["verdict"]), f"{e['valid'] / e['pixels']:.1%}", f"{e['near_edge'] / e['pixels']:.2%}",
+                          f"{s['p50']:.3f} / {s['p90']:.3f} / {s['p99']:.3f} mm")
+        else:
+            table.add_row(name, _verdict_text(e["verdict"]), "-", "-", "-")
+    out.print(table)
+    for key, p in done.pairs.items():
+        d = p["disparity_px"] or [0, 0]
+        out.print(f"pair {key} ({p['left']} | {p['right']}): baseline {p['baseline_m'] * 1e3:.2f} mm, disparity "
+                  f"{d[0]:.1f}..{d[1]:.1f} px, 1-sigma {p['disparity_sigma_px']['p50']:.4f} px median, "
+                  f"{p['occluded'] / max(p['valid'], 1):.1%} occluded")
+    for name, why in done.left_out.items():
+        out.print(f"left out {name}: {why}")
+    out.print(f"wrote {', '.join(chosen)} and report.html into {output} in {time.perf_counter() - start:.1f} s")
+
+
 @app.command("run")
 def run_workflow(
     config: Path = typer.Argument(..., help="Workflow config: one scan with its photos (configs/example.yaml) or a site, several scans each with its photos (configs/site.yaml)."),
@@ -841,6 +903,10 @@ def run_workflow(
     write_summary(out_dir / "summary.csv", results)
     seconds = time.perf_counter() - start
     write_run_record(out_dir / "run.json", prepared, seconds, "ray" if ray_address is not None else "local", workers)
+    from rgbd_gt.export.report import write_report
+    from rgbd_gt.export.source import read_run
+
+    write_report(out_dir / "report.html", read_run(out_dir))
     table = Table(title=f"rgbd-gt run: {len(results)} photo(s) in {seconds:.0f} s")
     wide = out.width >= 110  # on a narrow terminal or in a log (80 columns) the Canny and roll columns go (summary.csv has them)
 
@@ -871,7 +937,7 @@ def run_workflow(
     out.print(f"verdicts: {verdict_counts(results)}")
     where = "<scan>/<photo>" if site else "<photo>"
     out.print(f"outputs in {out_dir}/{where}/ (init.yaml, pose.yaml, depth.exr, depth.png, qa.png, qa.json, overlay*.png); "
-              f"summary in {out_dir / 'summary.csv'}")
+              f"summary in {out_dir / 'summary.csv'}, a page to judge it by eye in {out_dir / 'report.html'}")
     if all(r.status == "failed" for r in results):
         raise typer.Exit(1)
 

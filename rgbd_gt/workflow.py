@@ -463,7 +463,9 @@ def write_run_record(path: Path, prepared: list, seconds: float, engine: str, wo
 
     scans = []
     for p in prepared:
-        entry = {"name": p.job.name, "scan": str(p.job.scan), "points": p.points, "cached": p.cached,
+        entry = {"name": p.job.name, "scan": str(p.job.scan), "camera": str(p.job.camera),
+                 "folder": os.path.relpath(p.job.out, path.parent),
+                 "photos": [str(f) for f in p.job.photos], "points": p.points, "cached": p.cached,
                  "seconds": round(p.seconds, 3), "steps": p.steps, "error": p.error}
         if p.folder is not None and not p.cached:
             entry["prepare_seconds"] = json.loads((p.folder / "meta.json").read_text()).get("seconds")

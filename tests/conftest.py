@@ -52,6 +52,17 @@ def synth_scene(tmp_path_factory):
     return copy
 
 
+@pytest.fixture(scope="session")
+def rig_run(synth_scene, tmp_path_factory):
+    """A stereo rig's 2 shots (small synthetic scene, seed 0) solved together by `refine --bundle`:
+    (scene folder, output folder)."""
+    d = synth_scene(tmp_path_factory.mktemp("rig") / "scene", 0, photos=2, rig="stereo")
+    out = d.parent / "out"
+    proc = run_cli("refine", "--bundle", d / "bundle.yaml", "-o", out, "--device", "cpu", "--repeats", "1")
+    assert proc.returncode == 0, proc.stderr + proc.stdout
+    return d, out
+
+
 def run_cli(*args, cwd=None) -> subprocess.CompletedProcess:
     """Run the real `rgbd-gt` entry point in a subprocess (exit codes and stderr as a user sees them)."""
     return subprocess.run(

@@ -6,22 +6,11 @@ from __future__ import annotations
 import json
 
 import numpy as np
-import pytest
 import yaml
 
 from conftest import run_cli
 from rgbd_gt.io import read_camera, read_pose
 from rgbd_gt.pose import invert, rotation_error_deg, translation_error_m
-
-
-@pytest.fixture(scope="module")
-def rig_run(synth_scene, tmp_path_factory):
-    """A stereo rig's 2 shots solved together by the command: (scene folder, output folder)."""
-    d = synth_scene(tmp_path_factory.mktemp("rig") / "scene", 0, photos=2, rig="stereo")
-    out = d.parent / "out"
-    proc = run_cli("refine", "--bundle", d / "bundle.yaml", "-o", out, "--device", "cpu", "--repeats", "1")
-    assert proc.returncode == 0, proc.stderr + proc.stdout
-    return d, out
 
 
 def test_stereo_rig_poses_and_baseline(rig_run):

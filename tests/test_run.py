@@ -1,6 +1,7 @@
 """rgbd-gt run: the whole workflow on a synthetic scene with two photos, resumable."""
 
 import csv
+import html
 import hashlib
 import os
 import subprocess
@@ -68,7 +69,14 @@ def test_run_two_photos_then_resume(tmp_path, synth_scene):
                    "--init", tmp_path / "out" / "photo" / "init.yaml", "-o", alone, "--max-points", 40000,
                    "--repeats", 0, "--cache", tmp_path / "out" / ".scan-cache").returncode == 0
     np.testing.assert_allclose(read_pose(alone)[0], T_run, atol=1e-9)
-    stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "out").rglob("*") if p.is_file() and p.name not in ("summary.csv", "run.json", ".run.lock")}
+    # the run's page (report.html): every photo, those without a pose with why
+    page = (tmp_path / "out" / "report.html").read_text()
+    assert "4 photos: 2 ok, 0 suspect, 0 failed, 2 without a pose" in page and html.escape(small) in page
+    assert all((tmp_path / "out" / "report" / f"{n}_{kind}").is_file() for n in ("photo", "photo_1")
+               for kind in ("photo.png", "depth.png", "overlay_blend.png", "qa.png"))
+    # like summary.csv, run.json and the page are the run's own: written again by a rerun
+    stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "out").rglob("*") if p.is_file()
+              and p.name not in ("summary.csv", "run.json", ".run.lock", "report.html") and p.parent.name != "report"}
     again = run_cli("run", tmp_path / "run.yaml")
     assert again.returncode == 0, again.stderr
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps  # nothing recomputed

@@ -17,11 +17,7 @@ def write_depth_exr(path: str | os.PathLike, z: np.ndarray, camera: Camera, T_ca
     intrinsics, distortion, pose and scan file name as header attributes (and the fraction of
     the view seen from behind, `render.depth.back_facing_fraction`, when known). With `normals`
     (H, W, 3), also channels N.X, N.Y, N.Z (camera frame)."""
-    import OpenEXR
-
     header = {
-        "compression": OpenEXR.ZIP_COMPRESSION,
-        "type": OpenEXR.scanlineimage,
         "rgbd_gt_K": np.asarray(camera.K, np.float64),
         "rgbd_gt_distortion": " ".join(repr(float(d)) for d in camera.distortion) or "none",
         "rgbd_gt_T_cam_from_scan": np.asarray(T_cam_from_scan, np.float64),
@@ -30,12 +26,77 @@ def write_depth_exr(path: str | os.PathLike, z: np.ndarray, camera: Camera, T_ca
     }
     if seen_from_behind is not None:
         header["rgbd_gt_seen_from_behind"] = repr(float(seen_from_behind))
-    channels = {"Z": np.ascontiguousarray(z, np.float32)}
+    channels = {"Z": z}
     if normals is not None:
         for k, c in enumerate("XYZ"):
-            channels[f"N.{c}"] = np.ascontiguousarray(normals[..., k], np.float32)
+            channels[f"N.{c}"] = normals[..., k]
+    write_exr(path, channels, header)
+
+
+def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray], attributes: dict | None = None) -> None:
+    """Write float32 channels ({name: (H, W)}) as a ZIP-compressed scanline OpenEXR, atomically,
+    with `attributes` in its header."""
+    import OpenEXR
+
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, **(attributes or {})}
+    channels = {k: np.ascontiguousarray(v, np.float32) for k, v in channels.items()}
     with atomic_output(path) as tmp, OpenEXR.File(header, channels) as f:
         f.write(str(tmp))
+
+
+def read_exr(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict]:
+    """({channel: (H, W) float32}, header) of an OpenEXR file."""
+    import OpenEXR
+
+    path = require_file(path)
+    try:
+        with OpenEXR.File(str(path)) as f:
+            return {k: np.array(c.pixels, np.float32) for k, c in f.channels().items()}, dict(f.header())
+    except Exception as exc:  # OpenEXR raises plain exceptions for every failure
+        raise InputError(f"not an OpenEXR file ({exc})", path) from None
+
+
+def write_pfm(path: str | os.PathLike, image: np.ndarray) -> None:
+    """A one-channel float32 PFM (`Pf`, little-endian: scale -1, rows bottom to top), as the
+    Middlebury and ETH3D stereo sets store disparities (inf where unknown)."""
+    image = np.asarray(image, np.float32)
+    with atomic_output(path) as tmp, open(tmp, "wb") as f:
+        f.write(f"Pf\n{image.shape[1]} {image.shape[0]}\n-1\n".encode("ascii"))
+        f.write(np.ascontiguousarray(image[::-1]).astype("<f4").tobytes())
+
+
+def read_pfm(path: str | os.PathLike) -> np.ndarray:
+    """(H, W) float32 (or (H, W, 3) for `PF`) of a PFM file, top row first; either byte order."""
+    path = require_file(path)
+    data = path.read_bytes()
+    try:
+        head = data.split(b"\n", 3)
+        kind, (w, h), scale = head[0].strip(), map(int, head[1].split()), float(head[2])
+        channels = {b"Pf": 1, b"PF": 3}[kind]
+        pixels = np.frombuffer(head[3], "<f4" if scale < 0 else ">f4", count=w * h * channels)
+    except (ValueError, KeyError, IndexError) as exc:
+        raise InputError(f"not a PFM file ({exc})", path) from None
+    return pixels.reshape((h, w) if channels == 1 else (h, w, 3))[::-1].astype(np.float32)
+
+
+def write_png16(path: str | os.PathLike, values: np.ndarray) -> None:
+    """(H, W) integers 0..65535 as a 16-bit grayscale PNG, atomically."""
+    import cv2
+
+    with atomic_output(path) as tmp:
+        if not cv2.imwrite(str(tmp), np.asarray(values).astype(np.uint16)):
+            raise InputError("could not write PNG", path)
+
+
+def read_png16(path: str | os.PathLike) -> np.ndarray:
+    """(H, W) uint16 of a 16-bit grayscale PNG."""
+    import cv2
+
+    path = require_file(path)
+    img = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH)
+    if img is None or img.dtype != np.uint16 or img.ndim != 2:
+        raise InputError("not a 16-bit grayscale PNG", path)
+    return img
 
 
 def read_depth_exr(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
@@ -56,6 +117,4 @@ def write_depth_png16(path: str | os.PathLike, z: np.ndarray) -> None:
 
     mm = np.round(np.asarray(z, np.float64) * 1000.0)
     mm[(mm > 65535) | ~np.isfinite(mm)] = 0
-    with atomic_output(path) as tmp:
-        if not cv2.imwrite(str(tmp), mm.astype(np.uint16)):
-            raise InputError("could not write PNG", path)
+    write_png16(path, mm)

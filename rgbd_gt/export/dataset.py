@@ -1,0 +1,274 @@
+"""`rgbd-gt export RUN_DIR -o OUT --format F`: a finished run as the layouts training code reads
+(`export.formats`), every depth with its validity and 1-sigma (`export.uncertainty`)."""
+
+from __future__ import annotations
+
+import json
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from rgbd_gt.camera import Camera
+from rgbd_gt.errors import InputError
+from rgbd_gt.export.source import Shot, Source
+from rgbd_gt.export.stereo import Warp
+
+FORMATS = ("plain", "colmap", "nerfstudio", "middlebury", "kitti")
+STEREO = ("middlebury", "kitti")
+COLMAP_POINTS = 200_000  # at most this many scan points in points3D.txt (every k-th of those seen)
+
+
+@dataclass
+class DepthProducts:
+    """A photo resampled into a pinhole camera (`export.stereo.Warp`) with its depth there:
+    camera, T (4, 4) T_cam_from_scan, image (H, W, 3) uint8, z (H, W) metres (0: none), normals
+    (H, W, 3), sigma (`export.uncertainty.PixelSigma`), near (H, W) bool within reach of a depth
+    discontinuity, valid (H, W) bool: depth, not masked, not near a discontinuity."""
+
+    camera: Camera
+    T: np.ndarray
+    image: np.ndarray
+    z: np.ndarray
+    normals: np.ndarray
+    sigma: object
+    near: np.ndarray
+    valid: np.ndarray
+    method: str
+
+
+@dataclass
+class StereoProducts:
+    """A rectified pair (`export.stereo.Pair`): both sides' products, the left's disparity
+    (H, W) float32 px and its 1-sigma, the left pixels the right camera does not see (occluded)."""
+
+    left: DepthProducts
+    right: DepthProducts
+    baseline: float
+    disp: np.ndarray
+    disp_sigma: np.ndarray
+    occluded: np.ndarray
+    names: tuple[str, str]
+
+
+@dataclass
+class Exported:
+    """export's result: per photo name its products' figures, per stereo pair its figures, the
+    folders written, and the photos left out with why."""
+
+    photos: dict[str, dict] = field(default_factory=dict)
+    pairs: dict[str, dict] = field(default_factory=dict)
+    left_out: dict[str, str] = field(default_factory=dict)
+    seconds: float = 0.0
+    prepare_seconds: float = 0.0  # reading (or preparing) the scans
+
+
+def products(prepared, shot: Shot, photo: np.ndarray, warp: Warp, ignore: np.ndarray | None,
+             points: bool | None = None) -> DepthProducts:
+    """The photo (H, W, 3) uint8 as `warp` resamples it and its depth there, rendered from the
+    prepared scan (`prepared.PreparedScan`) with the one renderer; ignore: the photo's mask
+    (H, W) bool of pixels not to trust, or None."""
+    from rgbd_gt.export.uncertainty import discontinuities, near_discontinuity, pixel_sigma
+    from rgbd_gt.render.renders import Renders
+    from rgbd_gt.steps import depth_step
+
+    cam, T = warp.camera, warp.pose(shot.T)
+    view = Renders(prepared.subset(prepared.view_index(cam, T)))
+    depth = depth_step(view, cam, T, normals=True, points=points, pose_path=shot.pose_file)
+    # the update in the new camera's frame: its rotation and translation turned by warp.R
+    A = np.kron(np.eye(2), warp.R)
+    sigma = pixel_sigma(depth.z, depth.normals, cam, A @ shot.covariance @ A.T, shot.camera_sigma)
+    sparse = depth.method.startswith("points")
+    near = near_discontinuity(discontinuities(depth.z, depth.normals, cam, silhouettes=not sparse), sigma.image)
+    valid = (depth.z > 0) & ~near
+    if ignore is not None:
+        valid &= ~(warp.image(ignore.astype(np.uint8), nearest=True) > 0)
+    return DepthProducts(cam, T, warp.image(photo), depth.z, depth.normals, sigma, near, valid, depth.method)
+
+
+def stereo_products(prepared, left: Shot, right: Shot, images: dict, masks: dict, points: bool | None = None,
+                    baseline_sigma: float = 0.0) -> StereoProducts:
+    """The rectified pair of two photos of one rig shot (`export.stereo.rectify` from their
+    poses, which a rig solve ties by its relative pose) with the left's disparity, its 1-sigma
+    (the depth's, and the baseline's 1-sigma `baseline_sigma` metres), and occlusion."""
+    from rgbd_gt.export.stereo import disparity, occluded, rectify
+
+    pair = rectify(left.camera, left.T, right.camera, right.T)
+    if pair.swapped:
+        left, right = right, left
+    pl = products(prepared, left, images[left.name], pair.left, masks.get(left.name), points)
+    pr = products(prepared, right, images[right.name], pair.right, masks.get(right.name), points)
+    f = pl.camera.fx
+    disp = disparity(pl.z, f, pair.baseline)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel = np.where(pl.z > 0, np.hypot(pl.sigma.depth / np.where(pl.z > 0, pl.z, 1), baseline_sigma / pair.baseline), 0)
+    return StereoProducts(pl, pr, pair.baseline, disp, (disp * rel).astype(np.float32), occluded(pl.z, pr.z, disp),
+                          (left.name, right.name))
+
+
+def stereo_pairs(source: Source, chosen: list[Shot]) -> list[tuple[Shot, Shot, float]]:
+    """(left, right, baseline 1-sigma m) of each rig shot whose photos by the rig's first two
+    cameras are both chosen."""
+    if not source.rig or len(source.rig.get("cameras", [])) < 2:
+        return []
+    first, second = source.rig["cameras"][:2]
+    rel = source.rig["relative"][second]
+    sigma_b = float(np.linalg.norm(rel.get("sigma", {}).get("translation_mm", [0, 0, 0]))) / 1e3
+    by_shot: dict = {}
+    for s in chosen:
+        if s.shot is not None:
+            by_shot.setdefault(s.shot, {})[s.camera_name] = s
+    return [(shots[first], shots[second], sigma_b) for _, shots in sorted(by_shot.items())
+            if first in shots and second in shots]
+
+
+def export_run(run: Path, out: Path, formats: list[str], include: tuple[str, ...] = ("ok",), cache: Path | None = None,
+               points: bool | None = None, progress: Callable[[str, int, int], None] = lambda what, done, total: None) -> Exported:
+    """Export the finished run in `run` (`export.source.read_run`) into the folder `out` (one
+    sub-folder per format, and export.json); photos whose verdict is in `include`. points: depth
+    of the points alone (True), of surfaces (False), as export-depth chooses (None); progress:
+    called with (what, done, total) before each photo and pair."""
+    from rgbd_gt.export.source import read_run
+    from rgbd_gt.prepared import prepare_scan
+
+    start = time.perf_counter()
+    bad = [f for f in formats if f not in FORMATS]
+    if bad or not formats:
+        raise InputError(f"--format must be one or more of {', '.join(FORMATS)}; got {', '.join(bad) or 'none'}")
+    sources = read_run(run)
+    result, plain, frames = Exported(), {}, []
+    with ThreadPoolExecutor(1) as writer:  # a photo's files are written while the next one renders
+        for source in sources:
+            chosen = [s for s in source.photos if s.verdict in include]
+            result.left_out |= {s.name: f"verdict {s.verdict}" + (f": {s.reasons[0]}" if s.reasons else "")
+                                for s in source.photos if s.verdict not in include}
+            if not chosen:
+                continue
+            t0 = time.perf_counter()
+            prepared = prepare_scan(source.scan, cache)
+            result.prepare_seconds += time.perf_counter() - t0
+            prefix = f"{source.name}_" if len(sources) > 1 else ""
+            result.photos |= {prefix + s.name: {"verdict": s.verdict, "camera": s.camera_name} for s in chosen}
+            if {"plain", "nerfstudio"} & set(formats):
+                _photos(prepared, source, chosen, prefix, out, formats, points, writer, result, plain, frames, progress)
+            if "colmap" in formats:
+                _colmap(prepared, chosen, out / "colmap" / prefix.rstrip("_"))
+            if set(STEREO) & set(formats):
+                _pairs(prepared, source, chosen, out, formats, points, result, progress)
+    if not result.photos:
+        raise InputError(f"no photo of the run has a verdict in {', '.join(include)} (use --include suspect)", run)
+    if set(STEREO) & set(formats) and not result.pairs:
+        raise InputError("middlebury and kitti need stereo pairs: a refine --bundle output with a rig, both photos of a "
+                         "shot exported", run)
+    if plain:
+        from rgbd_gt.export.formats import CONVENTION
+
+        (out / "plain" / "cameras.json").write_text(json.dumps({"convention": CONVENTION, "photos": plain}, indent=1))
+    if frames:
+        from rgbd_gt.export.formats import write_transforms
+
+        write_transforms(out / "nerfstudio", frames)
+    result.seconds = time.perf_counter() - start
+    (out / "export.json").write_text(json.dumps({
+        "run": str(run), "formats": formats, "include": list(include), "photos": result.photos, "pairs": result.pairs,
+        "left_out": result.left_out, "seconds": round(result.seconds, 3),
+        "prepare_seconds": round(result.prepare_seconds, 3)}, indent=1))
+    return result
+
+
+def _photos(prepared, source: Source, chosen: list[Shot], prefix: str, out: Path, formats: list[str], points, writer, result: Exported,
+            plain: dict, frames: list, progress) -> None:
+    """plain and nerfstudio: each photo undistorted with its depth products, written by `writer`
+    (one photo in flight) while the next renders."""
+    from rgbd_gt.export.stereo import pinhole
+    from rgbd_gt.io.image import read_image, read_mask
+
+    writing = None
+    for k, s in enumerate(chosen):
+        name = prefix + s.name
+        progress(name, k, len(chosen))
+        t0 = time.perf_counter()
+        photo = read_image(s.image)
+        ignore = read_mask(s.mask, photo.shape[:2]) if s.mask is not None else None
+        p = products(prepared, s, photo, pinhole(s.camera), ignore, points)
+        result.photos[name] |= _figures(p) | {"seconds": round(time.perf_counter() - t0, 3)}
+        if writing is not None:
+            writing.result()  # one photo's files in flight at a time: memory stays one photo's
+        writing = writer.submit(_write_photo, out, formats, name, s, p, source.scan.name, plain, frames)
+    if writing is not None:
+        writing.result()
+
+
+def _colmap(prepared, chosen: list[Shot], folder: Path) -> None:
+    """The COLMAP model of the photos: the scan points each sees (refine's visibility rule), every
+    k-th of their union beyond COLMAP_POINTS."""
+    from rgbd_gt.export.formats import write_colmap
+    from rgbd_gt.render.points import seen_points
+
+    seen = []
+    for s in chosen:
+        gi = prepared.view_index(s.camera, s.T)
+        idx, uv, _ = seen_points(prepared.subset(gi), s.camera, s.T)
+        seen.append((gi[idx], uv))
+    ids = np.unique(np.concatenate([g for g, _ in seen]))
+    keep = ids[::max(1, int(np.ceil(len(ids) / COLMAP_POINTS)))]
+    pts = prepared.subset(keep)
+    kept = []  # each photo's observations of the kept points, by their position in `keep`
+    for gids, uv in seen:
+        pos = np.minimum(np.searchsorted(keep, gids), len(keep) - 1)
+        hit = keep[pos] == gids
+        kept.append((pos[hit], uv[hit]))
+    write_colmap(folder, chosen, kept, pts.xyz, pts.rgb)
+
+
+def _pairs(prepared, source: Source, chosen: list[Shot], out: Path, formats: list[str], points, result: Exported,
+           progress) -> None:
+    """middlebury and kitti: each rig shot's rectified pair."""
+    from rgbd_gt.export import formats as fm
+    from rgbd_gt.io.image import read_image, read_mask
+
+    pairs = stereo_pairs(source, chosen)
+    for k, (left, right, sigma_b) in enumerate(pairs):
+        progress(f"pair {left.name} | {right.name}", k, len(pairs))
+        t0 = time.perf_counter()
+        images = {s.name: read_image(s.image) for s in (left, right)}
+        masks = {s.name: read_mask(s.mask, images[s.name].shape[:2]) for s in (left, right) if s.mask is not None}
+        sp = stereo_products(prepared, left, right, images, masks, points, sigma_b)
+        index = len(result.pairs)
+        key = f"{left.shot:06d}" if left.shot is not None else f"{index:06d}"
+        if "middlebury" in formats:
+            fm.write_middlebury(out / "middlebury" / key, sp)
+        if "kitti" in formats:
+            fm.write_kitti(out / "kitti", index, sp)
+        result.pairs[key] = {"left": sp.names[0], "right": sp.names[1], "baseline_m": sp.baseline, "kitti_index": index,
+                             **_pair_figures(sp), "seconds": round(time.perf_counter() - t0, 3)}
+
+
+def _write_photo(out: Path, formats: list[str], name: str, shot: Shot, p: DepthProducts, scan_name: str,
+                 plain: dict, nerf: list) -> None:
+    """A photo's plain and nerfstudio files; its entries into `plain` (cameras.json) and `nerf` (frames)."""
+    from rgbd_gt.export import formats as fm
+
+    if "plain" in formats:
+        plain[name] = fm.write_plain(out / "plain" / name, shot, p, scan_name)
+    if "nerfstudio" in formats:
+        nerf.append(fm.nerfstudio_frame(out / "nerfstudio", name, p))
+
+
+def _figures(p: DepthProducts) -> dict:
+    s = p.sigma.depth[p.valid]
+    q = np.percentile(s, [50, 90, 99]) if len(s) else [float("nan")] * 3
+    return {"method": p.method, "pixels": int(p.z.size), "with_depth": int((p.z > 0).sum()), "valid": int(p.valid.sum()),
+            "near_edge": int(p.near.sum()), "depth_sigma_mm": {"p50": float(q[0]) * 1e3, "p90": float(q[1]) * 1e3,
+                                                               "p99": float(q[2]) * 1e3}}
+
+
+def _pair_figures(s: StereoProducts) -> dict:
+    v = s.left.valid
+    q = np.percentile(s.disp_sigma[v], [50, 90]) if v.any() else [float("nan")] * 2
+    return {"valid": int(v.sum()), "occluded": int((v & s.occluded).sum()),
+            "disparity_px": [float(s.disp[v].min()), float(s.disp[v].max())] if v.any() else None,
+            "disparity_sigma_px": {"p50": float(q[0]), "p90": float(q[1])}}

@@ -1,0 +1,149 @@
+"""What a finished run holds, as plain data: per scan its photos with their poses, cameras,
+covariances and verdicts, and a rig's relative poses. Two kinds of folder: a `run`'s OUTPUT
+(run.json) and a `refine --bundle` output (bundle.json: several cameras, rigs)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from rgbd_gt.camera import Camera
+from rgbd_gt.errors import InputError
+
+
+@dataclass
+class Shot:
+    """One photo of the run and what export needs of it."""
+
+    name: str  # its folder's name in the run (the photo's stem), unique in the run
+    image: Path
+    camera: Camera  # as the run solved it (a shared or bundle camera) or as its file said
+    camera_name: str
+    T: np.ndarray  # (4, 4) T_cam_from_scan
+    covariance: np.ndarray  # (6, 6) of the pose update (`align.aligner.RefineResult.covariance`)
+    verdict: str
+    reasons: list[str]
+    pose_file: Path
+    camera_sigma: dict = field(default_factory=dict)  # {focal_px, cx_px, cy_px}: 1-sigma; {} taken as exact
+    shot: int | None = None  # a rig's shot
+    mask: Path | None = None
+    evidence: dict = field(default_factory=dict)
+
+
+@dataclass
+class Source:
+    """One scan's part of a run: its file, its photos, the rig when the photos came from one."""
+
+    name: str
+    scan: Path
+    folder: Path  # where its photos' folders lie
+    photos: list[Shot]
+    rig: dict | None = None  # rig.yaml: reference, relative {camera: {T_cam_from_reference, baseline_m, sigma}}
+    missing: dict[str, str] = field(default_factory=dict)  # photos without a refined pose: why (summary.csv's error)
+
+
+def read_run(folder: Path) -> list[Source]:
+    """The scans of a finished `run` (OUTPUT/run.json) or `refine --bundle` output
+    (bundle.json) in `folder`, every photo that has a refined pose."""
+    from rgbd_gt.io import read_camera
+    from rgbd_gt.io.image import read_image
+
+    folder = Path(folder)
+    if (folder / "bundle.json").is_file():
+        if (folder / "run.json").is_file():
+            raise InputError("holds both run.json (rgbd-gt run) and bundle.json (rgbd-gt refine --bundle): two runs "
+                             "wrote into one folder; give each its own", folder)
+        return [_bundle_source(folder)]
+    if not (folder / "run.json").is_file():
+        raise InputError("not a finished run: it holds neither run.json (rgbd-gt run) nor bundle.json "
+                         "(rgbd-gt refine --bundle)", folder)
+    record = _json(folder / "run.json")
+    sources = []
+    for entry in record.get("scans", []):
+        if "photos" not in entry:
+            raise InputError("run.json lists no photos (made by an older rgbd-gt): run it again", folder / "run.json")
+        out = folder / entry.get("folder", ".")
+        camera_file = Path(entry["camera"])
+        shared, sigma = out / "camera.yaml", {}
+        if shared.is_file():  # the run's joint solve of the camera (refine_intrinsics)
+            camera_file = shared
+            cam, s = read_camera(shared), _json(out / "intrinsics.json").get("shared_sigma") or []
+            # q's focal and principal point are in units of the focal length (as bundle_step's cameras/ files)
+            sigma = {key: float(v) * f for key, v, f in zip(("focal_px", "cx_px", "cy_px"), s, (cam.fx, cam.fx, cam.fy))
+                     if v is not None and np.isfinite(v)}
+        photos, missing = [], {}
+        errors = _errors(folder / "summary.csv")
+        images = [Path(p) for p in entry["photos"]]
+        camera = None
+        for image in images:
+            pose = out / image.stem / "pose.yaml"
+            if pose.is_file():
+                if camera is None:  # a calibration text or JSON file has no size: the photos' (as run's job_camera)
+                    camera = read_camera(camera_file, lambda: read_image(image).shape[1::-1])
+                photos.append(_shot(image.stem, image, camera, "camera", pose, sigma))
+            else:
+                missing[image.stem] = errors.get(image.name) or entry.get("error") or "no refined pose"
+        sources.append(Source(entry.get("name", "scan"), Path(entry["scan"]), out, photos, missing=missing))
+    return sources
+
+
+def _bundle_source(folder: Path) -> Source:
+    import yaml
+
+    from rgbd_gt.io import read_camera
+    from rgbd_gt.io.bundle_file import read_bundle
+
+    record = _json(folder / "bundle.json")
+    spec = read_bundle(Path(record["bundle"]))
+    photos = []
+    for entry in spec.photos:
+        cam_file = folder / "cameras" / f"{entry.camera}.yaml"
+        keys = yaml.safe_load(cam_file.read_text()) if cam_file.is_file() else {}
+        shot = _shot(entry.image.stem, entry.image, read_camera(cam_file), entry.camera, folder / entry.image.stem / "pose.yaml",
+                     {k: float(v) for k, v in (keys.get("sigma") or {}).items() if k in ("focal_px", "cx_px", "cy_px")})
+        shot.shot, shot.mask = entry.shot, entry.mask
+        photos.append(shot)
+    rig = yaml.safe_load((folder / "rig.yaml").read_text()) if (folder / "rig.yaml").is_file() else None
+    return Source("bundle", spec.scan, folder, photos, rig)
+
+
+def _shot(name: str, image: Path, camera: Camera, camera_name: str, pose_file: Path, sigma: dict) -> Shot:
+    from rgbd_gt.io import read_pose
+
+    T, keys = read_pose(pose_file)
+    return Shot(name, image, camera, camera_name, T, pose_covariance(keys), keys.get("verdict", "failed"),
+                list(keys.get("reasons") or []), pose_file, sigma, evidence=keys.get("evidence") or {})
+
+
+def pose_covariance(keys: dict) -> np.ndarray:
+    """(6, 6) the pose file's `covariance`; from a file without one, the worst-direction 1-sigmas
+    of its evidence (`uncertainty`) on every axis (larger than the covariance says)."""
+    if "covariance" in keys:
+        return np.asarray(keys["covariance"], np.float64).reshape(6, 6)
+    u = (keys.get("evidence") or {}).get("uncertainty") or {}
+    rot, trans = np.radians(float(u.get("rotation_deg", 0.0))), float(u.get("translation_mm", 0.0)) / 1e3
+    return np.diag([rot ** 2] * 3 + [trans ** 2] * 3)
+
+
+def _errors(summary: Path) -> dict[str, str]:
+    """{photo file name: its error} of a run's summary.csv (a site's names are SCAN/PHOTO: the
+    photo's part is kept)."""
+    import csv
+
+    try:
+        with open(summary, newline="") as f:
+            return {r["photo"].split("/")[-1]: r.get("error") or "" for r in csv.DictReader(f) if r.get("error")}
+    except (OSError, KeyError, csv.Error):
+        return {}
+
+
+def _json(path: Path) -> dict:
+    try:
+        return json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        return {}
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot read ({exc})", path) from None
