@@ -757,7 +757,6 @@ def export_dataset(
     kitti) from a rig. Also report.html, a page to judge the run by eye."""
     from rgbd_gt.engine import CACHE_FOLDER
     from rgbd_gt.export.dataset import export_run
-    from rgbd_gt.export.report import write_report
     from rgbd_gt.export.source import read_run
     from rgbd_gt.io.outputs import Outputs
 
@@ -767,6 +766,8 @@ def export_dataset(
     if any(v not in ("suspect", "failed") for v in verdicts[1:]):
         raise InputError(f"--include takes suspect or failed, got {', '.join(verdicts[1:])}")
     sources = read_run(run_dir)
+    if output.resolve() == run_dir.resolve():
+        raise InputError("-o: is the run's own folder (its report.html would be replaced); give another", output)
     outs = Outputs([run_dir / n for n in ("run.json", "bundle.json")] + [s.scan for s in sources]
                    + [p.image for s in sources for p in s.photos])
     staged = outs.folder(output, "-o")
@@ -779,8 +780,7 @@ def export_dataset(
         def progress(what: str, done: int, total: int) -> None:
             bar.update(task, description=f"export {what}", completed=done, total=total)
 
-        done = export_run(run_dir, staged, chosen, verdicts, cache, points, progress)
-        write_report(staged / "report.html", read_run(run_dir), staged, done)
+        done = export_run(run_dir, staged, chosen, verdicts, cache, points, progress, sources)
     table = Table(title=f"export: {len(done.photos)} photo{'s' * (len(done.photos) != 1)}"
                   + (f", {len(done.pairs)} stereo pair{'s' * (len(done.pairs) != 1)}" if done.pairs else ""))
     for col in ("photo", "verdict", "valid pixels", "near an edge", "depth 1-sigma p50 / p90 / p99"):

@@ -5,6 +5,7 @@ differences; report.html in a real headless browser."""
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import numpy as np
@@ -135,6 +136,9 @@ def test_stereo_pairs_against_the_truth(exported):
         occ = read_png16(out / "kitti" / "disp_occ_0" / f"{pair['kitti_index']:06d}_10.png")
         np.testing.assert_allclose(occ[mask > 0] / 256, disp[mask > 0], atol=1 / 512 + 1e-6)
         assert (occ[mask == 0] == 0).all()
+        sigma = read_pfm(out / "middlebury" / key / "disp0GT_sigma.pfm")
+        assert np.isinf(sigma[mask == 0]).all() and (sigma[mask > 0] > 0).all() and np.median(sigma[mask > 0]) < 0.05
+        np.testing.assert_array_equal(read_pfm(out / "kitti" / "disp_sigma_0" / f"{pair['kitti_index']:06d}_10.pfm"), sigma)
         p3 = [l for l in (out / "kitti" / "calib_cam_to_cam" / f"{pair['kitti_index']:06d}.txt").read_text().splitlines()
               if l.startswith("P_rect_03")][0]
         P3 = np.array(p3.split()[1:], float).reshape(3, 4)
@@ -209,6 +213,21 @@ def test_export_errors(rig_run, tmp_path, synth_scene):
     (norig / "rig.yaml").unlink()
     assert_one_line_error(run_cli("export", norig, "-o", tmp_path / "x", "-f", "middlebury"), "stereo pairs")
     assert not (tmp_path / "x").exists()  # nothing half-written
+    # broken files of the run: each named
+    broken = tmp_path / "broken"
+    shutil.copytree(bout, broken)
+    pose = broken / "photo" / "pose.yaml"
+    text = pose.read_text()
+    pose.write_text(text[:len(text) // 3])
+    assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(pose))
+    pose.write_text(re.sub(r"(covariance:\n- \[)[^,]+", r"\1.nan", text))
+    assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(pose), "covariance: not finite")
+    pose.write_text(text)
+    (broken / "bundle.json").write_text("{")
+    assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(broken / "bundle.json"))
+    assert_one_line_error(run_cli("export", bout, "-o", bout / "photo" / "pose.yaml", "-f", "plain"), "-o")
+    assert_one_line_error(run_cli("export", bout, "-o", bout, "-f", "plain"), "-o", "the run's own folder")
+    assert not (tmp_path / "x").exists()
 
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")

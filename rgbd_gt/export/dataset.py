@@ -16,6 +16,7 @@ from rgbd_gt.camera import Camera
 from rgbd_gt.errors import InputError
 from rgbd_gt.export.source import Shot, Source
 from rgbd_gt.export.stereo import Warp
+from rgbd_gt.export.uncertainty import PixelSigma
 
 FORMATS = ("plain", "colmap", "nerfstudio", "middlebury", "kitti")
 STEREO = ("middlebury", "kitti")
@@ -34,7 +35,7 @@ class DepthProducts:
     image: np.ndarray
     z: np.ndarray
     normals: np.ndarray
-    sigma: object
+    sigma: PixelSigma
     near: np.ndarray
     valid: np.ndarray
     method: str
@@ -42,11 +43,12 @@ class DepthProducts:
 
 @dataclass
 class StereoProducts:
-    """A rectified pair (`export.stereo.Pair`): both sides' products, the left's disparity
-    (H, W) float32 px and its 1-sigma, the left pixels the right camera does not see (occluded)."""
+    """A rectified pair (`export.stereo.Pair`): the left's products, the right image (H, W, 3)
+    uint8, the left's disparity (H, W) float32 px and its 1-sigma, the left pixels the right
+    camera does not see (occluded)."""
 
     left: DepthProducts
-    right: DepthProducts
+    right: np.ndarray
     baseline: float
     disp: np.ndarray
     disp_sigma: np.ndarray
@@ -56,8 +58,8 @@ class StereoProducts:
 
 @dataclass
 class Exported:
-    """export's result: per photo name its products' figures, per stereo pair its figures, the
-    folders written, and the photos left out with why."""
+    """export's result (export.json): per photo name its products' figures, per stereo pair its
+    figures, the photos left out with why, the seconds in all and of reading the scans."""
 
     photos: dict[str, dict] = field(default_factory=dict)
     pairs: dict[str, dict] = field(default_factory=dict)
@@ -72,21 +74,29 @@ def products(prepared, shot: Shot, photo: np.ndarray, warp: Warp, ignore: np.nda
     prepared scan (`prepared.PreparedScan`) with the one renderer; ignore: the photo's mask
     (H, W) bool of pixels not to trust, or None."""
     from rgbd_gt.export.uncertainty import discontinuities, near_discontinuity, pixel_sigma
-    from rgbd_gt.render.renders import Renders
-    from rgbd_gt.steps import depth_step
 
     cam, T = warp.camera, warp.pose(shot.T)
-    view = Renders(prepared.subset(prepared.view_index(cam, T)))
-    depth = depth_step(view, cam, T, normals=True, points=points, pose_path=shot.pose_file)
+    depth = render(prepared, shot, warp, points)
     # the update in the new camera's frame: its rotation and translation turned by warp.R
     A = np.kron(np.eye(2), warp.R)
     sigma = pixel_sigma(depth.z, depth.normals, cam, A @ shot.covariance @ A.T, shot.camera_sigma)
     sparse = depth.method.startswith("points")
     near = near_discontinuity(discontinuities(depth.z, depth.normals, cam, silhouettes=not sparse), sigma.image)
-    valid = (depth.z > 0) & ~near
+    valid = (depth.z > 0) & ~near & np.isfinite(sigma.depth)
     if ignore is not None:
         valid &= ~(warp.image(ignore.astype(np.uint8), nearest=True) > 0)
     return DepthProducts(cam, T, warp.image(photo), depth.z, depth.normals, sigma, near, valid, depth.method)
+
+
+def render(prepared, shot: Shot, warp: Warp, points: bool | None = None, normals: bool = True):
+    """The depth map (`render.depth.DepthMap`) of the shot's photo as `warp` resamples it: the
+    scan's view of that camera and pose, rendered by the one renderer (`steps.depth_step`)."""
+    from rgbd_gt.render.renders import Renders
+    from rgbd_gt.steps import depth_step
+
+    cam, T = warp.camera, warp.pose(shot.T)
+    view = Renders(prepared.subset(prepared.view_index(cam, T)))
+    return depth_step(view, cam, T, normals=normals, points=points, pose_path=shot.pose_file)
 
 
 def stereo_products(prepared, left: Shot, right: Shot, images: dict, masks: dict, points: bool | None = None,
@@ -100,13 +110,12 @@ def stereo_products(prepared, left: Shot, right: Shot, images: dict, masks: dict
     if pair.swapped:
         left, right = right, left
     pl = products(prepared, left, images[left.name], pair.left, masks.get(left.name), points)
-    pr = products(prepared, right, images[right.name], pair.right, masks.get(right.name), points)
-    f = pl.camera.fx
-    disp = disparity(pl.z, f, pair.baseline)
+    z_right = render(prepared, right, pair.right, points, normals=False).z  # for what the right camera sees
+    disp = disparity(pl.z, pl.camera.fx, pair.baseline)
     with np.errstate(divide="ignore", invalid="ignore"):
         rel = np.where(pl.z > 0, np.hypot(pl.sigma.depth / np.where(pl.z > 0, pl.z, 1), baseline_sigma / pair.baseline), 0)
-    return StereoProducts(pl, pr, pair.baseline, disp, (disp * rel).astype(np.float32), occluded(pl.z, pr.z, disp),
-                          (left.name, right.name))
+    return StereoProducts(pl, pair.right.image(images[right.name]), pair.baseline, disp, (disp * rel).astype(np.float32),
+                          occluded(pl.z, z_right, disp), (left.name, right.name))
 
 
 def stereo_pairs(source: Source, chosen: list[Shot]) -> list[tuple[Shot, Shot, float]]:
@@ -126,11 +135,14 @@ def stereo_pairs(source: Source, chosen: list[Shot]) -> list[tuple[Shot, Shot, f
 
 
 def export_run(run: Path, out: Path, formats: list[str], include: tuple[str, ...] = ("ok",), cache: Path | None = None,
-               points: bool | None = None, progress: Callable[[str, int, int], None] = lambda what, done, total: None) -> Exported:
-    """Export the finished run in `run` (`export.source.read_run`) into the folder `out` (one
-    sub-folder per format, and export.json); photos whose verdict is in `include`. points: depth
-    of the points alone (True), of surfaces (False), as export-depth chooses (None); progress:
-    called with (what, done, total) before each photo and pair."""
+               points: bool | None = None, progress: Callable[[str, int, int], None] = lambda what, done, total: None,
+               sources: list[Source] | None = None) -> Exported:
+    """Export the finished run in `run` (`export.source.read_run`, or its `sources` when read)
+    into the folder `out`: one sub-folder per format, export.json and report.html; photos whose
+    verdict is in `include`. points: depth of the points alone (True), of surfaces (False), as
+    export-depth chooses (None); progress: called with (what, done, total) before each photo
+    and pair."""
+    from rgbd_gt.export.report import write_report
     from rgbd_gt.export.source import read_run
     from rgbd_gt.prepared import prepare_scan
 
@@ -138,7 +150,7 @@ def export_run(run: Path, out: Path, formats: list[str], include: tuple[str, ...
     bad = [f for f in formats if f not in FORMATS]
     if bad or not formats:
         raise InputError(f"--format must be one or more of {', '.join(FORMATS)}; got {', '.join(bad) or 'none'}")
-    sources = read_run(run)
+    sources = sources if sources is not None else read_run(run)
     result, plain, frames = Exported(), {}, []
     with ThreadPoolExecutor(1) as writer:  # a photo's files are written while the next one renders
         for source in sources:
@@ -176,6 +188,7 @@ def export_run(run: Path, out: Path, formats: list[str], include: tuple[str, ...
         "run": str(run), "formats": formats, "include": list(include), "photos": result.photos, "pairs": result.pairs,
         "left_out": result.left_out, "seconds": round(result.seconds, 3),
         "prepare_seconds": round(result.prepare_seconds, 3)}, indent=1))
+    write_report(out / "report.html", sources, out, result)
     return result
 
 
@@ -187,6 +200,14 @@ def _photos(prepared, source: Source, chosen: list[Shot], prefix: str, out: Path
     from rgbd_gt.io.image import read_image, read_mask
 
     writing = None
+
+    def collect(done) -> None:
+        name, entry, frame = done.result()
+        if entry is not None:
+            plain[name] = entry
+        if frame is not None:
+            frames.append(frame)
+
     for k, s in enumerate(chosen):
         name = prefix + s.name
         progress(name, k, len(chosen))
@@ -196,10 +217,10 @@ def _photos(prepared, source: Source, chosen: list[Shot], prefix: str, out: Path
         p = products(prepared, s, photo, pinhole(s.camera), ignore, points)
         result.photos[name] |= _figures(p) | {"seconds": round(time.perf_counter() - t0, 3)}
         if writing is not None:
-            writing.result()  # one photo's files in flight at a time: memory stays one photo's
-        writing = writer.submit(_write_photo, out, formats, name, s, p, source.scan.name, plain, frames)
+            collect(writing)  # one photo's files in flight at a time: memory stays one photo's
+        writing = writer.submit(_write_photo, out, formats, name, s, p, source.scan.name)
     if writing is not None:
-        writing.result()
+        collect(writing)
 
 
 def _colmap(prepared, chosen: list[Shot], folder: Path) -> None:
@@ -247,15 +268,14 @@ def _pairs(prepared, source: Source, chosen: list[Shot], out: Path, formats: lis
                              **_pair_figures(sp), "seconds": round(time.perf_counter() - t0, 3)}
 
 
-def _write_photo(out: Path, formats: list[str], name: str, shot: Shot, p: DepthProducts, scan_name: str,
-                 plain: dict, nerf: list) -> None:
-    """A photo's plain and nerfstudio files; its entries into `plain` (cameras.json) and `nerf` (frames)."""
+def _write_photo(out: Path, formats: list[str], name: str, shot: Shot, p: DepthProducts,
+                 scan_name: str) -> tuple[str, dict | None, dict | None]:
+    """A photo's plain and nerfstudio files: (name, its cameras.json entry, its transforms.json
+    frame), None for a format not asked for."""
     from rgbd_gt.export import formats as fm
 
-    if "plain" in formats:
-        plain[name] = fm.write_plain(out / "plain" / name, shot, p, scan_name)
-    if "nerfstudio" in formats:
-        nerf.append(fm.nerfstudio_frame(out / "nerfstudio", name, p))
+    return (name, fm.write_plain(out / "plain" / name, shot, p, scan_name) if "plain" in formats else None,
+            fm.nerfstudio_frame(out / "nerfstudio", name, p) if "nerfstudio" in formats else None)
 
 
 def _figures(p: DepthProducts) -> dict:

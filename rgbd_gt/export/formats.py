@@ -144,13 +144,16 @@ def middlebury_calib(camera: Camera, baseline: float, ndisp: int) -> str:
 
 def write_middlebury(folder: Path, s) -> None:
     """A rectified pair in Middlebury's layout: im0.png, im1.png, calib.txt, disp0GT.pfm (+inf
-    where unknown), mask0nocc.png (255 non-occluded, 128 occluded, 0 unknown). s: `export.dataset.StereoProducts`."""
+    where unknown), mask0nocc.png (255 non-occluded, 128 occluded, 0 unknown), and
+    disp0GT_sigma.pfm, the disparity's 1-sigma in pixels (+inf where unknown). s:
+    `export.dataset.StereoProducts`."""
     folder.mkdir(parents=True, exist_ok=True)
     write_image(folder / "im0.png", s.left.image)
-    write_image(folder / "im1.png", s.right.image)
+    write_image(folder / "im1.png", s.right)
     ndisp = int(np.ceil(max(float(s.disp.max()), 1.0) * 1.1 / 16) * 16)
     (folder / "calib.txt").write_text(middlebury_calib(s.left.camera, s.baseline, ndisp))
     write_pfm(folder / "disp0GT.pfm", np.where(s.left.valid, s.disp, np.inf))
+    write_pfm(folder / "disp0GT_sigma.pfm", np.where(s.left.valid, s.disp_sigma, np.inf))
     mask = np.where(s.left.valid, np.where(s.occluded, 128, 255), 0).astype(np.uint8)
     write_image(folder / "mask0nocc.png", mask)
 
@@ -158,15 +161,18 @@ def write_middlebury(folder: Path, s) -> None:
 def write_kitti(folder: Path, index: int, s) -> None:
     """A rectified pair in KITTI 2015's stereo layout: image_2/ image_3/ (left, right),
     disp_occ_0/ (every pixel with disparity) and disp_noc_0/ (non-occluded only), uint16 PNG
-    disparity x 256 (0: none), calib_cam_to_cam/ with P_rect_02 and P_rect_03."""
+    disparity x 256 (0: none), calib_cam_to_cam/ with P_rect_02 and P_rect_03; and
+    disp_sigma_0/ the disparity's 1-sigma (PFM pixels, +inf where none)."""
     stem = f"{index:06d}_10"
-    for sub in ("image_2", "image_3", "disp_occ_0", "disp_noc_0", "calib_cam_to_cam"):
+    for sub in ("image_2", "image_3", "disp_occ_0", "disp_noc_0", "disp_sigma_0", "calib_cam_to_cam"):
         (folder / sub).mkdir(parents=True, exist_ok=True)
     write_image(folder / "image_2" / f"{stem}.png", s.left.image)
-    write_image(folder / "image_3" / f"{stem}.png", s.right.image)
+    write_image(folder / "image_3" / f"{stem}.png", s.right)
     d = np.clip(np.round(s.disp * 256), 1, 65535)  # a disparity under 1/256 px would read as none
     write_png16(folder / "disp_occ_0" / f"{stem}.png", np.where(s.left.valid, d, 0))
     write_png16(folder / "disp_noc_0" / f"{stem}.png", np.where(s.left.valid & ~s.occluded, d, 0))
+    # not KITTI's own: a 1-sigma of a few thousandths of a pixel has no room in its x 256 PNGs
+    write_pfm(folder / "disp_sigma_0" / f"{stem}.pfm", np.where(s.left.valid, s.disp_sigma, np.inf))
     c = s.left.camera
     P2 = np.array([[c.fx, 0, c.cx, 0], [0, c.fy, c.cy, 0], [0, 0, 1, 0]])
     P3 = P2.copy()

@@ -48,21 +48,30 @@ class Source:
 def read_run(folder: Path) -> list[Source]:
     """The scans of a finished `run` (OUTPUT/run.json) or `refine --bundle` output
     (bundle.json) in `folder`, every photo that has a refined pose."""
-    from rgbd_gt.io import read_camera
-    from rgbd_gt.io.image import read_image
-
     folder = Path(folder)
     if (folder / "bundle.json").is_file():
         if (folder / "run.json").is_file():
             raise InputError("holds both run.json (rgbd-gt run) and bundle.json (rgbd-gt refine --bundle): two runs "
                              "wrote into one folder; give each its own", folder)
-        return [_bundle_source(folder)]
+        try:
+            return [_bundle_source(folder)]
+        except (KeyError, TypeError) as exc:
+            raise InputError(f"not a bundle record rgbd-gt wrote (no {exc})", folder / "bundle.json") from None
     if not (folder / "run.json").is_file():
         raise InputError("not a finished run: it holds neither run.json (rgbd-gt run) nor bundle.json "
                          "(rgbd-gt refine --bundle)", folder)
-    record = _json(folder / "run.json")
+    try:
+        return _run_sources(folder, _json(folder / "run.json"))
+    except (KeyError, TypeError) as exc:
+        raise InputError(f"not a run record rgbd-gt wrote (no {exc})", folder / "run.json") from None
+
+
+def _run_sources(folder: Path, record: dict) -> list[Source]:
+    from rgbd_gt.io import read_camera
+    from rgbd_gt.io.image import read_image
+
     sources = []
-    for entry in record.get("scans", []):
+    for entry in record["scans"]:
         if "photos" not in entry:
             raise InputError("run.json lists no photos (made by an older rgbd-gt): run it again", folder / "run.json")
         out = folder / entry.get("folder", ".")
@@ -76,9 +85,8 @@ def read_run(folder: Path) -> list[Source]:
                      if v is not None and np.isfinite(v)}
         photos, missing = [], {}
         errors = _errors(folder / "summary.csv")
-        images = [Path(p) for p in entry["photos"]]
         camera = None
-        for image in images:
+        for image in map(Path, entry["photos"]):
             pose = out / image.stem / "pose.yaml"
             if pose.is_file():
                 if camera is None:  # a calibration text or JSON file has no size: the photos' (as run's job_camera)
@@ -114,13 +122,20 @@ def _shot(name: str, image: Path, camera: Camera, camera_name: str, pose_file: P
     from rgbd_gt.io import read_pose
 
     T, keys = read_pose(pose_file)
-    return Shot(name, image, camera, camera_name, T, pose_covariance(keys), keys.get("verdict", "failed"),
+    try:
+        cov = pose_covariance(keys)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"covariance: not a 6 x 6 matrix of numbers ({exc})", pose_file) from None
+    if "covariance" in keys and not np.isfinite(cov).all():  # refine writes it only when determined
+        raise InputError("covariance: not finite", pose_file)
+    return Shot(name, image, camera, camera_name, T, cov, keys.get("verdict", "failed"),
                 list(keys.get("reasons") or []), pose_file, sigma, evidence=keys.get("evidence") or {})
 
 
 def pose_covariance(keys: dict) -> np.ndarray:
     """(6, 6) the pose file's `covariance`; from a file without one, the worst-direction 1-sigmas
-    of its evidence (`uncertainty`) on every axis (larger than the covariance says)."""
+    of its evidence (`uncertainty`) on every axis (larger than the covariance says; inf where the
+    pose is undetermined)."""
     if "covariance" in keys:
         return np.asarray(keys["covariance"], np.float64).reshape(6, 6)
     u = (keys.get("evidence") or {}).get("uncertainty") or {}

@@ -41,6 +41,9 @@ def pixel_sigma(z: np.ndarray, normals: np.ndarray | None, camera: Camera, covar
     from rgbd_gt.render.depth import pixel_rays
 
     h, w = z.shape
+    if not np.isfinite(covariance).all():  # an undetermined pose: no pixel's depth is known to any sigma
+        inf = np.where(z > 0, np.inf, 0).astype(np.float32)
+        return PixelSigma(inf, inf.copy())
     on = np.flatnonzero(z.ravel() > 0)
     # float32 throughout: a sigma needs no more, and 1.2 million pixels cost half as much
     r = (rays if rays is not None else pixel_rays(camera))[on].astype(np.float32)
