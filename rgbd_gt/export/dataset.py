@@ -147,10 +147,12 @@ def export_run(run: Path, out: Path, formats: list[str], include: tuple[str, ...
     from rgbd_gt.prepared import prepare_scan
 
     start = time.perf_counter()
+    run, out = Path(run), Path(out)
     bad = [f for f in formats if f not in FORMATS]
     if bad or not formats:
         raise InputError(f"--format must be one or more of {', '.join(FORMATS)}; got {', '.join(bad) or 'none'}")
     sources = sources if sources is not None else read_run(run)
+    out.mkdir(parents=True, exist_ok=True)
     result, plain, frames = Exported(), {}, []
     with ThreadPoolExecutor(1) as writer:  # a photo's files are written while the next one renders
         for source in sources:
