@@ -229,6 +229,43 @@ def test_a_sweep_is_known_by_its_rings_not_by_its_fields(icl_dir):
     assert not is_sweep(flat)
 
 
+def test_kitti_and_waymo_sweeps_are_sweeps():
+    """Without a ring field: KITTI's HDL-64E (lasers apart, rings not cones about one point) and
+    Waymo's sweeps (in the vehicle's frame) are known by their scan lines; so overlay draws their
+    points and export-depth gives their sparse depth by default."""
+    from conftest import _need
+    from rgbd_gt.io import load_scan
+    from rgbd_gt.render.points import is_sweep, on_scan_lines
+
+    folder = _need("lidar_camera")
+    for drive in ("kitti_00", "waymo"):
+        for f in sorted((folder / drive / "pcd").glob("*.pcd"))[:3]:
+            scan = load_scan(f)
+            assert scan.ring is None and is_sweep(scan), f
+    assert not on_scan_lines(_rings())  # random ranges: rings but no lines (the cones find them)
+
+
+def test_kitti_frame_with_its_gt_json(tmp_path):
+    """CLAIM's gt.json (K, and the extrinsic as a scalar-first quaternion: T_cam_from_scan itself)
+    is a camera and a pose file; overlay of a KITTI frame at it draws the points picture without
+    being asked (the sweep is known by its scan lines)."""
+    from conftest import _need
+    from rgbd_gt.io import read_camera
+    from rgbd_gt.pose import quat_to_matrix
+
+    k = _need("lidar_camera") / "kitti_00"
+    gt = __import__("json").loads((k / "gt.json").read_text())
+    T, _ = read_pose(k / "gt.json")
+    np.testing.assert_allclose(T[:3, 3], gt["extrinsics"]["translation"])
+    np.testing.assert_allclose(T[:3, :3], quat_to_matrix(gt["extrinsics"]["rotation"]))
+    cam = read_camera(k / "gt.json", (1241, 376))
+    assert (cam.fx, cam.fy, cam.cx, cam.cy) == tuple(gt["intrinsics"]["K"]) and not cam.has_distortion
+    proc = run_cli("overlay", "--scan", k / "pcd" / "000000.pcd", "--image", k / "img" / "000000.png", "--camera", k / "gt.json",
+                   "--pose", k / "gt.json", "-o", tmp_path / "ov.png")
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / "ov_points.png").is_file()
+
+
 def test_export_depth_of_a_real_scan_without_grid_or_color_is_dense(e57_dir, tmp_path):
     """pumpA with its grid and colors dropped (the form of an intensity-only scan exported as a
     bare point list) is still a dense scan: export-depth renders its surfaces by default, not

@@ -178,7 +178,7 @@ def test_extra_fields_and_colors_are_read(tmp_path):
 def test_a_sweep_in_a_vehicle_frame_is_still_a_sweep(tmp_path):
     """A real sweep moved into a vehicle's frame (sensor 1.8 m up, 1.5 m forward, pitched 2 deg):
     its rings no longer lie on cones about the frame's z axis, but its ring field says what it
-    is, through PLY (ingest) and the prepared cache too; without the field it reads as a scan."""
+    is, through PLY (ingest) and the prepared cache too; without the field, its scan lines do."""
     import cv2
 
     from rgbd_gt.io import save_scan
@@ -197,7 +197,7 @@ def test_a_sweep_in_a_vehicle_frame_is_still_a_sweep(tmp_path):
     np.testing.assert_array_equal(again.ring, s.ring)
     assert is_sweep(again) and is_sweep(prepare_scan(tmp_path / "vehicle.ply", tmp_path / "cache").whole())
     s.ring = None
-    assert not is_sweep(s)  # documented: rings about the frame's z axis, or a ring field
+    assert is_sweep(s)  # without the field, by its scan lines (in any frame)
 
 
 def test_kitti_velodyne_bin(tmp_path):

@@ -3,6 +3,10 @@
 (`results.T_lidar_camera`, or before calibration `results.init_T_lidar_camera`: [x, y, z, qx, qy,
 qz, qw], the camera's pose in the LiDAR frame, i.e. the inverse of T_cam_from_scan). Like a
 calibration text file it holds no image size: the photo gives it.
+
+Also the `gt.json` of CLAIM's example data sets (KITTI, Waymo: `intrinsics.K` [fx, fy, cx, cy],
+`intrinsics.D`, `extrinsics.translation` [x, y, z] and `extrinsics.rotation` [qw, qx, qy, qz],
+scalar first): T_cam_from_scan itself, LiDAR points into the camera.
 """
 
 from __future__ import annotations
@@ -49,7 +53,12 @@ def read_json_camera(path: str | Path, size: tuple[int, int]) -> Camera:
     from rgbd_gt.io.checked import camera_from_values
 
     path = Path(path)
-    cam = read_calib_json(path).get("camera")
+    data = read_calib_json(path)
+    if isinstance(data.get("intrinsics"), dict):  # CLAIM's gt.json
+        fx, fy, cx, cy = _numbers(data["intrinsics"].get("K"), 4, "intrinsics.K ([fx, fy, cx, cy])", path)
+        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+        return camera_from_values(path, size[0], size[1], K, data["intrinsics"].get("D"))
+    cam = data.get("camera")
     if not isinstance(cam, dict) or "intrinsics" not in cam:
         raise InputError("no camera.intrinsics ([fx, fy, cx, cy])", path)
     model = cam.get("camera_model", "plumb_bob")
@@ -61,13 +70,22 @@ def read_json_camera(path: str | Path, size: tuple[int, int]) -> Camera:
 
 
 def read_json_pose(path: str | Path) -> np.ndarray:
-    """T_cam_from_scan (4, 4): the inverse of results.T_lidar_camera (else init_T_lidar_camera).
+    """T_cam_from_scan (4, 4): the inverse of results.T_lidar_camera (else init_T_lidar_camera);
+    a gt.json's extrinsics as they are.
     The quaternion is normalised when within 1e-3 of unit length (printed digits), else refused."""
     from rgbd_gt.io.checked import check_rigid
     from rgbd_gt.pose import invert, quat_to_matrix, rigid
 
     path = Path(path)
-    results = read_calib_json(path).get("results")
+    data = read_calib_json(path)
+    if isinstance(data.get("extrinsics"), dict):  # CLAIM's gt.json: already T_cam_from_scan
+        ext = data["extrinsics"]
+        x, y, z = _numbers(ext.get("translation"), 3, "extrinsics.translation ([x, y, z])", path)
+        q = _numbers(ext.get("rotation"), 4, "extrinsics.rotation ([qw, qx, qy, qz])", path)
+        if abs(np.linalg.norm(q) - 1) > 1e-3:
+            raise InputError(f"extrinsics.rotation: the quaternion's length is {np.linalg.norm(q):.4g}, not 1", path)
+        return check_rigid(rigid(quat_to_matrix(q), (x, y, z)), path)
+    results = data.get("results")
     key = next((k for k in POSE_KEYS if isinstance(results, dict) and k in results), None)
     if key is None:
         raise InputError(f"no extrinsic (results.{' or results.'.join(POSE_KEYS)})", path)
