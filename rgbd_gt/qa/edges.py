@@ -113,7 +113,8 @@ def working_view(renders: Renders, photo: np.ndarray, camera: Camera, T: np.ndar
     max_side; splats wider than max_splat_px are not drawn (z all 0)."""
     cam = working_camera(camera, max_side)
     small = photo if cam.size == camera.size else cv2.resize(photo, cam.size, interpolation=cv2.INTER_AREA)
-    out = renders.surfaces(cam, T, colors=True, max_splat_px=max_splat_px)
+    # squares for a scan without sides: its edges are the same, and the thresholds were measured on them
+    out = renders.surfaces(cam, T, colors=True, max_splat_px=max_splat_px, planes=False)
     gray = colors_to_gray(out.colors.reshape(-1, out.colors.shape[-1])).reshape(out.z.shape)
     return WorkingView(cam, small, gray, out.z, out.splat_radius)
 

@@ -83,7 +83,7 @@ def pixel_rays(camera: Camera, rows: tuple[int, int] | None = None, normalised: 
 
 def render_depth(scan: Scan, camera: Camera, T_cam_from_scan: np.ndarray, max_depth: float | None = None,
                  values: np.ndarray | None = None, normals: bool = True, max_splat_px: int | None = None,
-                 mesh: GridMesh | None = None) -> DepthMap:
+                 mesh: GridMesh | None = None, planes: bool = True) -> DepthMap:
     """Occlusion-correct depth: a structured scan is triangulated along its grid and ray-cast
     (Open3D); a scan without a grid is splatted with discs sized by its point spacing.
     values: optional per-point (N, C) values (colors) rendered along, as DepthMap.colors (of the
@@ -91,7 +91,10 @@ def render_depth(scan: Scan, camera: Camera, T_cam_from_scan: np.ndarray, max_de
     DepthMap.normals is None, which saves 12 bytes a pixel). max_splat_px: splats wider than
     this are not drawn (z all 0; splat_radius says how wide they would be), for a check that
     cannot use them (a sweep's are tens of pixels and take seconds). mesh: a grid scan's
-    `grid_mesh` for this camera and pose, when made (else made here).
+    `grid_mesh` for this camera and pose, when made (else made here). planes: a scan without a
+    grid or a scanner position is drawn as surfels from the unoriented normals of the points in
+    view (True) or as squares (False: ten times quicker, for the edge checks, whose thresholds were
+    measured on squares).
 
     Surfaces seen from behind (their normals, `render.normals`, facing away from the camera)
     render as 0 and are counted in DepthMap.back_facing; they still hide what lies behind them."""
@@ -99,7 +102,7 @@ def render_depth(scan: Scan, camera: Camera, T_cam_from_scan: np.ndarray, max_de
         out = _raycast_mesh(scan, camera, T_cam_from_scan, values, normals,
                             mesh or grid_mesh(scan, camera, [T_cam_from_scan]))
     else:
-        out = _splat(scan, camera, T_cam_from_scan, values, max_splat_px)
+        out = _splat(scan, camera, T_cam_from_scan, values, max_splat_px, planes)
         if not normals:
             out.normals = None
     if max_depth is not None:
@@ -375,7 +378,7 @@ def surfel_slope(p: np.ndarray, n: np.ndarray, z: np.ndarray, camera: Camera, ra
 
 
 def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None,
-           max_splat_px: int | None = None) -> DepthMap:
+           max_splat_px: int | None = None, planes: bool = True) -> DepthMap:
     import torch
 
     from rgbd_gt.render.normals import facing_camera, knn_normals, with_normals
@@ -401,7 +404,8 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None,
     normals = with_normals(scan).normals
     sided = normals is not None  # the scanner's side of each surface is known
     surfels, back = None, None
-    if not sided and len(z) < 16:  # squares at the typical spacing
+    discs = sided or (planes and len(z) >= 16)
+    if not discs:  # squares at the typical spacing
         spacing = estimate_spacing(torch.as_tensor(p[seen]))
         radius = max(1, int(np.ceil(0.75 * camera.fx * spacing / max(float(np.median(z)), 1e-6))))
     else:
@@ -415,7 +419,7 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None,
         skipped = nothing(f"splats of radius {radius} px (over {max_splat_px}: not drawn)", radius)
         skipped.drawn = False
         return skipped
-    if sided or len(z) >= 16:
+    if discs:
         # without a scanner position the side seen is unknown, but a disc needs a plane, not a
         # side: the unoriented normals of the points in view (a surfel's slope is the same for n
         # and -n); back faces then cannot be culled (back_facing stays None)

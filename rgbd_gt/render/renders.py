@@ -46,12 +46,14 @@ class Renders:
         self._cells = None
 
     def surfaces(self, camera: Camera, T: np.ndarray, max_depth: float | None = None, colors: bool = False,
-                 normals: bool = False, max_splat_px: int | None = None) -> DepthMap:
+                 normals: bool = False, max_splat_px: int | None = None, planes: bool = True) -> DepthMap:
         """`render.depth.render_depth` of the view at (camera, T), with colors (`self.colors`) and
         normals when asked, cut at max_depth; not drawn (`DepthMap.drawn`) where splats would be
-        wider than max_splat_px. Rendered once: a later ask for more than the render holds
-        renders again with all of it."""
-        key = _key(camera, T)
+        wider than max_splat_px; `planes` as render_depth's (it matters only to a scan without a
+        grid or a scanner position: the two are two renders). Rendered once: a later ask for more
+        than the render holds renders again with all of it."""
+        sides = self.scan.has_grid or self.scan.normals is not None or len(self.scan.origins) > 0
+        key = (*_key(camera, T), planes or sides)
         have = self._surfaces.get(key)
         if colors and self.colors is None:  # InputError for a scan with neither colors nor intensity
             self.colors = np.asarray(scan_colors(self.scan), np.float32)
@@ -62,7 +64,7 @@ class Renders:
                                 values=self.colors if colors or (keep and have.colors is not None) else None,
                                 normals=normals or (keep and have.normals is not None),
                                 max_splat_px=None if keep and have.drawn else max_splat_px,  # drawn stays drawn
-                                mesh=self._mesh(camera, T) if self.scan.has_grid else None)
+                                mesh=self._mesh(camera, T) if self.scan.has_grid else None, planes=planes)
             self._surfaces[key] = have
         return _cut(have, max_depth, max_splat_px)
 
