@@ -51,6 +51,10 @@ def test_plain_files_and_depth_against_the_truth(exported):
         valid = read_image(folder / "valid.png")[..., 0] == 255
         near = read_image(folder / "near_edge.png")[..., 0] == 255
         assert not (valid & ((z == 0) | near)).any() and valid.mean() > 0.6 and near.any()
+        normals = read_exr(folder / "normals.exr")[0]  # as export-depth --normals writes it
+        np.testing.assert_array_equal(normals["Z"], z)
+        n = np.stack([normals[f"N.{c}"] for c in "XYZ"], -1)[z > 0]
+        assert np.allclose(np.linalg.norm(n, axis=1), 1, atol=1e-3) and set(read_exr(folder / "depth.exr")[0]) == {"Z"}
         sigma = read_exr(folder / "depth_sigma.exr")[0]
         assert (sigma["Z"][z > 0] > 0).all() and (sigma["Z"][z == 0] == 0).all()
         # the exported depth against the depth at the true pose (the pinhole camera turned by the

@@ -17,6 +17,7 @@ from rgbd_gt.errors import InputError
 from rgbd_gt.export.source import Shot, Source
 from rgbd_gt.export.stereo import Warp
 from rgbd_gt.export.uncertainty import PixelSigma
+from rgbd_gt.render.depth import DepthMap
 
 FORMATS = ("plain", "colmap", "nerfstudio", "middlebury", "kitti")
 STEREO = ("middlebury", "kitti")
@@ -26,19 +27,25 @@ COLMAP_POINTS = 200_000  # at most this many scan points in points3D.txt (every 
 @dataclass
 class DepthProducts:
     """A photo resampled into a pinhole camera (`export.stereo.Warp`) with its depth there:
-    camera, T (4, 4) T_cam_from_scan, image (H, W, 3) uint8, z (H, W) metres (0: none), normals
-    (H, W, 3), sigma (`export.uncertainty.PixelSigma`), near (H, W) bool within reach of a depth
+    camera, T (4, 4) T_cam_from_scan, image (H, W, 3) uint8, depth (`render.depth.DepthMap`: z
+    (H, W) metres, 0 where none, and normals (H, W, 3)), sigma (`export.uncertainty.PixelSigma`), near (H, W) bool within reach of a depth
     discontinuity, valid (H, W) bool: depth, not masked, not near a discontinuity."""
 
     camera: Camera
     T: np.ndarray
     image: np.ndarray
-    z: np.ndarray
-    normals: np.ndarray
+    depth: DepthMap
     sigma: PixelSigma
     near: np.ndarray
     valid: np.ndarray
-    method: str
+
+    @property
+    def z(self) -> np.ndarray:
+        return self.depth.z
+
+    @property
+    def normals(self) -> np.ndarray:
+        return self.depth.normals
 
 
 @dataclass
@@ -85,7 +92,7 @@ def products(prepared, shot: Shot, photo: np.ndarray, warp: Warp, ignore: np.nda
     valid = (depth.z > 0) & ~near & np.isfinite(sigma.depth)
     if ignore is not None:
         valid &= ~(warp.image(ignore.astype(np.uint8), nearest=True) > 0)
-    return DepthProducts(cam, T, warp.image(photo), depth.z, depth.normals, sigma, near, valid, depth.method)
+    return DepthProducts(cam, T, warp.image(photo), depth, sigma, near, valid)
 
 
 def render(prepared, shot: Shot, warp: Warp, points: bool | None = None, normals: bool = True):
@@ -283,7 +290,7 @@ def _write_photo(out: Path, formats: list[str], name: str, shot: Shot, p: DepthP
 def _figures(p: DepthProducts) -> dict:
     s = p.sigma.depth[p.valid]
     q = np.percentile(s, [50, 90, 99]) if len(s) else [float("nan")] * 3
-    return {"method": p.method, "pixels": int(p.z.size), "with_depth": int((p.z > 0).sum()), "valid": int(p.valid.sum()),
+    return {"method": p.depth.method, "pixels": int(p.z.size), "with_depth": int((p.z > 0).sum()), "valid": int(p.valid.sum()),
             "near_edge": int(p.near.sum()), "depth_sigma_mm": {"p50": float(q[0]) * 1e3, "p90": float(q[1]) * 1e3,
                                                                "p99": float(q[2]) * 1e3}}
 

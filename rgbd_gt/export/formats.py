@@ -11,7 +11,7 @@ import numpy as np
 
 from rgbd_gt.camera import Camera
 from rgbd_gt.errors import InputError
-from rgbd_gt.io.depth_file import write_depth_exr, write_depth_png16, write_exr, write_pfm, write_png16
+from rgbd_gt.io.depth_file import write_depth_png16, write_exr, write_pfm, write_png16
 from rgbd_gt.io.image import write_image
 from rgbd_gt.pose import matrix_to_quat
 
@@ -26,18 +26,20 @@ def camera_dict(camera: Camera) -> dict:
 
 def write_plain(folder: Path, shot, p, scan_name: str) -> dict:
     """A photo's `plain` files in `folder`: the original photo as it was, image.png (undistorted,
-    pinhole), and aligned with it depth.exr (metres, with normals N.X N.Y N.Z), depth.png (uint16
-    millimetres), valid.png (255 where the depth is to be trusted), depth_sigma.exr (Z: the depth's
+    pinhole), and aligned with it depth.exr (metres), depth.png (uint16 millimetres), normals.exr
+    (as `export-depth`'s of those names), valid.png (255 where the depth is to be trusted), depth_sigma.exr (Z: the depth's
     1-sigma in metres; IMAGE: the pixel's image-position 1-sigma) and near_edge.png (255: within
     reach of a depth discontinuity). shot: `export.source.Shot`; p: its
     `export.dataset.DepthProducts`. Returns its entry of cameras.json: both camera models (the
     original's, with its distortion, and the pinhole one the depth belongs to), the poses, the verdict."""
+    from rgbd_gt.steps import write_depth
+
     folder.mkdir(parents=True, exist_ok=True)
     original = f"original{shot.image.suffix.lower()}"
     shutil.copyfile(shot.image, folder / original)
     write_image(folder / "image.png", p.image)
-    write_depth_exr(folder / "depth.exr", p.z, p.camera, p.T, scan_name, normals=p.normals)
-    write_depth_png16(folder / "depth.png", p.z)
+    # the files export-depth writes under these names, as it writes them
+    write_depth(p.depth, p.camera, p.T, scan_name, folder / "depth.exr", folder / "depth.png", folder / "normals.exr")
     write_image(folder / "valid.png", p.valid.astype(np.uint8) * 255)
     write_image(folder / "near_edge.png", p.near.astype(np.uint8) * 255)
     write_exr(folder / "depth_sigma.exr", {"Z": p.sigma.depth, "IMAGE": p.sigma.image},
