@@ -94,86 +94,99 @@ def write_report(path: Path, sources: list, folder: Path | None = None, exported
     (`export.source.read_run`); folder: an export's output (its depth maps and rectified pairs
     are shown where the run has none); exported: that export's `export.dataset.Exported`."""
     from rgbd_gt.io.atomic import atomic_output
-    from rgbd_gt.io.depth_file import read_png16
-    from rgbd_gt.io.image import read_image
 
     assets = path.parent / "report"
     assets.mkdir(parents=True, exist_ok=True)
-    rows, sections = [], []
     several = len(sources) > 1
-    for source in sources:
-        for s in source.photos:
-            name = f"{source.name}_{s.name}" if several else s.name
-            here = s.pose_file.parent
-            pictures = [("photo", _thumb(read_image(s.image), assets / f"{name}_photo.png"))]
-            for label, file in (("overlay", "overlay_blend.png"), ("overlay: the sweep's points", "overlay_points.png"),
-                                ("qa: edges", "qa.png")):
-                if (here / file).is_file():
-                    pictures.append((label, _thumb(read_image(here / file), assets / f"{name}_{file}")))
-            # the millimetre PNG beside the run's or the export's depth: a preview needs no more, and reads 5x quicker
-            shown = [here / "depth.png"] + ([folder / "plain" / name / "depth.png", folder / "nerfstudio" / "depth" / f"{name}.png"]
-                                            if folder else [])
-            depth_file = next((f for f in shown if f.is_file()), None)
-            scale = ""
-            if depth_file is not None:
-                z = read_png16(depth_file) / 1000.0
-                rgb, lo, hi = depth_preview(z)
-                sparse = (z > 0).mean() < SPARSE
-                pictures.append(("depth", _thumb(rgb, assets / f"{name}_depth.png")))
-                scale = (f'<p>depth: <span data-key="depth_min_m">{lo:.3f}</span> m <span class="scale"></span> '
-                         f'<span data-key="depth_max_m">{hi:.3f}</span> m (1st to 99th percentile; black: no depth'
-                         + ("; the sparse map's points drawn larger" if sparse else "") + ")</p>")
-            u = s.evidence.get("uncertainty") or {}
-            cam = ", ".join(f"{k} {v:.3g}" for k, v in s.camera_sigma.items()) or "as its file (not refined)"
-            rows.append((name, s, u))
-            exp = (exported.photos.get(name) if exported is not None else None) or {}
-            figures = ""
-            if "valid" in exp:
-                figures = (f"<p>exported: {exp['valid'] / exp['pixels']:.1%} of pixels valid, {exp['near_edge'] / exp['pixels']:.2%} "
-                           f"near a depth edge; depth 1-sigma median {exp['depth_sigma_mm']['p50']:.3f} mm, "
-                           f"90% {exp['depth_sigma_mm']['p90']:.3f} mm</p>")
-            imgs = "".join(f'<img src="{html.escape(src)}" alt="{html.escape(label)}" title="{html.escape(label)}">'
-                           for label, src in pictures)
-            reasons = "".join(f"<li>{html.escape(r)}</li>" for r in s.reasons) or "<li>none</li>"
-            sections.append(
-                f'<div class="photo" id="{html.escape(name)}"><h3>{html.escape(name)} '
-                f'<span class="{s.verdict}" data-key="verdict">{s.verdict}</span></h3>{imgs}{scale}'
-                f'<p>pose 1-sigma (worst direction): <span data-key="rotation_deg">{_num(u.get("rotation_deg"))}</span> deg, '
-                f'<span data-key="translation_mm">{_num(u.get("translation_mm"))}</span> mm, '
-                f'<span data-key="image_px">{_num(u.get("image_px"))}</span> px; camera ({html.escape(s.camera_name)}) 1-sigma: '
-                f'{html.escape(cam)}</p>{figures}<p>reasons:</p><ul>{reasons}</ul>'
-                f'<details><summary>evidence</summary><pre>{html.escape(json.dumps(s.evidence, indent=1, default=str))}</pre></details></div>')
-    pairs = ""
-    if exported is not None and folder is not None:
-        for key, p in exported.pairs.items():
-            base = folder / "middlebury" / key
-            left, right = base / "im0.png", base / "im1.png"
-            if not left.is_file():
-                base = folder / "kitti"
-                stem = f"{p['kitti_index']:06d}_10.png"
-                left, right = base / "image_2" / stem, base / "image_3" / stem
-            if left.is_file():
-                src = _thumb(rectified_lines(read_image(left), read_image(right)), assets / f"pair_{key}.png")
-                pairs += (f'<div class="photo"><h3>shot {html.escape(key)}: {html.escape(p["left"])} | {html.escape(p["right"])}</h3>'
-                          f'<img style="max-width:96%" src="{src}" alt="rectified pair {html.escape(key)}">'
-                          f'<p>baseline {p["baseline_m"] * 1e3:.2f} mm; a feature must lie on one row in both halves</p></div>')
-    head = ["photo", "verdict", "rotation 1-sigma (deg)", "translation 1-sigma (mm)", "image 1-sigma (px)", "reasons"]
-    body = "".join(
-        f'<tr><td data-sort="{html.escape(n)}"><a href="#{html.escape(n)}">{html.escape(n)}</a></td>'
-        f'<td data-sort="{VERDICT_ORDER.get(s.verdict, 3)}" class="{s.verdict}">{s.verdict}</td>'
-        + "".join(f'<td data-sort="{u.get(k, "nan")}">{_num(u.get(k))}</td>' for k in ("rotation_deg", "translation_mm", "image_px"))
-        + f'<td data-sort="{len(s.reasons)}">{html.escape("; ".join(s.reasons))}</td></tr>' for n, s, u in rows)
+    photos = [(f"{src.name}_{s.name}" if several else s.name, s) for src in sources for s in src.photos]
     missing = [(f"{src.name}_{n}" if several else n, why) for src in sources for n, why in src.missing.items()]
-    body += "".join(
-        f'<tr><td data-sort="{html.escape(n)}">{html.escape(n)}</td><td data-sort="3" class="failed">no pose</td>'
-        + '<td data-sort="nan">-</td>' * 3 + f'<td data-sort="1">{html.escape(why)}</td></tr>' for n, why in missing)
-    counts = ", ".join(f"{sum(s.verdict == v for _, s, _ in rows)} {v}" for v in VERDICT_ORDER)
+    figures = exported.photos if exported is not None else {}
+    sections = "".join(_photo_section(name, s, assets, folder, figures.get(name) or {}) for name, s in photos)
+    pairs = "".join(_pair_section(key, pair, folder, assets) for key, pair in exported.pairs.items()) \
+        if exported is not None and folder is not None else ""
+    counts = ", ".join(f"{sum(s.verdict == v for _, s in photos)} {v}" for v in VERDICT_ORDER)
     counts += f", {len(missing)} without a pose" if missing else ""
+    n = len(photos) + len(missing)
     page = (f'<!DOCTYPE html><html><head><meta charset="utf-8"><title>rgbd-gt report</title><style>{STYLE}</style></head><body>'
-            f'<h1>rgbd-gt report</h1><p>{len(rows) + len(missing)} photo{"s" * (len(rows) + len(missing) != 1)}: {counts}. Click a column to sort.</p>'
-            f'<table id="photos"><thead><tr>' + "".join(f'<th data-col="{i}">{h}</th>' for i, h in enumerate(head))
-            + f"</tr></thead><tbody>{body}</tbody></table>"
-            + (f"<h2>Stereo pairs</h2>{pairs}" if pairs else "") + "<h2>Photos</h2>" + "".join(sections)
+            f'<h1>rgbd-gt report</h1><p>{n} photo{"s" * (n != 1)}: {counts}. Click a column to sort.</p>'
+            + _table(photos, missing) + (f"<h2>Stereo pairs</h2>{pairs}" if pairs else "") + "<h2>Photos</h2>" + sections
             + f"<script>{SORT_SCRIPT}</script></body></html>")
     with atomic_output(path) as tmp:
         tmp.write_text(page)
+
+
+def _photo_section(name: str, s, assets: Path, folder: Path | None, figures: dict) -> str:
+    """A photo's part of the page: its pictures (the photo; the run's overlay, points and qa
+    pictures; the depth preview from the run's or the export's millimetre PNG, which a preview
+    needs no more than and reads 5x quicker than the EXR), verdict, 1-sigmas, export figures,
+    reasons and evidence."""
+    from rgbd_gt.io.depth_file import read_png16
+    from rgbd_gt.io.image import read_image
+
+    here = s.pose_file.parent
+    pictures = [("photo", _thumb(read_image(s.image), assets / f"{name}_photo.png"))]
+    for label, file in (("overlay", "overlay_blend.png"), ("overlay: the sweep's points", "overlay_points.png"),
+                        ("qa: edges", "qa.png")):
+        if (here / file).is_file():
+            pictures.append((label, _thumb(read_image(here / file), assets / f"{name}_{file}")))
+    shown = [here / "depth.png"] + ([folder / "plain" / name / "depth.png", folder / "nerfstudio" / "depth" / f"{name}.png"]
+                                    if folder else [])
+    depth_file = next((f for f in shown if f.is_file()), None)
+    scale = ""
+    if depth_file is not None:
+        z = read_png16(depth_file) / 1000.0
+        rgb, lo, hi = depth_preview(z)
+        pictures.append(("depth", _thumb(rgb, assets / f"{name}_depth.png")))
+        scale = (f'<p>depth: <span data-key="depth_min_m">{lo:.3f}</span> m <span class="scale"></span> '
+                 f'<span data-key="depth_max_m">{hi:.3f}</span> m (1st to 99th percentile; black: no depth'
+                 + ("; the sparse map's points drawn larger" if (z > 0).mean() < SPARSE else "") + ")</p>")
+    u = s.evidence.get("uncertainty") or {}
+    cam = ", ".join(f"{k} {v:.3g}" for k, v in s.camera_sigma.items()) or "as its file (not refined)"
+    exported = ""
+    if "valid" in figures:
+        exported = (f"<p>exported: {figures['valid'] / figures['pixels']:.1%} of pixels valid, "
+                    f"{figures['near_edge'] / figures['pixels']:.2%} near a depth edge; depth 1-sigma median "
+                    f"{figures['depth_sigma_mm']['p50']:.3f} mm, 90% {figures['depth_sigma_mm']['p90']:.3f} mm</p>")
+    imgs = "".join(f'<img src="{html.escape(src)}" alt="{html.escape(label)}" title="{html.escape(label)}">'
+                   for label, src in pictures)
+    reasons = "".join(f"<li>{html.escape(r)}</li>" for r in s.reasons) or "<li>none</li>"
+    return (f'<div class="photo" id="{html.escape(name)}"><h3>{html.escape(name)} '
+            f'<span class="{s.verdict}" data-key="verdict">{s.verdict}</span></h3>{imgs}{scale}'
+            f'<p>pose 1-sigma (worst direction): <span data-key="rotation_deg">{_num(u.get("rotation_deg"))}</span> deg, '
+            f'<span data-key="translation_mm">{_num(u.get("translation_mm"))}</span> mm, '
+            f'<span data-key="image_px">{_num(u.get("image_px"))}</span> px; camera ({html.escape(s.camera_name)}) 1-sigma: '
+            f'{html.escape(cam)}</p>{exported}<p>reasons:</p><ul>{reasons}</ul>'
+            f'<details><summary>evidence</summary><pre>{html.escape(json.dumps(s.evidence, indent=1, default=str))}</pre></details></div>')
+
+
+def _pair_section(key: str, pair: dict, folder: Path, assets: Path) -> str:
+    """A rig shot's rectified pair (middlebury's, else kitti's files) with horizontal lines."""
+    from rgbd_gt.io.image import read_image
+
+    left, right = folder / "middlebury" / key / "im0.png", folder / "middlebury" / key / "im1.png"
+    if not left.is_file():
+        stem = f"{pair['kitti_index']:06d}_10.png"
+        left, right = folder / "kitti" / "image_2" / stem, folder / "kitti" / "image_3" / stem
+    if not left.is_file():
+        return ""
+    src = _thumb(rectified_lines(read_image(left), read_image(right)), assets / f"pair_{key}.png")
+    return (f'<div class="photo"><h3>shot {html.escape(key)}: {html.escape(pair["left"])} | {html.escape(pair["right"])}</h3>'
+            f'<img style="max-width:96%" src="{src}" alt="rectified pair {html.escape(key)}">'
+            f'<p>baseline {pair["baseline_m"] * 1e3:.2f} mm; a feature must lie on one row in both halves</p></div>')
+
+
+def _table(photos: list, missing: list) -> str:
+    """The table of every photo, sortable by a click on a column (SORT_SCRIPT sorts on data-sort)."""
+    head = ["photo", "verdict", "rotation 1-sigma (deg)", "translation 1-sigma (mm)", "image 1-sigma (px)", "reasons"]
+    rows = []
+    for n, s in photos:
+        u = s.evidence.get("uncertainty") or {}
+        rows.append(f'<tr><td data-sort="{html.escape(n)}"><a href="#{html.escape(n)}">{html.escape(n)}</a></td>'
+                    f'<td data-sort="{VERDICT_ORDER.get(s.verdict, 3)}" class="{s.verdict}">{s.verdict}</td>'
+                    + "".join(f'<td data-sort="{u.get(k, "nan")}">{_num(u.get(k))}</td>'
+                              for k in ("rotation_deg", "translation_mm", "image_px"))
+                    + f'<td data-sort="{len(s.reasons)}">{html.escape("; ".join(s.reasons))}</td></tr>')
+    rows += [f'<tr><td data-sort="{html.escape(n)}">{html.escape(n)}</td><td data-sort="3" class="failed">no pose</td>'
+             + '<td data-sort="nan">-</td>' * 3 + f'<td data-sort="1">{html.escape(why)}</td></tr>' for n, why in missing]
+    return ('<table id="photos"><thead><tr>' + "".join(f'<th data-col="{i}">{h}</th>' for i, h in enumerate(head))
+            + f"</tr></thead><tbody>{''.join(rows)}</tbody></table>")
