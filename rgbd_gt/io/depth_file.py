@@ -113,8 +113,6 @@ def read_depth_exr(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
 
 def write_depth_png16(path: str | os.PathLike, z: np.ndarray) -> None:
     """16-bit PNG in millimetres, 0 = no depth (as TUM and ScanNet); depths over 65.535 m are 0."""
-    import cv2
-
     mm = np.round(np.asarray(z, np.float64) * 1000.0)
     mm[(mm > 65535) | ~np.isfinite(mm)] = 0
     write_png16(path, mm)
