@@ -19,5 +19,6 @@ for photo, truth in (("photo", "gt_pose.yaml"), ("photo_1", "gt_pose_1.yaml")):
         T = read_pose(run / photo / f"{step}.yaml")[0]
         print(f"{photo:8s} {'init-pose' if step == 'init' else 'refine':9s} error: "
               f"{translation_error_m(T, gt) * 1e3:7.3f} mm {rotation_error_deg(T, gt):.4f} deg")
-print("depth maps: demo_out/run/*/depth.exr (and depth.png, mm); edge overlays: demo_out/run/*/qa.png")
+print("depth maps: demo_out/run/*/depth.exr (and depth.png, mm); edge overlays: demo_out/run/*/qa.png; "
+      "the run at a glance: demo_out/run/report.html; as a data set: rgbd-gt export demo_out/run -o dataset -f plain")
 PY
