@@ -160,7 +160,7 @@ def export_run(run: Path, out: Path, formats: list[str], include: tuple[str, ...
         raise InputError(f"--format must be one or more of {', '.join(FORMATS)}; got {', '.join(bad) or 'none'}")
     sources = sources if sources is not None else read_run(run)
     out.mkdir(parents=True, exist_ok=True)
-    result, plain, frames = Exported(), {}, []
+    result, plain, frames = Exported(), {}, {}
     with ThreadPoolExecutor(1) as writer:  # a photo's files are written while the next one renders
         for source in sources:
             chosen = [s for s in source.photos if s.verdict in include]
@@ -188,10 +188,10 @@ def export_run(run: Path, out: Path, formats: list[str], include: tuple[str, ...
         from rgbd_gt.export.formats import CONVENTION
 
         (out / "plain" / "cameras.json").write_text(json.dumps({"convention": CONVENTION, "photos": plain}, indent=1))
-    if frames:
-        from rgbd_gt.export.formats import write_transforms
+    from rgbd_gt.export.formats import write_transforms
 
-        write_transforms(out / "nerfstudio", frames)
+    for folder, frames_of_scan in frames.items():  # a scene per scan: each scan is its own world frame
+        write_transforms(folder, frames_of_scan)
     result.seconds = time.perf_counter() - start
     (out / "export.json").write_text(json.dumps({
         "run": str(run), "formats": formats, "include": list(include), "photos": result.photos, "pairs": result.pairs,
@@ -202,20 +202,21 @@ def export_run(run: Path, out: Path, formats: list[str], include: tuple[str, ...
 
 
 def _photos(prepared, source: Source, chosen: list[Shot], prefix: str, out: Path, formats: list[str], points, writer, result: Exported,
-            plain: dict, frames: list, progress) -> None:
+            plain: dict, frames: dict, progress) -> None:
     """plain and nerfstudio: each photo undistorted with its depth products, written by `writer`
     (one photo in flight) while the next renders."""
     from rgbd_gt.export.stereo import pinhole
     from rgbd_gt.io.image import read_image, read_mask
 
     writing = None
+    nerf = out / "nerfstudio" / prefix.rstrip("_")
 
     def collect(done) -> None:
         name, entry, frame = done.result()
         if entry is not None:
             plain[name] = entry
         if frame is not None:
-            frames.append(frame)
+            frames.setdefault(nerf, []).append(frame)
 
     for k, s in enumerate(chosen):
         name = prefix + s.name
@@ -227,7 +228,7 @@ def _photos(prepared, source: Source, chosen: list[Shot], prefix: str, out: Path
         result.photos[name] |= _figures(p) | {"seconds": round(time.perf_counter() - t0, 3)}
         if writing is not None:
             collect(writing)  # one photo's files in flight at a time: memory stays one photo's
-        writing = writer.submit(_write_photo, out, formats, name, s, p, source.scan.name)
+        writing = writer.submit(_write_photo, out, formats, name, s, p, source.scan, nerf)
     if writing is not None:
         collect(writing)
 
@@ -277,14 +278,15 @@ def _pairs(prepared, source: Source, chosen: list[Shot], out: Path, formats: lis
                              **_pair_figures(sp), "seconds": round(time.perf_counter() - t0, 3)}
 
 
-def _write_photo(out: Path, formats: list[str], name: str, shot: Shot, p: DepthProducts,
-                 scan_name: str) -> tuple[str, dict | None, dict | None]:
-    """A photo's plain and nerfstudio files: (name, its cameras.json entry, its transforms.json
-    frame), None for a format not asked for."""
+def _write_photo(out: Path, formats: list[str], name: str, shot: Shot, p: DepthProducts, scan: Path,
+                 nerf: Path) -> tuple[str, dict | None, dict | None]:
+    """A photo's plain files and its nerfstudio files in `nerf`: (name, its cameras.json entry
+    (with the scan whose frame its poses are in), its transforms.json frame), None for a format
+    not asked for."""
     from rgbd_gt.export import formats as fm
 
-    return (name, fm.write_plain(out / "plain" / name, shot, p, scan_name) if "plain" in formats else None,
-            fm.nerfstudio_frame(out / "nerfstudio", name, p) if "nerfstudio" in formats else None)
+    entry = fm.write_plain(out / "plain" / name, shot, p, scan.name) | {"scan": str(scan)} if "plain" in formats else None
+    return name, entry, fm.nerfstudio_frame(nerf, name, p) if "nerfstudio" in formats else None
 
 
 def _figures(p: DepthProducts) -> dict:
