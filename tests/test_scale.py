@@ -231,6 +231,16 @@ def test_site_runs_the_same_locally_in_workers_and_on_ray(scenes, tmp_path):
     assert resumed["photo_1.png"] == "init refine depth qa overlay"
     # both scans have a photo.png: the lines under the table name the scan too
     assert "room_a/photo.png: skipped" in again.stdout and "room_b/photo.png: skipped" in again.stdout
+    # the site as a data set: each scan its own world frame, so a COLMAP model and a nerfstudio
+    # scene per scan; plain's photos named SCAN_PHOTO with their scan
+    proc = run_cli("export", outs["local"], "-o", tmp_path / "ds", "-f", "plain,colmap,nerfstudio")
+    assert proc.returncode == 0, proc.stderr
+    cams = __import__("json").loads((tmp_path / "ds" / "plain" / "cameras.json").read_text())["photos"]
+    assert sorted(cams) == ["room_a_photo", "room_a_photo_1", "room_b_photo"]
+    assert cams["room_b_photo"]["scan"] == str(scenes / "s5" / "scan.ply")
+    for scan, n in (("room_a", 2), ("room_b", 1)):
+        t = __import__("json").loads((tmp_path / "ds" / "nerfstudio" / scan / "transforms.json").read_text())
+        assert len(t["frames"]) == n and (tmp_path / "ds" / "colmap" / scan / "images.txt").is_file()
 
 
 def test_a_view_without_the_cache_has_the_cached_normals_and_mesh(tmp_path):
