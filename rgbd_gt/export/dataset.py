@@ -163,15 +163,15 @@ def export_run(run: Path, out: Path, formats: list[str], include: tuple[str, ...
     result, plain, frames = Exported(), {}, {}
     with ThreadPoolExecutor(1) as writer:  # a photo's files are written while the next one renders
         for source in sources:
+            prefix = f"{source.name}_" if len(sources) > 1 else ""  # a site's photos are named SCAN_PHOTO
             chosen = [s for s in source.photos if s.verdict in include]
-            result.left_out |= {s.name: f"verdict {s.verdict}" + (f": {s.reasons[0]}" if s.reasons else "")
+            result.left_out |= {prefix + s.name: f"verdict {s.verdict}" + (f": {s.reasons[0]}" if s.reasons else "")
                                 for s in source.photos if s.verdict not in include}
             if not chosen:
                 continue
             t0 = time.perf_counter()
             prepared = prepare_scan(source.scan, cache)
             result.prepare_seconds += time.perf_counter() - t0
-            prefix = f"{source.name}_" if len(sources) > 1 else ""
             result.photos |= {prefix + s.name: {"verdict": s.verdict, "camera": s.camera_name} for s in chosen}
             if {"plain", "nerfstudio"} & set(formats):
                 _photos(prepared, source, chosen, prefix, out, formats, points, writer, result, plain, frames, progress)
