@@ -106,8 +106,7 @@ def sigma_coverage(scene: Path, photo: str, draws: int = 30, seed: int = 0, scal
     warp = pinhole(shot.camera)
     p = products(prepared, shot, read_image(shot.image), warp, None)
     view = prepared.subset(prepared.view_index(p.camera, p.T))
-    A = np.kron(np.eye(2), warp.R)  # the update turned into the pinhole camera's frame
-    lam, vec = np.linalg.eigh(A @ shot.covariance @ A.T)
+    lam, vec = np.linalg.eigh(warp.covariance(shot.covariance))
     L = vec * np.sqrt(np.maximum(lam, 0))
     rng = np.random.default_rng(seed)
     inside, n = 0, 0

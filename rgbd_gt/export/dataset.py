@@ -84,9 +84,7 @@ def products(prepared, shot: Shot, photo: np.ndarray, warp: Warp, ignore: np.nda
 
     cam, T = warp.camera, warp.pose(shot.T)
     depth = render(prepared, shot, warp, points)
-    # the update in the new camera's frame: its rotation and translation turned by warp.R
-    A = np.kron(np.eye(2), warp.R)
-    sigma = pixel_sigma(depth.z, depth.normals, cam, A @ shot.covariance @ A.T, shot.camera_sigma)
+    sigma = pixel_sigma(depth.z, depth.normals, cam, warp.covariance(shot.covariance), shot.camera_sigma)
     sparse = depth.method.startswith("points")
     near = near_discontinuity(discontinuities(depth.z, depth.normals, cam, silhouettes=not sparse), sigma.image)
     valid = (depth.z > 0) & ~near & np.isfinite(sigma.depth)

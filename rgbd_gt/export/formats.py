@@ -11,6 +11,7 @@ import numpy as np
 
 from rgbd_gt.camera import Camera
 from rgbd_gt.errors import InputError
+from rgbd_gt.io.camera_file import camera_to_dict
 from rgbd_gt.io.depth_file import write_depth_png16, write_exr, write_pfm, write_png16
 from rgbd_gt.io.image import write_image
 from rgbd_gt.pose import matrix_to_quat
@@ -20,8 +21,9 @@ CONVENTION = ("T_cam_from_scan maps scan coordinates (metres) to the camera fram
 
 
 def camera_dict(camera: Camera) -> dict:
-    return {"width": camera.width, "height": camera.height, "fx": camera.fx, "fy": camera.fy, "cx": camera.cx,
-            "cy": camera.cy, "distortion": list(camera.distortion), "model": "opencv" if camera.has_distortion else "pinhole"}
+    """The camera file's keys (`io.camera_file.camera_to_dict`), the distortion always, and the model."""
+    return camera_to_dict(camera) | {"distortion": list(camera.distortion),
+                                     "model": "opencv" if camera.has_distortion else "pinhole"}
 
 
 def write_plain(folder: Path, shot, p, scan_name: str) -> dict:

@@ -28,6 +28,12 @@ class Warp:
         out[:3] = self.R @ T_cam_from_scan[:3]
         return out
 
+    def covariance(self, covariance: np.ndarray) -> np.ndarray:
+        """(6, 6) a pose update's covariance (`align.aligner.RefineResult.covariance`: rotation
+        vector, translation, in the photo's camera frame) in the new camera's frame."""
+        A = np.kron(np.eye(2), self.R)
+        return A @ covariance @ A.T
+
     def image(self, photo: np.ndarray, nearest: bool = False) -> np.ndarray:
         """The photo (H, W[, C]) resampled (bilinear; nearest for masks); 0 outside the photo."""
         import cv2

@@ -381,7 +381,7 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None,
            max_splat_px: int | None = None, planes: bool = True) -> DepthMap:
     import torch
 
-    from rgbd_gt.render.normals import facing_camera, knn_normals, with_normals
+    from rgbd_gt.render.normals import facing_camera, knn_normals, sides_known, with_normals
     from rgbd_gt.render.splat import Surfels, close_gaps, splat, values_at
     from rgbd_gt.render.zbuffer import estimate_spacing
 
@@ -391,7 +391,7 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None,
     # the whole scan, or the depth of points behind the image, says nothing about them
     m = 0.05 * max(camera.size)
     seen = (z > 1e-3) & (uv[:, 0] > -m) & (uv[:, 1] > -m) & (uv[:, 0] < camera.width + m) & (uv[:, 1] < camera.height + m)
-    uv, z = uv[seen], z[seen]
+    p, uv, z = p[seen], uv[seen], z[seen]
 
     def nothing(why: str, radius: int = 0) -> DepthMap:
         zz = np.zeros((camera.height, camera.width), np.float32)
@@ -401,18 +401,18 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None,
     if len(z) < 4:
         return nothing("splats (nothing in view)")
     vals = values[seen].astype(np.float32) if values is not None else np.zeros((len(z), 1), np.float32)
-    normals = with_normals(scan).normals
-    sided = normals is not None  # the scanner's side of each surface is known
+    sided = sides_known(scan)
+    normals = with_normals(scan).normals if sided else None
     surfels, back = None, None
     discs = sided or (planes and len(z) >= 16)
     if not discs:  # squares at the typical spacing
-        spacing = estimate_spacing(torch.as_tensor(p[seen]))
+        spacing = estimate_spacing(torch.as_tensor(p))
         radius = max(1, int(np.ceil(0.75 * camera.fx * spacing / max(float(np.median(z)), 1e-6))))
     else:
         # discs of the local spacing (a scanner's grows with range and on surfaces seen at a
         # slant), just closing the gaps of a square sampling (s / sqrt 2) with a 6% margin: a larger
         # disc grows every silhouette (docs/depth_benchmark.md)
-        reach = 0.75 * local_spacing(p[seen])
+        reach = 0.75 * local_spacing(p)
         reach_px = reach * camera.fx / z
         radius = max(1, int(np.ceil(min(np.quantile(reach_px, 0.99), 4 * np.median(reach_px)))))
     if max_splat_px is not None and radius > max_splat_px:
@@ -423,8 +423,8 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None,
         # without a scanner position the side seen is unknown, but a disc needs a plane, not a
         # side: the unoriented normals of the points in view (a surfel's slope is the same for n
         # and -n); back faces then cannot be culled (back_facing stays None)
-        n_cam = normals[seen] @ T[:3, :3].T if sided else knn_normals(p[seen])
-        slope = surfel_slope(p[seen], n_cam, z, camera, radius)
+        n_cam = normals[seen] @ T[:3, :3].T if sided else knn_normals(p)
+        slope = surfel_slope(p, n_cam, z, camera, radius)
         surfels = Surfels(torch.as_tensor(slope), torch.as_tensor(reach), camera.fx, camera.fy)
     img, depth, index = splat(torch.as_tensor(uv), torch.as_tensor(z), torch.as_tensor(vals), camera.size, radius, surfels)
     zz = depth.numpy().astype(np.float32)
@@ -434,7 +434,7 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None,
         img = values_at(torch.as_tensor(vals), torch.as_tensor(idx))
     if sided:
         # a pixel whose nearest point faces away is seen from behind
-        away = ~facing_camera(p[seen].astype(np.float32), n_cam.astype(np.float32))
+        away = ~facing_camera(p.astype(np.float32), n_cam.astype(np.float32))
         behind = (idx >= 0) & away[np.maximum(idx, 0)]
         zz[behind] = 0
         back = int(behind.sum())
@@ -448,7 +448,7 @@ def _splat(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray | None,
     if surfels is not None:  # the winning disc's normal, turned to the camera
         hit = (idx >= 0) & (zz > 0)
         n = n_cam[idx[hit]].astype(np.float32)
-        n *= -np.sign(np.sum(n * p[seen][idx[hit]], axis=1) + 1e-12)[:, None]
+        n *= -np.sign(np.sum(n * p[idx[hit]], axis=1) + 1e-12)[:, None]
         nn[hit] = n
     kind = "surfels of radius up to" if surfels is not None else "splats of radius"
     return DepthMap(zz, nn, f"{kind} {radius} px", colors, radius, back)

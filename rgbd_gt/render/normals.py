@@ -39,6 +39,13 @@ def knn_normals(xyz: np.ndarray, k: int = 16, chunk: int = 1 << 20) -> np.ndarra
     return out
 
 
+def sides_known(scan: Scan) -> bool:
+    """Whether the side of the scan's surfaces that was seen is known: it has normals (a PLY's
+    nx ny nz, or as a prepared scan's) or a scanner position to turn them to (`scan_normals` is
+    None exactly where not)."""
+    return scan.normals is not None or len(scan.origins) > 0
+
+
 def scan_normals(scan: Scan) -> np.ndarray | None:
     """(N, 3) float32 unit normals facing the scanner that saw each point (0 where unknown):
     the scan's own (a PLY's nx ny nz) when it has them, else from its grid triangles, else from

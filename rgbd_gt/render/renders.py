@@ -17,6 +17,7 @@ import numpy as np
 
 from rgbd_gt.camera import Camera
 from rgbd_gt.render.depth import DepthMap, GridMesh, grid_mesh, render_depth
+from rgbd_gt.render.normals import sides_known
 from rgbd_gt.scan import Scan, scan_colors
 
 
@@ -52,8 +53,7 @@ class Renders:
         wider than max_splat_px; `planes` as render_depth's (it matters only to a scan without a
         grid or a scanner position: the two are two renders). Rendered once: a later ask for more
         than the render holds renders again with all of it."""
-        sides = self.scan.has_grid or self.scan.normals is not None or len(self.scan.origins) > 0
-        key = (*_key(camera, T), planes or sides)
+        key = (*_key(camera, T), planes or self.scan.has_grid or sides_known(self.scan))
         have = self._surfaces.get(key)
         if colors and self.colors is None:  # InputError for a scan with neither colors nor intensity
             self.colors = np.asarray(scan_colors(self.scan), np.float32)
