@@ -31,7 +31,7 @@ from rgbd_gt.io.atomic import atomic_output
 from rgbd_gt.scan import Scan
 from rgbd_gt.render.blocks import VIEW_MARGIN, Blocks, block_order, block_points, blocks_in_view, points_in_view, thinning_step
 
-CACHE_VERSION = 4
+CACHE_VERSION = 5
 ARRAYS = Scan.PER_POINT + ("cells",)  # per point, block-ordered
 # "cells": `render.mesh.grid_cell_bits` (grid scans), a subset's Scan.cell_bits
 
@@ -226,16 +226,23 @@ def whole_scan_geometry(read: Scan) -> Scan:
     `cell_bits` (`grid_cell_bits`), both made on these points: a view takes them along. Made on
     a view alone they differ at depth edges: the stretch test's limit follows the angular step,
     which a view's own grid gives a few percent off (pumpA: 4%; normals of 1% of the points in a
-    view more than 5 deg apart, 167 pixels of its depth map up to 5 m apart)."""
+    view more than 5 deg apart, 167 pixels of its depth map up to 5 m apart). A sweep in ring
+    order gets its depth steps along the rings (`Scan.edge`), for the aligner's edge term."""
     from rgbd_gt.render.mesh import grid_cell_bits, grid_normals
     from rgbd_gt.render.normals import oriented, with_normals
+    from rgbd_gt.render.points import is_sweep
+    from rgbd_gt.render.rings import ring_steps
 
     scan = oriented(read)
     if scan.has_grid and scan.normals is None and len(scan.origins):  # the normals' pass makes the bits too
         normals, bits = grid_normals(scan)
         return dataclasses.replace(scan, normals=normals, cell_bits=bits)
     scan = with_normals(scan)
-    return dataclasses.replace(scan, cell_bits=grid_cell_bits(scan)) if scan.has_grid else scan
+    if scan.has_grid:
+        return dataclasses.replace(scan, cell_bits=grid_cell_bits(scan))
+    if scan.edge is None and is_sweep(scan):  # a view's points are block-ordered: the rings' order is lost there
+        scan = dataclasses.replace(scan, edge=ring_steps(scan.xyz, scan.origins[0] if len(scan.origins) else None))
+    return scan
 
 
 def open_prepared(folder: Path, scan_path: Path) -> PreparedScan:

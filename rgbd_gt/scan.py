@@ -28,6 +28,9 @@ class Scan:
             (`render.normals.with_normals` fills them in).
         ring: (N,) int16 the laser (ring) of a spinning LiDAR that made each return, or None: a
             sweep's rings are known, in whatever frame its points are (`render.points.is_sweep`).
+        edge: (N,) float32 or None: a sweep's depth step at each return along its ring (metres:
+            how much nearer it is than its nearer neighbour on the ring, 0 where it is not;
+            `render.rings.ring_steps`), made on the whole sweep, whose file keeps the ring order.
         cell_bits: (N,) uint8 or None: a grid scan's mesh, a byte a point
             (`render.mesh.grid_cell_bits`), made on the whole scan when it was prepared and
             taken along by its views (made on a view alone, it differs at depth edges).
@@ -42,9 +45,10 @@ class Scan:
     origins: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     normals: np.ndarray | None = None
     ring: np.ndarray | None = None
+    edge: np.ndarray | None = None
     cell_bits: np.ndarray | None = field(default=None, repr=False)
 
-    PER_POINT = ("xyz", "rgb", "intensity", "row", "col", "scan_id", "normals", "ring")
+    PER_POINT = ("xyz", "rgb", "intensity", "row", "col", "scan_id", "normals", "ring", "edge")
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])
