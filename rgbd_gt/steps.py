@@ -210,12 +210,15 @@ def judged(inputs, result, verification, cfg, init_path: PathLike, camera_path: 
            pairs: int = 1) -> Refined:
     """A result (`align.aligner.RefineResult`) of inputs.T_init with its verdict as the pose
     file holds it: the camera it goes with, the aligner's figures, the verticals check of the
-    result and the init, a warning when init-pose estimated another focal length (refine_step's
-    and bundle_step's)."""
+    result and the init, a warning when init-pose estimated another focal length or when one
+    sweep is solved alone (refine_step's and bundle_step's)."""
     from rgbd_gt.align.refine import camera_disagreement, refine_meta, refined_camera
     from rgbd_gt.qa.verticals import verticals_qa
 
     warnings = [w for w in [camera_disagreement(inputs.camera, inputs.init_meta, camera_path or "camera")] if w]
+    if pairs == 1 and inputs.scan is not None and inputs.scan.edge is not None:  # a sweep (its rings' steps are known)
+        warnings.append("one sweep fixes a LiDAR-camera pose poorly (KITTI single frames from 1 deg end degrees off: "
+                        "docs/lidar.md); solve the drive's frames together with --pairs")
     camera = refined_camera(inputs.camera, result)
     finite("refine", "the refined pose", result.T_cam_from_scan)
     finite("refine", "the refined camera", np.r_[camera.K.ravel(), camera.distortion])

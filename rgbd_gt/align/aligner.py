@@ -174,6 +174,11 @@ class Aligner:
         """(n, 3) float64 scan-frame points of the finest level visible at pose T."""
         return self.objective.visible_scan_points(self._local(T), self._q(intrinsics)) + self.objective.centre
 
+    def ring_edge_check(self, T: np.ndarray, shift_px: float) -> dict | None:
+        """The objective's image check of a sweep at pose T (`Nid.ring_edge_check`), or None."""
+        check = getattr(self.objective, "ring_edge_check", None)
+        return None if check is None else check(self._local(T), shift_px)
+
     def loss_profile(self, T: np.ndarray, deltas: np.ndarray, level: int = 0,
                      intrinsics: np.ndarray | None = None) -> tuple[float, np.ndarray]:
         """The loss at pose T and at T moved by each update of deltas (k, 6) (`apply_update`), on a

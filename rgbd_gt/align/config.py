@@ -31,15 +31,26 @@ class VerifyConfig:
     # thresholds: failed beyond the first of each pair, suspect beyond the second
     edge_ratio_failed: float = 1.1
     edge_ratio_ok: float = 1.2
+    ring_edge_ratio_failed: float = 1.05  # sweeps: the same of the ring edges (`Nid.ring_edge_check`) ...
+    ring_edge_ratio_ok: float = 1.15
     spread_failed_px: float = 3.0
     spread_ok_px: float = 1.0
     # nid on a sweep: finished repeats of results within 0.2 deg of the reference ended up to
     # 3.6 px apart, of wrong ones 10 px and more (docs/lidar-method.md)
     spread_failed_px_nid: float = 6.0
+    folds: int = 2  # several frames of one rig (nid): refine them in this many groups apart, instead of the repeats (0/1: repeats)
+    fold_coarsest: int = 2  # ... each refined from the result, from this pyramid level ...
+    fold_finest: int = 1  # ... down to this one
+    # ... suspect when a group ends farther than this (px) from the result (failed: spread_failed_px_nid);
+    # on 20 KITTI joint results the right ones' groups ended 0.8-2.3 px away, those over 0.3 deg off 4.7 px and more
+    fold_ok_px: float = 3.0
     sharpness_failed: float = 0.0
     sharpness_ok: float = 0.003
     sigma_failed_px: float = 1.0
     sigma_ok_px: float = 0.1
+    # nid: a Laplace approximation over samples that share pixels, the lower bound is looser;
+    # right joint solves of Waymo's 10 frames state 0.2 px (docs/lidar.md)
+    sigma_ok_px_nid: float = 0.5
     check_failed_px: float = 5.0
     check_ok_px: float = 2.0
     change_max_sigmas: float = 10.0
@@ -69,6 +80,8 @@ class VerifyConfig:
             raise ValueError("verify: repeats >= 0, repeat_iterations >= 1 and 0 <= repeat_finest <= repeat_coarsest")
         if self.repeats > 64 or self.repeat_iterations > 1_000 or self.repeat_coarsest > 12 or self.sharpness_level > 12:
             raise ValueError("verify: repeats at most 64, repeat_iterations at most 1000, levels at most 12")
+        if not 0 <= self.folds <= 64 or not 0 <= self.fold_finest <= self.fold_coarsest <= 12 or self.fold_ok_px < 0:
+            raise ValueError("verify: folds 0 to 64, 0 <= fold_finest <= fold_coarsest <= 12, fold_ok_px >= 0")
         if self.edge_max_side > 8192 or self.min_edge_pixels < 0:
             raise ValueError("verify: edge_max_side at most 8192, min_edge_pixels 0 or more")
         if self.edge_max_side < 64 or self.edge_shift_px < 1 or self.sharpness_step_px <= 0 or self.start_floor_px < 0:
@@ -102,6 +115,7 @@ class RefineConfig:
     max_depth: float = 0.0  # metres: points farther from the initial camera are not used (0: all)
     nid_bins: int = 16  # nid: bins per axis of the joint histogram
     nid_edges: bool = False  # nid: also NID of depth discontinuities against the photo's gradient magnitude
+    edge_weight: float = 1.0  # nid: weight of the ring-edge term (sweeps: depth steps along rings on the photo's edges; 0: off)
     sky_weight: float = 0.5  # nid: added to NID per unit fraction of points that land on the photo's sky (align/sky.py; 0: off) ...
     sky_coarse_level: int = 2  # ... on pyramid levels this coarse and coarser (0: every level; the sky is found at 1/8 scale)
     search_starts: int = 16  # nid: before the coarsest level, also run it from this many starts (0: none) ...
@@ -148,7 +162,7 @@ class RefineConfig:
         positive = ("adam_iterations", "adam_lr_rotation", "adam_lr_translation", "beta_max", "nu", "min_points",
                     "min_visible")
         not_negative = ("stop_rotation_deg", "stop_translation_m", "zbuffer_rel_tol", "zbuffer_abs_tol", "seed",
-                        "texture_floor", "search_rotation_deg", "search_translation_m", "sky_weight", "sky_coarse_level")
+                        "texture_floor", "search_rotation_deg", "search_translation_m", "sky_weight", "sky_coarse_level", "edge_weight")
         for name in positive + not_negative:
             v = getattr(self, name)
             if not (v == v and abs(v) != float("inf")) or (v <= 0 if name in positive else v < 0):

@@ -43,6 +43,7 @@ class Frame:
     values: np.ndarray  # (N,) float32 in [0, 1]: intensity, or the gray of the scan's colors
     pyramid: list[PhotoLevel]  # the photo's, finest first (`photo_pyramid`)
     normals: np.ndarray | None = None  # (N, 3) facing the scanner (render/normals.py), or None
+    edges: np.ndarray | None = None  # (N,) metres: a sweep's depth steps along its rings (`Scan.edge`), or None
 
 
 @dataclass
@@ -56,6 +57,9 @@ class _Part:
     image: torch.Tensor  # (H, W, C), or (H, W, C + 1) with the sky
     photo: PhotoLevel
     sky: bool  # the image's last channel is where the photo shows sky, in [0, 1] (align/sky.py)
+    edge_points: torch.Tensor | None = None  # (m, 3) float32 local frame: the frame's ring edges (cfg.edge_weight)
+    edge_strength: torch.Tensor | None = None  # (m,) float64 their sqrt(depth step / m)
+    edge_map: torch.Tensor | None = None  # (H, W, 1) the photo's edges spread (`edge_distance_map`)
 
 
 @dataclass
@@ -63,11 +67,18 @@ class _Evaluation:
     nid: torch.Tensor  # (F x C,) NID per frame and channel pair (the first plus the sky charge), float64
     counts: list[int]  # per frame and channel pair, the points that entered its histogram
     entropies: list[float]  # ... and its joint entropy H(A, B) (nats)
-    gradient: torch.Tensor | None = None  # (6,) float64 d sum(weights * nid) / d delta, when asked
+    gradient: torch.Tensor | None = None  # (6,) float64 d objective / d delta, when asked
+    edge: torch.Tensor | float = 0.0  # cfg.edge_weight x sum over frames of the ring edges' scores (float64)
 
     @property
     def loss(self) -> torch.Tensor:
-        return self.nid.mean()
+        """Mean NID less the edge score per unit of the frames' weights: the objective minimised
+        (`objective`) over the sum of the weights, up to how the weights differ between frames."""
+        return self.nid.mean() - self.edge / self.weights().sum()
+
+    def objective(self, weights: torch.Tensor) -> torch.Tensor:
+        """What L-BFGS minimises: sum(weights * NID) - the edge score."""
+        return (self.nid * weights).sum() - self.edge
 
     def weights(self) -> torch.Tensor:
         """(F,) n H(A, B) per frame: n H(A, B) NID is, up to a constant, the negative
@@ -101,6 +112,30 @@ def _channels(image: torch.Tensor, edges: bool) -> torch.Tensor:
     mag = torch.sqrt(gu * gu + gv * gv)
     top = torch.quantile(mag.flatten()[:: max(1, mag.numel() // 200_000)], 0.99).clamp_min(1e-6)
     return torch.cat([gray, (mag / top).clamp(0, 1)], dim=2)
+
+
+EDGE_MIN_STEP_M = 0.1  # ring edges: returns at least this much nearer than their ring neighbour ...
+EDGE_NEAR_M = 1.0  # ... and this far in front of the camera
+CHECK_MIN_STEP_M = 1.0  # the ring-edge check: steps this large (on KITTI and Waymo their ratio is the clearest)
+EDGE_LEVELS = 3  # the term applies on the 3 finest levels: coarser, the spread edges fill the image (a KITTI photo is 77 x 23 on level 4)
+
+
+def _ring_edges(steps: np.ndarray, device) -> tuple[torch.Tensor, torch.Tensor]:
+    """The indices (m,) of a frame's ring edges (depth steps (N,) of at least EDGE_MIN_STEP_M) and
+    their strengths (m,) float64: sqrt(step / m), Levinson and Thrun's, so that a 5 m step counts
+    5 times a 20 cm one, not 25 times."""
+    idx = np.flatnonzero(steps >= EDGE_MIN_STEP_M)
+    return (torch.as_tensor(idx, device=device),
+            torch.as_tensor(np.sqrt(steps[idx].astype(np.float64)), device=device))
+
+
+def _on_photo(photo: PhotoLevel, uv: torch.Tensor, z: torch.Tensor, near: float) -> torch.Tensor:
+    """(n,) bool: points at least `near` metres in front that land on the level's usable pixels."""
+    w, h = photo.camera.size
+    ok = (z > near) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)
+    if photo.valid is not None:
+        ok &= photo.valid[uv[:, 1].detach().clamp(0, h - 1).long(), uv[:, 0].detach().clamp(0, w - 1).long()]
+    return ok
 
 
 @dataclass
@@ -143,8 +178,16 @@ class Nid:
                          for f in frames]
         # per frame, per level: the channels NID compares, and the sky (`_Part`) once it is found
         self._images = [[_channels(lv.image, cfg.nid_edges) for lv in f.pyramid] for f in frames]
+        # the ring edges of the ring-edge term (their indices and strengths), and the photos' maps once needed
+        self._ring_edges = [None if f.edges is None else _ring_edges(f.edges, self.device) for f in frames]
+        self._edge_maps: dict[tuple[int, int], torch.Tensor] = {}
         self._prepared: list[list[torch.Tensor]] | None = None  # per level, per frame: point indices
         self._sky = [False] * len(frames)
+
+    def of_frames(self, keep: list[int], cfg: RefineConfig | None = None) -> "Nid":
+        """The objective of the frames `keep` (indices) alone (with cfg, default this one's): the
+        frames judged apart."""
+        return Nid([self.frames[k] for k in keep], cfg or self.cfg)
 
     # -- the points of each level (chosen once, at the init) ---------------------------------------
     def prepare(self, T_local: np.ndarray) -> int:
@@ -220,8 +263,19 @@ class Nid:
             values = values[vis].double()
             windows = torch.stack([parzen_windows(values[:, c], self.cfg.nid_bins) for c in range(values.shape[1])], 1)
             sky = self._sky[k] and level >= self.cfg.sky_coarse_level
-            parts.append(_Part(pts[vis], windows, self._images[k][level], photo, sky))
+            parts.append(_Part(pts[vis], windows, self._images[k][level], photo, sky, *self._edges_of(k, level)))
         return parts
+
+    def _edges_of(self, k: int, level: int) -> tuple:
+        """(edge points, strengths, edge map) of frame k on a level, or three Nones without the term."""
+        if self._ring_edges[k] is None or self.cfg.edge_weight <= 0 or level >= EDGE_LEVELS:
+            return None, None, None
+        if (k, level) not in self._edge_maps:
+            from rgbd_gt.align.edge_map import edge_distance_map
+
+            self._edge_maps[k, level] = edge_distance_map(self.frames[k].pyramid[level].image)
+        idx, strength = self._ring_edges[k]
+        return self._points[k][idx], strength, self._edge_maps[k, level]
 
     # -- NID at a pose ------------------------------------------------------------------------------
     def _evaluate(self, parts: list[_Part], T_local: np.ndarray, delta: torch.Tensor,
@@ -234,18 +288,18 @@ class Nid:
         R0, t0 = self._pose(T_local)
         R = so3_exp(delta[:3]).to(R0.dtype)
         R1, t1 = R @ R0, R @ t0
-        nids, counts, entropies = [], [], []
+        nids, counts, entropies, edge = [], [], [], 0.0
         gradient = None if weights is None else torch.zeros(6, dtype=torch.float64, device=self.device)
         for part in parts:
+            if part.edge_points is not None:
+                score, g = self._edge_score(part, R1, t1, delta, weights is not None)
+                edge = edge + self.cfg.edge_weight * score
+                if g is not None:
+                    gradient -= self.cfg.edge_weight * g
             q = part.points @ R1.T + t1
             p = q + delta[3:].to(R0.dtype)
             uv, z = project_pinhole(p, part.photo.K)
-            w, h = part.photo.camera.size
-            ok = (z > 0.1) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)
-            if part.photo.valid is not None:
-                u0 = uv[:, 0].detach().clamp(0, w - 1).long()
-                v0 = uv[:, 1].detach().clamp(0, h - 1).long()
-                ok &= part.photo.valid[v0, u0]
+            ok = _on_photo(part.photo, uv, z, 0.1)
             n = int(ok.sum())
             if n < 50:
                 raise InputError("the pose left the scan: fewer than 50 points in view")
@@ -271,7 +325,25 @@ class Nid:
             if weights is not None:
                 gradient += _pose_gradient((d_sampled * s_u).sum(1), (d_sampled * s_v).sum(1), p[ok].double(),
                                            q[ok].double(), part.photo.K, delta[:3])
-        return _Evaluation(torch.stack(nids), counts, entropies, gradient)
+        return _Evaluation(torch.stack(nids), counts, entropies, gradient, edge)
+
+    def _edge_score(self, part: _Part, R: torch.Tensor, t: torch.Tensor, delta: torch.Tensor,
+                    with_gradient: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The ring-edge score of a frame at apply_update((R, t), delta): sum over its ring edges
+        that land on the photo (at least EDGE_NEAR_M in front) of strength x the photo's edge map
+        there, and its gradient (6,) with respect to delta when asked (else None). The edges are
+        not Z-buffered: a step's nearer return is the foreground, which the camera sees but for
+        the parallax of the sensor's offset."""
+        q = part.edge_points @ R.T + t
+        p = q + delta[3:].to(R.dtype)
+        uv, z = project_pinhole(p, part.photo.K)
+        ok = _on_photo(part.photo, uv, z, EDGE_NEAR_M)
+        strength = part.edge_strength[ok]
+        if not with_gradient:
+            return (strength * bilinear(part.edge_map, uv[ok])[:, 0].double()).sum(), None
+        sampled, s_u, s_v = (x[:, 0].double() for x in bilinear_with_gradient(part.edge_map, uv[ok]))
+        gradient = _pose_gradient(strength * s_u, strength * s_v, p[ok].double(), q[ok].double(), part.photo.K, delta[:3])
+        return (strength * sampled).sum(), gradient
 
     def units(self, level: int, T_local: np.ndarray, at: "NidTerms") -> torch.Tensor:
         """(6,) float64 size of each pose parameter that moves the points of `at` by 1 pixel (RMS)."""
@@ -310,7 +382,7 @@ class Nid:
         its gradient (6,) with respect to delta."""
         with torch.no_grad():
             e = self._evaluate(at.parts, T_local, delta, at.weights)
-        return float((e.nid * at.weights).sum()), e.gradient
+        return float(e.objective(at.weights)), e.gradient
 
     def summary(self, terms: "NidTerms") -> dict:
         """`RefineResult`'s objective-specific fields at the terms' pose."""
@@ -342,10 +414,10 @@ class Nid:
 
         def f(x: np.ndarray) -> float:
             with torch.no_grad():
-                return float((self._evaluate(parts, T_local, torch.as_tensor(x, device=self.device) * units).nid * weights).sum())
+                return float(self._evaluate(parts, T_local, torch.as_tensor(x, device=self.device) * units).objective(weights))
 
         E = np.eye(6)  # steps of 1 px
-        f0 = float((at.nid * weights).sum())
+        f0 = float(at.objective(weights))
         H = np.diag([f(e) - 2 * f0 + f(-e) for e in E])
         for i, j in zip(*np.triu_indices(6, 1)):
             a, b = E[i], E[j]
@@ -356,3 +428,38 @@ class Nid:
         return np.linalg.inv(H) * u[:, None] * u[None, :]
 
     # -- what the verification asks (see `Aligner`) ---------------------------------------------------
+    def ring_edge_check(self, T_local: np.ndarray, shift_px: float) -> dict | None:
+        """The image check of a sweep (whose rendering is too sparse for `qa.edges.structural_qa`):
+        at T_local on the finest level, the photos' `edge_strength` at the frames' ring edges of
+        CHECK_MIN_STEP_M and more (weighted by their strengths) against the same with the edges shifted shift_px in 8
+        directions (chance), over all frames. None without ring edges."""
+        from rgbd_gt.align.edge_map import edge_strength
+
+        if all(r is None for r in self._ring_edges):
+            return None
+        R, t = self._pose(T_local)
+        shifts = shift_px * torch.tensor([[a, b] for a in (-1, 0, 1) for b in (-1, 0, 1) if a or b],
+                                         dtype=torch.float32, device=self.device)
+        score = chance = weight = 0.0
+        count = 0
+        for k, edges in enumerate(self._ring_edges):
+            if edges is None:
+                continue
+            idx, strength = edges
+            strong = strength >= CHECK_MIN_STEP_M**0.5
+            idx, strength = idx[strong], strength[strong]
+            photo = self.frames[k].pyramid[0]
+            uv, z = project_pinhole(self._points[k][idx] @ R.T + t, photo.K)
+            ok = _on_photo(photo, uv, z, EDGE_NEAR_M)
+            s, uv = strength[ok], uv[ok]
+            image = torch.as_tensor(edge_strength(photo.image)[:, :, None], device=self.device)
+            w, h = photo.camera.size
+            limit = torch.tensor([w - 1, h - 1], dtype=uv.dtype, device=self.device)
+            score += float((s * bilinear(image, uv)[:, 0]).sum())
+            chance += float(np.mean([float((s * bilinear(image, torch.minimum((uv + d).clamp_min(0), limit))[:, 0]).sum())
+                                     for d in shifts]))
+            weight += float(s.sum())
+            count += int(ok.sum())
+        return {"ring_edges": count, "score": score / max(weight, 1e-12), "chance": chance / max(weight, 1e-12),
+                "ratio": score / chance if chance > 0 else float("nan"), "shift_px": shift_px}
+

@@ -110,7 +110,7 @@ def refine_meta(result: RefineResult, cfg: RefineConfig, T_init: np.ndarray, ini
         meta = dict(verdict=verification.verdict, reasons=verification.reasons, evidence=verification.evidence)
     meta.update(method=f"rgbd-gt refine ({result.objective})", init=str(init_path), objective=result.objective)
     if result.objective == "nid":
-        meta.update(nid_bins=cfg.nid_bins, nid_edges=cfg.nid_edges, sky_weight=cfg.sky_weight,
+        meta.update(nid_bins=cfg.nid_bins, nid_edges=cfg.nid_edges, edge_weight=cfg.edge_weight, sky_weight=cfg.sky_weight,
                     sky_coarse_level=cfg.sky_coarse_level, pairs=pairs)
     else:
         meta.update(color_model=cfg.color_model, gradient=cfg.gradient, optimizer=cfg.optimizer,
@@ -152,7 +152,7 @@ def make_aligner(inputs: RefineInputs, cfg: RefineConfig, device: str, more: lis
         return Aligner(Photometric(inputs.points, inputs.colors, pyramid, cfg, inputs.normals))
     # NID compares value distributions: an enlarged photo adds pixels, not information
     frames = [Frame(i.points, colors_to_gray(i.colors) / 255.0, photo_pyramid(i.photo, i.camera, cfg.levels, dev, i.ignore),
-                    i.normals) for i in [inputs, *more]]
+                    i.normals, i.scan.edge if i.scan is not None else None) for i in [inputs, *more]]
     return Aligner(Nid(frames, cfg))
 
 

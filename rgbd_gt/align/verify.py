@@ -17,7 +17,7 @@ so that one threshold serves a room 3 m across and a street 50 m deep.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -136,6 +136,38 @@ def repeatability(aligner: Aligner, result: RefineResult, T_init: np.ndarray, vi
             "lost_the_scan": lost, "start_rotation_deg": float(np.degrees(rot)), "start_translation_mm": trans * 1e3}
 
 
+def frame_folds(aligner: Aligner, result: RefineResult, view: _View, cfg: VerifyConfig) -> dict:
+    """Frames judged against each other: the frames of a joint solve (one rig over several
+    frames) dealt into cfg.folds groups (frame k into group k mod folds), each refined apart from
+    the result, from pyramid level cfg.fold_coarsest down to cfg.fold_finest; each group's distance
+    from the result, in pixels of the visible points and of a grid over the whole photo, mm and
+    deg, and the largest. Where the frames agree, each group's own minimum lies at the result;
+    where some frames' structure made it by chance, the others slide away. (Solved from the init
+    instead, half a drive's frames often miss the basin all of them find: KITTI's from 3 deg.)"""
+    from rgbd_gt.errors import InputError
+
+    obj = aligner.objective
+    T = result.T_cam_from_scan
+    photo = view.across_photo(T)
+    finest = min(cfg.fold_finest, len(result.levels) - 1)
+    groups = []
+    for k in range(cfg.folds):
+        keep = list(range(k, len(obj.frames), cfg.folds))
+        try:  # no wide search: the question is where the group's own minimum lies
+            fold = Aligner(obj.of_frames(keep, replace(obj.cfg, search_starts=0)))
+            end = fold.refine(T, finest=finest, coarsest=max(finest, cfg.fold_coarsest)).T_cam_from_scan
+        except InputError:
+            end = None
+        if end is None:  # a group that lost the scan did not find the result
+            groups.append({"frames": keep, "px": float("inf"), "photo_px": float("inf"), "mm": float("inf"), "deg": float("inf")})
+            continue
+        groups.append({"frames": keep, "px": view.motion_px(end, T), "photo_px": photo.motion_px(end, T),
+                       "mm": translation_error_m(end, T) * 1e3, "deg": rotation_error_deg(end, T)})
+    worst = {key: max(g[key] for g in groups) for key in ("px", "photo_px", "mm", "deg")}
+    return {"folds": cfg.folds, "spread_px": worst["px"], "spread_photo_px": worst["photo_px"],
+            "spread_mm": worst["mm"], "spread_deg": worst["deg"], "groups": groups}
+
+
 def sharpness(aligner: Aligner, T: np.ndarray, M: np.ndarray, step_px: float, level: int,
               intrinsics: np.ndarray | None = None) -> dict:
     """The robust loss at the result against the same at the 12 poses that move the image by
@@ -183,8 +215,15 @@ def check_pairs(pairs: tuple[np.ndarray, np.ndarray], camera: Camera, T_init: np
 def decide(ev: dict, cfg: VerifyConfig) -> tuple[str, list[str]]:
     """The verdict and its reasons from the evidence, by the thresholds in cfg (docs/trust.md)."""
     failed, suspect = [], []
-    edges = ev.get("edges")
-    if edges is not None:
+    edges, rings = ev.get("edges"), ev.get("ring_edges")
+    if rings is not None and edges is not None and not edges["edge_check_usable"]:  # a sweep: its rings' edges instead
+        if rings["ring_edges"] < cfg.min_edge_pixels:
+            suspect.append(f"too few depth edges along the sweep's rings in view to check against the photo ({rings['ring_edges']})")
+        elif not rings["ratio"] >= cfg.ring_edge_ratio_failed:
+            failed.append(f"the sweep's depth edges fit the photo's edges no better than chance (ratio {rings['ratio']:.2f})")
+        elif rings["ratio"] < cfg.ring_edge_ratio_ok:
+            suspect.append(f"the sweep's depth edges fit the photo's edges weakly (ratio {rings['ratio']:.2f})")
+    elif edges is not None:
         if not edges["edge_check_usable"]:
             suspect.append(f"the scan is too sparse to check against the photo's edges (splats of {edges['splat_radius_px']} px)")
         elif edges["structural_edge_pixels"] < cfg.min_edge_pixels:
@@ -202,6 +241,14 @@ def decide(ev: dict, cfg: VerifyConfig) -> tuple[str, list[str]]:
         elif rep.get("spread_photo_px", 0.0) > cfg.spread_ok_px:
             suspect.append(f"nearby starts agree on the scan's points but not across the photo "
                            f"({rep['spread_photo_px']:.2f} px): the scan fixes the pose where it is only")
+    folds = ev.get("frames")
+    if folds is not None:
+        if folds["spread_px"] > cfg.spread_failed_px_nid:
+            failed.append(f"the frames disagree: refined apart in {folds['folds']} groups, they end "
+                          f"{folds['spread_px']:.1f} px ({folds['spread_mm']:.0f} mm, {folds['spread_deg']:.2f} deg) from the result")
+        elif max(folds["spread_px"], folds["spread_photo_px"]) > cfg.fold_ok_px:
+            suspect.append(f"the frames agree only roughly: refined apart in {folds['folds']} groups, they end "
+                           f"{max(folds['spread_px'], folds['spread_photo_px']):.1f} px from the result")
     sh = ev.get("sharpness")
     if sh is not None:
         if sh["median_rise"] < cfg.sharpness_failed:
@@ -211,7 +258,7 @@ def decide(ev: dict, cfg: VerifyConfig) -> tuple[str, list[str]]:
     unc = ev["uncertainty"]
     if not unc["image_px"] <= cfg.sigma_failed_px:
         failed.append(f"the data do not fix the pose (1-sigma {unc['image_px']:.2f} px)")
-    elif unc["image_px"] > cfg.sigma_ok_px:
+    elif unc["image_px"] > (cfg.sigma_ok_px_nid if ev.get("objective") == "nid" else cfg.sigma_ok_px):
         suspect.append(f"the pose is weakly determined (1-sigma {unc['image_px']:.2f} px, {unc['translation_mm']:.1f} mm)")
     finest = ev["convergence"]["levels"][-1]
     if finest["stop"] != "converged":
@@ -264,7 +311,10 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
     ev["convergence"] = {"levels": result.levels,
                          "damping_ran_away": any(lv["stop"] == "damping ran away" for lv in result.levels)}
     init_sigma = (init_meta or {}).get("uncertainty")
-    if cfg.repeats > 0:
+    frames = len(getattr(aligner.objective, "frames", ()))
+    if cfg.repeats > 0 and cfg.folds > 1 and frames >= cfg.folds:  # the frames' own agreement: no repeats needed on top
+        ev["frames"] = timed("frames", frame_folds, aligner, result, view, cfg)
+    elif cfg.repeats > 0:
         ev["repeatability"] = timed("repeatability", repeatability, aligner, result, T_init, view, cfg, init_sigma, seed)
     if result.objective != "nid":  # NID's values rise by 1e-5..1e-3: its uncertainty, from their Hessian, stands for it
         ev["sharpness"] = timed("sharpness", sharpness, aligner, T, M, cfg.sharpness_step_px, cfg.sharpness_level,
@@ -281,6 +331,9 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
 
     score = timed("edges", edge_check)
     ev["edges"] = score.as_dict()
+    rings = timed("ring_edges", aligner.ring_edge_check, T, cfg.edge_shift_px)
+    if rings is not None:
+        ev["ring_edges"] = rings
     if check is not None:
         ev["check"] = check_pairs(check, camera, T_init, T)
     moved_mm, moved_deg = translation_error_m(T, T_init) * 1e3, rotation_error_deg(T, T_init)

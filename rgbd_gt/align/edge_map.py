@@ -1,0 +1,42 @@
+"""The photo's side of the ring-edge term (Levinson and Thrun, RSS 2013): an edge image that
+falls off slowly with the distance to the nearest strong intensity edge, so that a sweep's depth
+discontinuities (`render.rings.ring_steps`) score by how near they land to one and the score has
+a gradient tens of pixels out, where the basin of a coarse init lies."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from rgbd_gt.scan import LUMA
+
+DECAY = 0.98  # per pixel of chessboard distance from an edge (Levinson and Thrun's gamma) ...
+REACH_PX = 40  # ... out to this far
+OWN_SHARE = 1 / 3  # the edge's own strength in the map, the rest its spread (their alpha)
+
+
+def edge_strength(image: torch.Tensor) -> np.ndarray:
+    """(H, W, 3) photo in [0, 1] -> (H, W) float32 in [0, 1]: the largest gray difference to the
+    8 neighbours, scaled by its 99th percentile."""
+    import cv2
+
+    gray = (image.detach().cpu().double() * torch.tensor(LUMA, dtype=torch.float64)).sum(2).numpy().astype(np.float32)
+    box = np.ones((3, 3), np.uint8)
+    e = np.maximum(cv2.dilate(gray, box) - gray, gray - cv2.erode(gray, box))
+    scale = max(float(np.percentile(e[:: max(1, e.shape[0] // 400), :: max(1, e.shape[1] // 400)], 99)), 1e-6)
+    return np.clip(e / scale, 0, 1)
+
+
+def edge_distance_map(image: torch.Tensor) -> torch.Tensor:
+    """(H, W, 3) photo in [0, 1] -> (H, W, 1) in [0, 1]: OWN_SHARE E + (1 - OWN_SHARE) max over
+    pixels q within REACH_PX of E(q) DECAY^d(p, q), E the `edge_strength` (chessboard distance:
+    REACH_PX dilations)."""
+    import cv2
+
+    e = edge_strength(image)
+    spread = e.copy()
+    box = np.ones((3, 3), np.uint8)
+    for _ in range(REACH_PX):
+        spread = np.maximum(e, DECAY * cv2.dilate(spread, box))
+    out = OWN_SHARE * e + (1 - OWN_SHARE) * spread
+    return torch.as_tensor(out[:, :, None], device=image.device, dtype=image.dtype)

@@ -1,0 +1,165 @@
+"""LiDAR drives with the data sets' own calibrations (KITTI, Waymo: ../shared/data/lidar_camera):
+the sweeps' depth steps along their rings, the ring-edge term of the NID objective and its
+gradient, the ring-edge image check against chance, and the verdict of a joint solve over
+several frames judged against each other."""
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import DATA
+from rgbd_gt.align.config import RefineConfig
+from rgbd_gt.pose import apply_update, translated
+from rgbd_gt.render.rings import ring_steps
+
+DRIVES = DATA / "lidar_camera"
+
+
+def _drive(name: str, frames: list[int]):
+    """Scenes (`benchmarks.lidar.Scene`) of frames of a drive folder (pcd/, img/, gt.json)."""
+    from benchmarks.lidar import drive_scenes
+
+    folder = DRIVES / name
+    if not (folder / "gt.json").exists():
+        pytest.skip(f"needs {folder} (../shared/data, see its README)")
+    return drive_scenes(folder, frames)
+
+
+def test_ring_steps_mark_the_nearer_side_of_a_depth_jump():
+    """A ring at 10 m with a pole at 6 m across 10 of its returns: the pole's two outer returns
+    are nearer than their neighbours by the difference of their ranges, nothing else steps; shuffled, the points are no sweep
+    in ring order."""
+    az = np.radians(np.arange(0, 360, 0.2))
+    r = np.full(az.size, 10.0)
+    r[100:110] = 6.0
+    xyz = np.stack([r * np.cos(az), r * np.sin(az), np.full(az.size, -1.0)], 1)
+    steps = ring_steps(xyz)
+    assert steps is not None and steps.dtype == np.float32
+    np.testing.assert_allclose(steps[[100, 109]], np.hypot(10, 1) - np.hypot(6, 1), atol=1e-5)  # ranges, not distances in the plane
+    assert np.count_nonzero(steps > 1e-6) == 2
+    assert ring_steps(xyz[np.random.default_rng(0).permutation(az.size)]) is None
+
+
+def test_kitti_and_waymo_sweeps_get_ring_steps_when_prepared():
+    """Both files keep the sensor's order: about a tenth of their returns step by 10 cm or more."""
+    for name, frame in (("kitti_00", 0), ("waymo", 0)):
+        (scene,) = _drive(name, [frame])
+        steps = np.asarray(scene.prepared.arrays["edge"])
+        assert steps.shape == (len(scene.scan),)
+        share = float(np.mean(steps >= 0.1))
+        assert 0.03 < share < 0.3, (name, share)
+
+
+def test_edge_term_gradient_is_autograds():
+    """The closed-form gradient of NID plus the ring-edge term equals autograd's on a real KITTI
+    frame, 0.6 deg and 8 cm from the reference."""
+    from rgbd_gt.align.refine import make_aligner
+    from benchmarks.lidar import refine_inputs
+
+    (s,) = _drive("kitti_00", [0])
+    al = make_aligner(refine_inputs(s, s.T_ref), RefineConfig(objective="nid", edge_weight=1.0), "cpu")
+    obj = al.objective
+    T_local = translated(s.T_ref, obj.centre)
+    obj.prepare(T_local)
+    parts = obj._parts(1, T_local)
+    assert parts[0].edge_points is not None and len(parts[0].edge_points) > 1000
+    weights = torch.ones(1, dtype=torch.float64)
+    d = torch.as_tensor(np.r_[np.radians([0.3, -0.4, 0.3]), 0.05, -0.03, 0.05], dtype=torch.float64).requires_grad_(True)
+    at = obj._evaluate(parts, T_local, d, weights)
+    assert float(at.edge.detach()) > 0
+    at.objective(weights).backward()
+    closed, auto = at.gradient.detach().numpy(), d.grad.numpy()
+    np.testing.assert_allclose(closed, auto, rtol=1e-5, atol=1e-6 * np.abs(auto).max())  # autograd: float32 geometry
+
+
+def test_ring_edge_check_tells_the_reference_from_a_wrong_pose():
+    """Over 4 KITTI frames at the reference the sweeps' depth edges land on the photos' edges
+    well above chance; 1 deg off they do not."""
+    from rgbd_gt.align.refine import make_aligner
+    from benchmarks.lidar import refine_inputs
+
+    scenes = _drive("kitti_00", [0, 5, 10, 15])
+    inputs = [refine_inputs(s, s.T_ref) for s in scenes]
+    al = make_aligner(inputs[0], RefineConfig(objective="nid"), "cpu", inputs[1:])
+    al.prepare(scenes[0].T_ref)
+    right = al.ring_edge_check(scenes[0].T_ref, 6)
+    wrong = al.ring_edge_check(apply_update(scenes[0].T_ref, np.r_[np.radians([0.0, 1.0, 0.0]), 0, 0, 0]), 6)
+    assert right["ring_edges"] > 2000
+    cfg = RefineConfig().verify
+    assert right["ratio"] >= cfg.ring_edge_ratio_ok, right
+    assert wrong["ratio"] < right["ratio"] - 0.1, (right, wrong)
+
+
+def test_a_sweep_is_judged_by_its_ring_edges_and_its_frames_agreement():
+    """decide(): where the rendered sweep is too sparse for the structural edge check, the ring
+    edges stand in for it; the frames refined apart in groups fail a result they end far from and
+    leave one they end a few pixels from suspect; agreeing frames and clear ring edges are `ok`."""
+    from rgbd_gt.align.config import VerifyConfig
+    from rgbd_gt.align.verify import decide
+
+    cfg = VerifyConfig()
+    ev = {"objective": "nid", "uncertainty": {"image_px": 0.3, "translation_mm": 4.0},
+          "convergence": {"levels": [{"stop": "converged"}]},
+          "edges": {"edge_check_usable": False, "splat_radius_px": 30},
+          "ring_edges": {"ring_edges": 5000, "ratio": 1.25},
+          "frames": {"folds": 2, "spread_px": 0.7, "spread_photo_px": 0.6, "spread_mm": 8.0, "spread_deg": 0.03}}
+    assert decide(ev, cfg) == ("ok", [])  # a Laplace 1-sigma of 0.3 px is ok for nid (sigma_ok_px_nid)
+    weak = decide({**ev, "ring_edges": {"ring_edges": 5000, "ratio": 1.1}}, cfg)
+    assert weak[0] == "suspect" and "weakly" in weak[1][0]
+    assert decide({**ev, "ring_edges": {"ring_edges": 5000, "ratio": 1.0}}, cfg)[0] == "failed"
+    assert "too few" in decide({**ev, "ring_edges": {"ring_edges": 50, "ratio": 1.3}}, cfg)[1][0]
+    rough = decide({**ev, "frames": {**ev["frames"], "spread_px": 4.0}}, cfg)
+    assert rough[0] == "suspect" and "roughly" in rough[1][0]
+    far = decide({**ev, "frames": {**ev["frames"], "spread_px": cfg.spread_failed_px_nid + 1}}, cfg)
+    assert far[0] == "failed" and "frames disagree" in far[1][0]
+
+
+def test_joint_solve_of_kitti_frames_is_judged_by_its_frames_apart(tmp_path):
+    """`refine --pairs` over 4 KITTI frames (3 levels, no wide search, to keep it short) from
+    0.3 deg and 5 cm off: the verdict refines the frames in 2 groups apart from the result instead
+    of the repeats and reports how far each ended from it; the ring-edge check runs over all 4;
+    the pose file and the summary say both."""
+    import yaml
+
+    from conftest import run_cli
+    from rgbd_gt.io import read_pose, write_pose
+
+    folder = DRIVES / "kitti_00"
+    if not (folder / "gt.json").exists():
+        pytest.skip(f"needs {folder} (../shared/data, see its README)")
+    names = [p.stem for p in sorted((folder / "img").iterdir())][:16:5]
+    (tmp_path / "pairs.yaml").write_text(yaml.safe_dump({"pairs": [
+        {"scan": str(folder / "pcd" / f"{n}.pcd"), "image": str(folder / "img" / f"{n}.png")} for n in names]}))
+    T_ref = read_pose(folder / "gt.json")[0]
+    write_pose(tmp_path / "init.yaml", apply_update(T_ref, np.r_[np.radians([0.2, -0.2, 0.1]), 0.03, -0.03, 0.03]))
+    out = tmp_path / "rig.yaml"
+    proc = run_cli("refine", "--pairs", tmp_path / "pairs.yaml", "--camera", folder / "gt.json", "--init", tmp_path / "init.yaml",
+                   "-o", out, "--levels", "3", "--search-starts", "0")
+    assert proc.returncode == 0, proc.stderr
+    assert "frames apart" in proc.stdout and "ring edges vs chance" in proc.stdout
+    _, meta = read_pose(out)
+    ev = meta["evidence"]
+    assert meta["pairs"] == 4 and meta["edge_weight"] == 1.0
+    assert "repeatability" not in ev and ev["frames"]["folds"] == 2
+    assert [g["frames"] for g in ev["frames"]["groups"]] == [[0, 2], [1, 3]]
+    assert all(np.isfinite(g["px"]) for g in ev["frames"]["groups"])
+    assert ev["ring_edges"]["ring_edges"] > 2000 and ev["ring_edges"]["ratio"] > 1.0
+    assert set(ev["seconds"]) >= {"frames", "ring_edges"}
+
+
+def test_one_sweep_alone_is_warned_about(tmp_path):
+    """refine on a single KITTI sweep (1 level, no search or repeats, to keep it short) warns that
+    one sweep fixes the pose poorly and points to --pairs; the pose file keeps the warning."""
+    from conftest import run_cli
+    from rgbd_gt.io import read_pose
+
+    folder = DRIVES / "kitti_00"
+    if not (folder / "gt.json").exists():
+        pytest.skip(f"needs {folder} (../shared/data, see its README)")
+    out = tmp_path / "pose.yaml"
+    proc = run_cli("refine", "--scan", folder / "pcd" / "000000.pcd", "--image", folder / "img" / "000000.png",
+                   "--camera", folder / "gt.json", "--init", folder / "gt.json", "-o", out,
+                   "--levels", "1", "--search-starts", "0", "--repeats", "0")
+    assert proc.returncode == 0, proc.stderr
+    assert "--pairs" in proc.stderr + proc.stdout
+    assert any("--pairs" in w for w in read_pose(out)[1]["warnings"])
