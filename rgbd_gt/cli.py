@@ -403,7 +403,7 @@ def refine(
     max_points: Optional[int] = typer.Option(None, "--max-points", help="Scan points used at full resolution."),
     beta_max: Optional[float] = typer.Option(None, "--beta-max", help="Color inlier threshold of the color fit."),
     check: Optional[Path] = typer.Option(None, "--check", help="CSV u,v,x,y,z of held-out picked pairs: their reprojection error at the init and after refine goes into the verdict."),
-    repeats: Optional[int] = typer.Option(None, "--repeats", help="Refine again from this many starts around the init to check the result is reproduced (default 4; 0 skips it). Several frames of one rig (--pairs) are instead solved in groups apart (verify.folds in the config); 0 skips that too."),
+    repeats: Optional[int] = typer.Option(None, "--repeats", help="Refine again from this many starts around the init to check the result is reproduced (default 4; 0 skips it). Several frames of one rig (--pairs) are instead refined in groups apart from the result (verify.folds in the config); 0 skips that too."),
     strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when the verdict is 'failed' (the pose file is still written, with the verdict)."),
     refine_intrinsics: Optional[str] = typer.Option(None, "--refine-intrinsics", help="Also refine the camera, for photos whose calibration is rough: focal, focal+principal, focal+principal+k1k2 or full (OpenCV's five distortion coefficients: k1 k2 p1 p2 k3) (default none). The refined camera goes into the pose file (intrinsics) and, with --camera-out, into a camera file."),
     camera_out: Optional[Path] = typer.Option(None, "--camera-out", help="With --refine-intrinsics: write the refined camera here (YAML), for export-depth and overlay."),

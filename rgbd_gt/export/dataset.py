@@ -203,11 +203,12 @@ def _photos(prepared, source: Source, chosen: list[Shot], prefix: str, out: Path
             plain: dict, frames: dict, progress) -> None:
     """plain and nerfstudio: each photo undistorted with its depth products, written by `writer`
     (one photo in flight) while the next renders."""
+    from rgbd_gt.export.formats import nerfstudio_folder
     from rgbd_gt.export.stereo import pinhole
     from rgbd_gt.io.image import read_image, read_mask
 
     writing = None
-    nerf = out / "nerfstudio" / prefix.rstrip("_")
+    nerf = nerfstudio_folder(out, source.name if prefix else None)
 
     def collect(done) -> None:
         name, entry, frame = done.result()

@@ -112,6 +112,12 @@ def write_colmap(folder: Path, shots: list, seen: list[tuple[np.ndarray, np.ndar
         + "".join(f"{h}{t}\n" for h, t in zip(head, tracks)))
 
 
+def nerfstudio_folder(out: Path, scan: str | None = None) -> Path:
+    """An export's nerfstudio scene of a scan's photos: OUT/nerfstudio, or for a site (several
+    scans, each its own world frame) OUT/nerfstudio/SCAN."""
+    return out / "nerfstudio" / scan if scan else out / "nerfstudio"
+
+
 def nerfstudio_frame(folder: Path, name: str, p) -> dict:
     """One photo's nerfstudio files, images/NAME.png (the undistorted photo, as plain's) and
     depth/NAME.png (uint16 millimetres, z-depth), and its frame of transforms.json: its camera

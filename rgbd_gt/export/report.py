@@ -98,13 +98,14 @@ def write_report(path: Path, sources: list, folder: Path | None = None, exported
     assets = path.parent / "report"
     assets.mkdir(parents=True, exist_ok=True)
     several = len(sources) > 1
-    photos = [(f"{src.name}_{s.name}" if several else s.name, s) for src in sources for s in src.photos]
+    photos = [(f"{src.name}_{s.name}" if several else s.name, s, src.name if several else None)
+              for src in sources for s in src.photos]
     missing = [(f"{src.name}_{n}" if several else n, why) for src in sources for n, why in src.missing.items()]
     figures = exported.photos if exported is not None else {}
-    sections = "".join(_photo_section(name, s, assets, folder, figures.get(name) or {}) for name, s in photos)
+    sections = "".join(_photo_section(name, s, scan, assets, folder, figures.get(name) or {}) for name, s, scan in photos)
     pairs = "".join(_pair_section(key, pair, folder, assets) for key, pair in exported.pairs.items()) \
         if exported is not None and folder is not None else ""
-    counts = ", ".join(f"{sum(s.verdict == v for _, s in photos)} {v}" for v in VERDICT_ORDER)
+    counts = ", ".join(f"{sum(s.verdict == v for _, s, _ in photos)} {v}" for v in VERDICT_ORDER)
     counts += f", {len(missing)} without a pose" if missing else ""
     n = len(photos) + len(missing)
     page = (f'<!DOCTYPE html><html><head><meta charset="utf-8"><title>rgbd-gt report</title><style>{STYLE}</style></head><body>'
@@ -115,11 +116,12 @@ def write_report(path: Path, sources: list, folder: Path | None = None, exported
         tmp.write_text(page)
 
 
-def _photo_section(name: str, s, assets: Path, folder: Path | None, figures: dict) -> str:
+def _photo_section(name: str, s, scan: str | None, assets: Path, folder: Path | None, figures: dict) -> str:
     """A photo's part of the page: its pictures (the photo; the run's overlay, points and qa
     pictures; the depth preview from the run's or the export's millimetre PNG, which a preview
     needs no more than and reads 5x quicker than the EXR), verdict, 1-sigmas, export figures,
     reasons and evidence."""
+    from rgbd_gt.export.formats import nerfstudio_folder
     from rgbd_gt.io.depth_file import read_png16
     from rgbd_gt.io.image import read_image
 
@@ -129,7 +131,7 @@ def _photo_section(name: str, s, assets: Path, folder: Path | None, figures: dic
                         ("qa: edges", "qa.png")):
         if (here / file).is_file():
             pictures.append((label, _thumb(read_image(here / file), assets / f"{name}_{file}")))
-    shown = [here / "depth.png"] + ([folder / "plain" / name / "depth.png", folder / "nerfstudio" / "depth" / f"{name}.png"]
+    shown = [here / "depth.png"] + ([folder / "plain" / name / "depth.png", nerfstudio_folder(folder, scan) / "depth" / f"{name}.png"]
                                     if folder else [])
     depth_file = next((f for f in shown if f.is_file()), None)
     scale = ""
@@ -179,7 +181,7 @@ def _table(photos: list, missing: list) -> str:
     """The table of every photo, sortable by a click on a column (SORT_SCRIPT sorts on data-sort)."""
     head = ["photo", "verdict", "rotation 1-sigma (deg)", "translation 1-sigma (mm)", "image 1-sigma (px)", "reasons"]
     rows = []
-    for n, s in photos:
+    for n, s, _ in photos:
         u = s.evidence.get("uncertainty") or {}
         rows.append(f'<tr><td data-sort="{html.escape(n)}"><a href="#{html.escape(n)}">{html.escape(n)}</a></td>'
                     f'<td data-sort="{VERDICT_ORDER.get(s.verdict, 3)}" class="{s.verdict}">{s.verdict}</td>'
