@@ -227,7 +227,9 @@ def whole_scan_geometry(read: Scan) -> Scan:
     a view alone they differ at depth edges: the stretch test's limit follows the angular step,
     which a view's own grid gives a few percent off (pumpA: 4%; normals of 1% of the points in a
     view more than 5 deg apart, 167 pixels of its depth map up to 5 m apart). A sweep in ring
-    order gets its depth steps along the rings (`Scan.edge`), for the aligner's edge term."""
+    order and without color gets its depth steps along the rings (`Scan.edge`), for the nid
+    objective's edge term (a colored scan is aligned by its colors: asking whether it is a sweep
+    would cost a dense scan's refine a nearest-neighbour search, open3d's import among it)."""
     from rgbd_gt.render.mesh import grid_cell_bits, grid_normals
     from rgbd_gt.render.normals import oriented, with_normals
     from rgbd_gt.render.points import is_sweep
@@ -240,7 +242,7 @@ def whole_scan_geometry(read: Scan) -> Scan:
     scan = with_normals(scan)
     if scan.has_grid:
         return dataclasses.replace(scan, cell_bits=grid_cell_bits(scan))
-    if scan.edge is None and is_sweep(scan):  # a view's points are block-ordered: the rings' order is lost there
+    if scan.edge is None and scan.rgb is None and is_sweep(scan):  # a view's points are block-ordered: the rings' order is lost there
         scan = dataclasses.replace(scan, edge=ring_steps(scan.xyz, scan.origins[0] if len(scan.origins) else None))
     return scan
 
