@@ -823,14 +823,17 @@ def run_workflow(
     every photo works on the part of it its view reaches. Every refined pose gets a verdict
     (ok | suspect | failed); depth maps are written for ok and suspect poses only (unless
     --export-failed). Steps whose outputs exist are skipped (a rerun resumes, with any engine); a
-    photo that fails is reported and the others go on. Writes OUTPUT/<photo>/... (a site:
-    OUTPUT/<scan>/<photo>/...) and OUTPUT/summary.csv."""
+    photo that fails is reported and the others go on. A site whose scans are the frames of one
+    LiDAR-camera rig (sweeps, a photo each, one init and camera; `rig:` in the config) gets one
+    pose solved over all frames first (OUTPUT/rig.yaml), as refine --pairs does. Writes
+    OUTPUT/<photo>/... (a site: OUTPUT/<scan>/<photo>/...) and OUTPUT/summary.csv."""
     import dataclasses
 
     from rgbd_gt.config import load_config
     from rgbd_gt.engine import CACHE_FOLDER, PhotoTask, check_ray_address, failed, prepare_job, run_local, run_ray
     from rgbd_gt.io.outputs import Outputs, hold_folder
-    from rgbd_gt.workflow import RunConfig, job_camera, resolve, shared_camera, verdict_counts, write_run_record, write_summary
+    from rgbd_gt.workflow import (RunConfig, job_camera, not_a_rig, resolve, shared_camera, solve_rig, verdict_counts,
+                                  write_run_record, write_summary)
 
     if ray_address is not None and workers != 1:
         raise InputError("--workers is for local runs; on Ray every photo is a task (give one or the other)")
@@ -848,6 +851,9 @@ def run_workflow(
     # checked only: each step commits its own files, so that a rerun resumes where one stopped
     Outputs(inputs).folder(out_dir, "output")
     cameras = {j.name: job_camera(j) for j in jobs}
+    why_not = not_a_rig(jobs) if cfg.rig is not False else "rig: false"
+    if cfg.rig and why_not:
+        raise InputError(f"rig: {why_not}", config)
     if ray_address is not None:
         check_ray_address(ray_address)
     held = hold_folder(out_dir, "output")  # noqa: F841 (held until the process ends)
@@ -882,6 +888,8 @@ def run_workflow(
                           f"in {p.seconds:.1f} s", highlight=False)
 
         def tasks_of(p) -> list[PhotoTask]:
+            if p.job.name in rig_failed:
+                return []
             camera, run_cfg = cameras[p.job.name], cfg
             if cfg.refine.refine_intrinsics != "none":  # one camera for all photos, then their poses with it
                 from rgbd_gt.prepared import open_prepared
@@ -893,15 +901,40 @@ def run_workflow(
                 run_cfg = dataclasses.replace(cfg, refine=dataclasses.replace(cfg.refine, refine_intrinsics="none"))
             return [PhotoTask(photo, p.job, p.folder, camera, run_cfg, export_failed) for photo in p.job.photos]
 
+        ready: dict = {}  # the jobs prepared here already
+        rig_failed: dict[str, str] = {}  # the frames of a rig whose joint solve failed: the error
+        if why_not is None:  # a rig's frames, or sweeps that may be: all prepared first
+            from rgbd_gt.prepared import open_prepared
+
+            for job in jobs:
+                bar.update(task, description=job.name)
+                ready[job.name] = prepare_job(job, cache_root, step)
+                report(ready[job.name])
+            frames = [p for p in ready.values() if not p.error]
+            scans = [open_prepared(p.folder, p.job.scan) for p in frames]
+            if len(frames) >= 2 and (cfg.rig or all(s.is_sweep() for s in scans)):
+                bar.update(task, description="rig")
+                try:
+                    _, meta = solve_rig([p.job for p in frames], scans, cameras[frames[0].job.name], cfg, out_dir, step)
+                    out.print(f"rig: one pose over {len(frames)} frames, {meta['verdict']}; wrote {out_dir / 'rig.yaml'}",
+                              highlight=False)
+                except InputError as exc:  # no frame is solved alone instead: a single sweep fixes its pose poorly
+                    err.print(f"rig: failed: {exc}", markup=False, highlight=False)
+                    rig_failed.update((p.job.name, f"the rig's joint solve: {exc}") for p in frames)
         if ray_address is not None:
-            results = run_ray(jobs, tasks_of, cache_root, ray_address, report, done)
+            results = run_ray(jobs, tasks_of, cache_root, ray_address, lambda p: p.job.name in ready or report(p), done)
+            for job in jobs:
+                for r in failed(job, rig_failed[job.name]) if job.name in rig_failed else []:
+                    results.append(r)
+                    done(r)
         else:
             for job in jobs:
                 bar.update(task, description=job.name)
-                p = prepare_job(job, cache_root, step)
-                report(p)
-                if p.error:
-                    for r in failed(job, p.error):
+                p = ready.get(job.name) or prepare_job(job, cache_root, step)
+                if job.name not in ready:
+                    report(p)
+                if p.error or job.name in rig_failed:
+                    for r in failed(job, p.error or rig_failed[job.name]):
                         results.append(r)
                         done(r)
                     continue

@@ -94,6 +94,15 @@ class PreparedScan:
         """Every point, as a `Scan` (block-ordered)."""
         return self.subset(slice(None))
 
+    def is_sweep(self) -> bool:
+        """Whether the scan is a LiDAR sweep (`render.points.is_sweep`), asked of the stored
+        arrays as they are (a dense scan's are not all read into memory for it)."""
+        from rgbd_gt.render.points import is_sweep
+
+        a = self.arrays
+        return is_sweep(Scan(xyz=a["xyz"], **{k: a[k] for k in ("row", "col", "scan_id", "ring") if k in a},
+                             origins=self.origins - self.centre))
+
     def near(self, lo: np.ndarray, hi: np.ndarray) -> Scan:
         """The points of the blocks that meet the box [lo, hi] (metres, scan frame)."""
         return self.subset(block_points(self.blocks, self._meeting(lo, hi)))

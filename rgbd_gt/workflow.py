@@ -75,6 +75,10 @@ class RunConfig:
     # rendered from them (false); null: points for sweeps (`render.points.is_sweep`)
     depth_points: bool | None = None
     scans: list[SiteScan] = field(default_factory=list)
+    # the site's scans as the frames of one LiDAR-camera rig (a sweep and its photo each, one init,
+    # one camera): one pose solved over all of them (`refine --pairs`), OUTPUT/rig.yaml and each
+    # frame's pose.yaml; null: so when the scans are sweeps (`render.points.is_sweep`) that qualify
+    rig: bool | None = None
 
     def check(self) -> "RunConfig":
         if not self.output:
@@ -85,6 +89,8 @@ class RunConfig:
             raise ValueError(f"max_depth must be 0 or more, got {self.max_depth}")
         if self.scans and (self.scan or self.photos):
             raise ValueError("give either scan and photos (one scan) or scans (a site), not both")
+        if self.rig and len(self.scans) < 2:
+            raise ValueError("rig: true solves the frames of a site (scans:, two or more) together")
         self.board.check()
         for k, s in enumerate(self.scans):
             if s.board is not None:
@@ -218,7 +224,6 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     scan (`prepared.PreparedScan`) its view can reach; the initial pose from job.init (a pose file)
     when given, else from the board. The depth map is written only for a pose whose verdict is ok or
     suspect, unless export_failed."""
-    from rgbd_gt.align.refine import RefineInputs
     from rgbd_gt.io import read_pose, write_pose
     from rgbd_gt.io.atomic import atomic_output
     from rgbd_gt.io.image import write_image
@@ -228,7 +233,7 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     from rgbd_gt.qa.edges import as_json
     from rgbd_gt.render.depth import back_facing_fraction
     from rgbd_gt.render.renders import Renders
-    from rgbd_gt.steps import depth_step, open_photo, overlay_paths, overlay_step, qa_step, refine_step, write_depth
+    from rgbd_gt.steps import depth_step, overlay_paths, overlay_step, qa_step, refine_step, write_depth
 
     start = time.perf_counter()
     res = PhotoResult(photo.name)
@@ -243,32 +248,20 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
         return prepared.xyz_around(camera_centre(T), verticals.REACH, verticals.MAX_POINTS)
 
     d = job.out / photo.stem
-    d.mkdir(parents=True, exist_ok=True)
     files = {"init": d / "init.yaml", "refine": d / "pose.yaml", "depth": d / "depth.exr", "qa": d / "qa.json",
              "overlay": d / "overlay.png"}
-    image = open_photo(photo, camera, to_align=True, camera_path=job.camera).image
-
     progress("init-pose")
     if files["init"].exists():
         res.skipped.append("init")
-    T_init, init_meta = initial_pose(photo, image, prepared, camera, job, files["init"])
-    res.init_rms_px = init_meta.get("reprojection_rms_px")
-    lap("init")
-    seen = prepared.view_index(camera, T_init)
-    if len(seen) == 0:
-        raise InputError("no scan points in view of the initial pose", files["init"])
-    scan = prepared.subset(seen)
-    # the verdict renders the result, qa the init beside it: one ray-casting scene; depth, qa and
-    # the overlay take the verdict's render where they ask for the same camera and pose
-    renders = Renders(scan, scan_colors(scan, prepared.source), [T_init])
-    lap("view")
+    inputs, seen = photo_inputs(photo, prepared, camera, job, lap)
+    image, T_init, scan, renders = inputs.photo, inputs.T_init, inputs.scan, inputs.renders
+    res.init_rms_px = inputs.init_meta.get("reprojection_rms_px")
 
     progress("refine")
     if files["refine"].exists():
-        res.skipped.append("refine")
+        if "rig" not in read_pose(files["refine"])[1]:  # a rig's frame: solved with the others before its steps
+            res.skipped.append("refine")
     else:
-        inputs = RefineInputs(scan.xyz, scan_colors(scan, prepared.source, to_align=True), image, camera, T_init, None,
-                              scan, init_meta, around(T_init), renders)
         refined = refine_step(inputs, cfg.refine, files["init"], cfg.device, job.camera)
         write_pose(files["refine"], refined.T, **refined.meta)
         res.steps["aligner"] = round(refined.result.seconds, 3)
@@ -330,6 +323,37 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     return res
 
 
+def photo_inputs(photo: Path, prepared, camera, job: ScanJob, lap: Callable[[str], None] = lambda step: None):
+    """A photo of `job` as the refine step takes it (`align.refine.RefineInputs`): the photo, its
+    initial pose (`initial_pose`, into job.out/<photo stem>/init.yaml), the points of the prepared
+    scan (`prepared.PreparedScan`) in its view and around its camera, and their renders; and the
+    view's indices (block order). lap(step) is called after the init and after the view."""
+    from rgbd_gt.align.refine import RefineInputs
+    from rgbd_gt.pose import camera_centre
+    from rgbd_gt.qa import verticals
+    from rgbd_gt.render.renders import Renders
+    from rgbd_gt.scan import scan_colors
+    from rgbd_gt.steps import open_photo
+
+    d = job.out / photo.stem
+    d.mkdir(parents=True, exist_ok=True)
+    image = open_photo(photo, camera, to_align=True, camera_path=job.camera).image
+    T_init, init_meta = initial_pose(photo, image, prepared, camera, job, d / "init.yaml")
+    lap("init")
+    seen = prepared.view_index(camera, T_init)
+    if len(seen) == 0:
+        raise InputError("no scan points in view of the initial pose", d / "init.yaml")
+    scan = prepared.subset(seen)
+    # the verdict renders the result, qa the init beside it: one ray-casting scene; depth, qa and
+    # the overlay take the verdict's render where they ask for the same camera and pose
+    renders = Renders(scan, scan_colors(scan, prepared.source), [T_init])
+    around = prepared.xyz_around(camera_centre(T_init), verticals.REACH, verticals.MAX_POINTS)
+    inputs = RefineInputs(scan.xyz, scan_colors(scan, prepared.source, to_align=True), image, camera, T_init, None,
+                          scan, init_meta, around, renders)
+    lap("view")
+    return inputs, seen
+
+
 def made_from_other(recorded: dict, made: dict) -> str | None:
     """The first kind of input whose SHA-1 in `recorded` differs from `made`'s (`made_from`), or
     None. No SHA-1 recorded is no difference: outputs written before they were are resumed."""
@@ -377,6 +401,64 @@ def board_corners(board: BoardConfig) -> np.ndarray | None:
     from rgbd_gt.init.run import read_csv_rows
 
     return read_csv_rows(Path(board.points), "x,y,z") if board.points else None
+
+
+RIG_FILE = "rig.yaml"  # under the run's output folder: the pose of a rig's frames
+
+
+def not_a_rig(jobs: list[ScanJob]) -> str | None:
+    """Why the site's scans cannot be the frames of one rig (`RunConfig.rig`), or None."""
+    if len(jobs) < 2:
+        return "a rig's frames are two or more scans (scans:)"
+    if any(len(j.photos) != 1 for j in jobs):
+        return "each of a rig's scans has one photo, the camera's at that sweep"
+    if any(j.init is None for j in jobs) or len({j.init for j in jobs}) > 1:
+        return "a rig's frames share one init (the config's init: the rig's extrinsic)"
+    if len({j.camera for j in jobs}) > 1:
+        return "a rig's frames share one camera"
+    return None
+
+
+def solve_rig(jobs: list[ScanJob], prepared: list, camera, cfg: RunConfig, out: Path,
+              progress: Callable[[str], None] = lambda step: None) -> tuple[np.ndarray, dict]:
+    """One pose for the frames of a rig (`not_a_rig`: a scan and its photo each; prepared: their
+    `prepared.PreparedScan`s): `steps.refine_step` over all frames at once, the joint solve of
+    `refine --pairs`, judged by its frames refined apart and the sweeps' depth edges. Written to
+    out/rig.yaml (with `frames`) and to each frame's pose.yaml (with `rig`: that file), so that
+    its steps take it. Reused while rig.yaml names the same frames. Returns the pose and its meta."""
+    from rgbd_gt.io import read_pose, write_pose
+    from rgbd_gt.steps import refine_step
+
+    path = out / RIG_FILE
+    names = [f"{j.name}/{j.photos[0].name}" for j in jobs]
+    if path.exists():
+        T, meta = read_pose(path)
+        if meta.get("frames") != names:
+            raise InputError(f"it was solved over other frames ({', '.join(meta.get('frames') or [])}): remove it to "
+                             "solve this config's frames", path)
+    else:
+        solo = [job.out / job.photos[0].stem / "pose.yaml" for job in jobs]
+        solo = [p for p in solo if p.exists() and "rig" not in read_pose(p)[1]]
+        if solo:
+            raise InputError("a frame of the rig was refined alone before: remove its pose.yaml to solve the rig "
+                             "(or set rig: false)", solo[0])
+        inputs = []
+        for job, p in zip(jobs, prepared):
+            progress(f"rig: {job.name}")
+            inputs.append(photo_inputs(job.photos[0], p, camera, job)[0])
+
+        def levels(rec: dict) -> None:
+            progress(f"rig of {len(jobs)} frames: level {rec['level']} iteration {rec['iteration']}")
+
+        first = jobs[0].out / jobs[0].photos[0].stem / "init.yaml"
+        refined = refine_step(inputs[0], cfg.refine, first, cfg.device, jobs[0].camera, levels, more=inputs[1:])
+        T, meta = refined.T, {**refined.meta, "frames": names}
+        write_pose(path, T, **meta)
+    for job in jobs:
+        d = job.out / job.photos[0].stem
+        if not (d / "pose.yaml").exists():
+            write_pose(d / "pose.yaml", T, **{k: v for k, v in meta.items() if k != "frames"}, rig=os.path.relpath(path, d))
+    return T, meta
 
 
 def shared_camera(job: ScanJob, prepared, camera, cfg: RunConfig, progress: Callable[[str], None] = lambda step: None):

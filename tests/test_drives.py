@@ -163,3 +163,52 @@ def test_one_sweep_alone_is_warned_about(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert "--pairs" in proc.stderr + proc.stdout
     assert any("--pairs" in w for w in read_pose(out)[1]["warnings"])
+
+
+def test_run_solves_a_drives_frames_as_one_rig(tmp_path):
+    """`rgbd-gt run` on a site of 4 KITTI sweeps, a photo each, sharing the config's init (0.3
+    deg and 5 cm off the reference) and camera: the sweeps are one rig's frames by default, so
+    one pose is solved over all four (3 levels, no wide search, to keep it short), written to
+    OUTPUT/rig.yaml and to every frame's pose.yaml, whose steps then take it. A rerun resumes it;
+    a rig that is not one is an error."""
+    import csv
+
+    import yaml
+
+    from conftest import assert_one_line_error, run_cli
+    from rgbd_gt.io import read_pose, write_pose
+
+    folder = DRIVES / "kitti_00"
+    if not (folder / "gt.json").exists():
+        pytest.skip(f"needs {folder} (../shared/data, see its README)")
+    names = [p.stem for p in sorted((folder / "img").iterdir())][:16:5]
+    T_ref = read_pose(folder / "gt.json")[0]
+    write_pose(tmp_path / "init.yaml", apply_update(T_ref, np.r_[np.radians([0.2, -0.2, 0.1]), 0.03, -0.03, 0.03]))
+    config = {"camera": str(folder / "gt.json"), "init": "init.yaml", "output": "out",
+              "scans": [{"scan": str(folder / "pcd" / f"{n}.pcd"), "photos": [str(folder / "img" / f"{n}.png")]} for n in names],
+              "refine": {"levels": 3, "search_starts": 0}}
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump(config))
+    proc = run_cli("run", tmp_path / "run.yaml", "--export-failed")
+    assert proc.returncode == 0, proc.stderr
+    assert "rig: one pose over 4 frames" in proc.stdout
+    T, meta = read_pose(tmp_path / "out" / "rig.yaml")
+    assert meta["frames"] == [f"{n}/{n}.png" for n in names] and meta["pairs"] == 4
+    assert meta["evidence"]["frames"]["folds"] == 2 and "ring_edges" in meta["evidence"]
+    rows = list(csv.DictReader(open(tmp_path / "out" / "summary.csv")))[:-1]
+    assert [r["photo"] for r in rows] == [f"{n}.png" for n in names]
+    for n, row in zip(names, rows):
+        T_frame, frame_meta = read_pose(tmp_path / "out" / n / n / "pose.yaml")
+        np.testing.assert_array_equal(T_frame, T)
+        assert frame_meta["rig"] == "../../rig.yaml" and frame_meta["verdict"] == meta["verdict"]
+        assert row["status"] == "ok" and row["verdict"] == meta["verdict"] and "refine" not in row["skipped"], row
+        assert (tmp_path / "out" / n / n / "depth.exr").exists()
+    stamp = (tmp_path / "out" / "rig.yaml").stat().st_mtime_ns
+    proc = run_cli("run", tmp_path / "run.yaml")
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / "out" / "rig.yaml").stat().st_mtime_ns == stamp
+    assert all("refine" not in r["skipped"] and "depth" in r["skipped"] for r in list(csv.DictReader(open(tmp_path / "out" / "summary.csv")))[:-1])
+    # one frame's photo listed twice is no rig's frame
+    config["rig"] = True
+    config["scans"][0]["photos"].append(str(folder / "img" / f"{names[1]}.png"))
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump(config))
+    assert_one_line_error(run_cli("run", tmp_path / "run.yaml"), "rig: each of a rig's scans has one photo")
