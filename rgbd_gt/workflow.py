@@ -251,7 +251,9 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     files = {"init": d / "init.yaml", "refine": d / "pose.yaml", "depth": d / "depth.exr", "qa": d / "qa.json",
              "overlay": d / "overlay.png"}
     progress("init-pose")
-    if files["init"].exists():
+    # a rig's frame: its init and pose were made with the other frames' (`solve_rig`), not skipped
+    rig = files["refine"].exists() and "rig" in read_pose(files["refine"])[1]
+    if files["init"].exists() and not rig:
         res.skipped.append("init")
     inputs, seen = photo_inputs(photo, prepared, camera, job, lap)
     image, T_init, scan, renders = inputs.photo, inputs.T_init, inputs.scan, inputs.renders
@@ -259,7 +261,7 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
 
     progress("refine")
     if files["refine"].exists():
-        if "rig" not in read_pose(files["refine"])[1]:  # a rig's frame: solved with the others before its steps
+        if not rig:
             res.skipped.append("refine")
     else:
         refined = refine_step(inputs, cfg.refine, files["init"], cfg.device, job.camera)
