@@ -439,6 +439,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--rewrite", action="store_true", help="only re-write docs/lidar.md from --work/cases.json and picks.json")
     ap.add_argument("--picks-only", action="store_true", help="run the picked-pairs rows only (the refine rows from --work/cases.json)")
     ap.add_argument("--drives-only", action="store_true", help="run the KITTI and Waymo rows only (the others from --work)")
+    ap.add_argument("--drives", nargs="+", choices=list(DRIVES), default=list(DRIVES),
+                    help="with --drives-only: run these drives' rows (the others' from --work/drives.json)")
     ap.add_argument("--solves", nargs="+", choices=("single", "joint"), default=["single", "joint"],
                     help="the KITTI and Waymo rows to run (the others' from --work/drives.json)")
     ap.add_argument("--objectives", nargs="+", choices=list(OBJECTIVES), default=list(OBJECTIVES),
@@ -459,9 +461,10 @@ def main(argv: list[str] | None = None) -> None:
             return
         t = time.perf_counter()
         if not args.picks_only:
-            kept = [r for r in json.loads(drives.read_text()) if r["solve"].split()[0].strip(",") not in args.solves] \
+            kept = [r for r in json.loads(drives.read_text())
+                    if r["solve"].split()[0].strip(",") not in args.solves or r["drive"] not in args.drives] \
                 if drives.exists() else []
-            save(drives, kept + collect_drives(args.data, args.inits, solves=tuple(args.solves)), t)
+            save(drives, kept + collect_drives(args.data, args.inits, drives=tuple(args.drives), solves=tuple(args.solves)), t)
         if not (args.picks_only or args.drives_only):
             t = time.perf_counter()
             kept = [r for r in json.loads(cases.read_text()) if r["objective"] not in args.objectives] \

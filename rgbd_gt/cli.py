@@ -830,10 +830,10 @@ def run_workflow(
     import dataclasses
 
     from rgbd_gt.config import load_config
-    from rgbd_gt.engine import CACHE_FOLDER, PhotoTask, check_ray_address, failed, prepare_job, run_local, run_ray
+    from rgbd_gt.engine import CACHE_FOLDER, PhotoTask, check_ray_address, failed, prepare_job, rig_first, run_local, run_ray
     from rgbd_gt.io.outputs import Outputs, hold_folder
-    from rgbd_gt.workflow import (RunConfig, job_camera, not_a_rig, resolve, shared_camera, solve_rig, verdict_counts,
-                                  write_run_record, write_summary)
+    from rgbd_gt.workflow import (RunConfig, job_camera, not_a_rig, resolve, shared_camera, verdict_counts, write_run_record,
+                                  write_summary)
 
     if ray_address is not None and workers != 1:
         raise InputError("--workers is for local runs; on Ray every photo is a task (give one or the other)")
@@ -901,26 +901,16 @@ def run_workflow(
                 run_cfg = dataclasses.replace(cfg, refine=dataclasses.replace(cfg.refine, refine_intrinsics="none"))
             return [PhotoTask(photo, p.job, p.folder, camera, run_cfg, export_failed) for photo in p.job.photos]
 
-        ready: dict = {}  # the jobs prepared here already
-        rig_failed: dict[str, str] = {}  # the frames of a rig whose joint solve failed: the error
-        if why_not is None:  # a rig's frames, or sweeps that may be: all prepared first
-            from rgbd_gt.prepared import open_prepared
-
-            for job in jobs:
-                bar.update(task, description=job.name)
-                ready[job.name] = prepare_job(job, cache_root, step)
-                report(ready[job.name])
-            frames = [p for p in ready.values() if not p.error]
-            scans = [open_prepared(p.folder, p.job.scan) for p in frames]
-            if len(frames) >= 2 and (cfg.rig or all(s.is_sweep() for s in scans)):
-                bar.update(task, description="rig")
-                try:
-                    _, meta = solve_rig([p.job for p in frames], scans, cameras[frames[0].job.name], cfg, out_dir, step)
-                    out.print(f"rig: one pose over {len(frames)} frames, {meta['verdict']}; wrote {out_dir / 'rig.yaml'}",
-                              highlight=False)
-                except InputError as exc:  # no frame is solved alone instead: a single sweep fixes its pose poorly
-                    err.print(f"rig: failed: {exc}", markup=False, highlight=False)
-                    rig_failed.update((p.job.name, f"the rig's joint solve: {exc}") for p in frames)
+        ready, rig_failed = {}, {}  # the jobs prepared here already; the frames of a rig that failed: the error
+        if why_not is None:  # a rig's frames, or sweeps that may be
+            bar.update(task, description="rig")
+            ready, rig = rig_first(jobs, cfg, cameras[jobs[0].name], cache_root, out_dir, report, step)
+            if rig is not None and rig.error:
+                err.print(f"rig: failed: {rig.error}", markup=False, highlight=False)
+                rig_failed = {name: f"the rig's joint solve: {rig.error}" for name in rig.frames}
+            elif rig is not None:
+                out.print(f"rig: one pose over {len(rig.frames)} frames, {rig.verdict}; wrote {out_dir / 'rig.yaml'}",
+                          highlight=False)
         if ray_address is not None:
             results = run_ray(jobs, tasks_of, cache_root, ray_address, lambda p: p.job.name in ready or report(p), done)
             for job in jobs:

@@ -76,6 +76,41 @@ def prepare_job(job: ScanJob, cache_root: Path, progress: Callable[[str], None] 
     return out
 
 
+@dataclass
+class Rig:
+    """A rig's joint solve in a run (`workflow.solve_rig`): its frames (job names), the verdict,
+    or the error that stopped it."""
+
+    frames: list[str]
+    verdict: str | None = None
+    error: str = ""
+
+
+def rig_first(jobs: list[ScanJob], cfg: RunConfig, camera, cache_root: Path, out: Path,
+              on_prepared: Callable[[Prepared], None], progress: Callable[[str], None]) -> tuple[dict, Rig | None]:
+    """For a site that may be one rig's frames (`workflow.not_a_rig` said nothing against it):
+    every scan prepared here first (on_prepared each), then, when there are two or more and they
+    are a rig (cfg.rig, or null and every scan a sweep), its pose solved over all of them before
+    any photo's steps. Returns the jobs prepared (by name) and the rig (None: not one)."""
+    from rgbd_gt.prepared import open_prepared
+    from rgbd_gt.workflow import solve_rig
+
+    ready = {}
+    for job in jobs:
+        ready[job.name] = prepare_job(job, cache_root, progress)
+        on_prepared(ready[job.name])
+    frames = [p for p in ready.values() if not p.error]
+    scans = [open_prepared(p.folder, p.job.scan) for p in frames]
+    if len(frames) < 2 or not (cfg.rig or all(s.is_sweep() for s in scans)):
+        return ready, None
+    rig = Rig([p.job.name for p in frames])
+    try:
+        rig.verdict = solve_rig([p.job for p in frames], scans, camera, cfg, out, progress)[1]["verdict"]
+    except InputError as exc:  # no frame is solved alone instead: a single sweep fixes its pose poorly
+        rig.error = str(exc)
+    return ready, rig
+
+
 def photo_task(task: PhotoTask, progress: Callable[[str], None] = lambda step: None) -> PhotoResult:
     """Run one photo's steps; bad input becomes a failed result, as in a local run."""
     from rgbd_gt.prepared import open_prepared

@@ -93,7 +93,8 @@ def test_ring_edge_check_tells_the_reference_from_a_wrong_pose():
 def test_a_sweep_is_judged_by_its_ring_edges_and_its_frames_agreement():
     """decide(): where the rendered sweep is too sparse for the structural edge check, the ring
     edges stand in for it; the frames refined apart in groups fail a result they end far from and
-    leave one they end a few pixels from suspect; agreeing frames and clear ring edges are `ok`."""
+    leave one they end a few pixels from suspect; agreeing frames and clear ring edges are `ok`;
+    agreeing frames make a result with no finite 1-sigma suspect, not failed."""
     from rgbd_gt.align.config import VerifyConfig
     from rgbd_gt.align.verify import decide
 
@@ -112,6 +113,12 @@ def test_a_sweep_is_judged_by_its_ring_edges_and_its_frames_agreement():
     assert rough[0] == "suspect" and "roughly" in rough[1][0]
     far = decide({**ev, "frames": {**ev["frames"], "spread_px": cfg.spread_failed_px_nid + 1}}, cfg)
     assert far[0] == "failed" and "frames disagree" in far[1][0]
+    # a Hessian not positive definite (no finite 1-sigma): suspect where the frames agree, else failed
+    flat = {**ev, "uncertainty": {"image_px": float("inf"), "translation_mm": float("inf")}}
+    verdict, reasons = decide(flat, cfg)
+    assert verdict == "suspect" and len(reasons) == 1 and "weakly along one direction" in reasons[0]
+    assert decide({**flat, "frames": {**ev["frames"], "spread_px": 4.0}}, cfg)[0] == "failed"
+    assert decide({k: v for k, v in flat.items() if k != "frames"}, cfg)[0] == "failed"
 
 
 def test_joint_solve_of_kitti_frames_is_judged_by_its_frames_apart(tmp_path):
