@@ -344,9 +344,8 @@ class Nid:
         p = q + delta[3:].to(R.dtype)
         uv, z = project_pinhole(p, part.photo.K)
         w, h = part.photo.camera.size
-        # an edge that leaves the photo keeps the border's value: the score is continuous
+        # an edge that leaves the photo keeps the border's value (the samplers clamp to it): the score is continuous
         inside_u, inside_v = (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1), (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
-        uv = torch.stack([uv[:, 0].clamp(0, w - 1), uv[:, 1].clamp(0, h - 1)], 1)
         strength = part.edge_strength * (z > 0.1)
         if not with_gradient:
             return (strength * bilinear(part.edge_map, uv)[:, 0].double()).sum(), None
@@ -463,11 +462,9 @@ class Nid:
             ok = _on_photo(photo, uv, z, EDGE_NEAR_M)
             s, uv = strength[ok], uv[ok]
             image = torch.as_tensor(edge_strength(photo.image)[:, :, None], device=self.device)
-            w, h = photo.camera.size
-            limit = torch.tensor([w - 1, h - 1], dtype=uv.dtype, device=self.device)
             score += float((s * bilinear(image, uv)[:, 0]).sum())
-            chance += float(np.mean([float((s * bilinear(image, torch.minimum((uv + d).clamp_min(0), limit))[:, 0]).sum())
-                                     for d in shifts]))
+            # a shift past the border samples the border (`bilinear` clamps)
+            chance += float(np.mean([float((s * bilinear(image, uv + d)[:, 0]).sum()) for d in shifts]))
             weight += float(s.sum())
             count += int(ok.sum())
         return {"ring_edges": count, "score": score / max(weight, 1e-12), "chance": chance / max(weight, 1e-12),

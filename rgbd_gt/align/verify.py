@@ -212,26 +212,33 @@ def check_pairs(pairs: tuple[np.ndarray, np.ndarray], camera: Camera, T_init: np
             "rms_px": reprojection_rms(T, obj, img, camera)}
 
 
+def _ratio_reasons(count: int, ratio: float, failed_below: float, ok_from: float, cfg: VerifyConfig, what: str,
+                   fit: str, failed: list[str], suspect: list[str]) -> None:
+    """An image check's reasons, appended to failed and suspect: too few `what` to score (fewer
+    than cfg.min_edge_pixels), a ratio against chance below failed_below (or not a number), or
+    below ok_from. fit: what the ratio says fits, as the reasons name it."""
+    if count < cfg.min_edge_pixels:
+        suspect.append(f"too few {what} to check against the photo ({count})")
+    elif not ratio >= failed_below:
+        failed.append(f"{fit} no better than chance (ratio {ratio:.2f})")
+    elif ratio < ok_from:
+        suspect.append(f"{fit} weakly (ratio {ratio:.2f})")
+
+
 def decide(ev: dict, cfg: VerifyConfig) -> tuple[str, list[str]]:
     """The verdict and its reasons from the evidence, by the thresholds in cfg (docs/trust.md)."""
     failed, suspect = [], []
     edges, rings = ev.get("edges"), ev.get("ring_edges")
     if rings is not None and edges is not None and not edges["edge_check_usable"]:  # a sweep: its rings' edges instead
-        if rings["ring_edges"] < cfg.min_edge_pixels:
-            suspect.append(f"too few depth edges along the sweep's rings in view to check against the photo ({rings['ring_edges']})")
-        elif not rings["ratio"] >= cfg.ring_edge_ratio_failed:
-            failed.append(f"the sweep's depth edges fit the photo's edges no better than chance (ratio {rings['ratio']:.2f})")
-        elif rings["ratio"] < cfg.ring_edge_ratio_ok:
-            suspect.append(f"the sweep's depth edges fit the photo's edges weakly (ratio {rings['ratio']:.2f})")
+        _ratio_reasons(rings["ring_edges"], rings["ratio"], cfg.ring_edge_ratio_failed, cfg.ring_edge_ratio_ok, cfg,
+                       "depth edges along the sweep's rings in view", "the sweep's depth edges fit the photo's edges",
+                       failed, suspect)
     elif edges is not None:
         if not edges["edge_check_usable"]:
             suspect.append(f"the scan is too sparse to check against the photo's edges (splats of {edges['splat_radius_px']} px)")
-        elif edges["structural_edge_pixels"] < cfg.min_edge_pixels:
-            suspect.append(f"too few structural edges to check against the photo ({edges['structural_edge_pixels']})")
-        elif not edges["edge_ratio"] >= cfg.edge_ratio_failed:
-            failed.append(f"the scan's edges fit the photo no better than chance (ratio {edges['edge_ratio']:.2f})")
-        elif edges["edge_ratio"] < cfg.edge_ratio_ok:
-            suspect.append(f"the scan's edges fit the photo weakly (ratio {edges['edge_ratio']:.2f})")
+        else:
+            _ratio_reasons(edges["structural_edge_pixels"], edges["edge_ratio"], cfg.edge_ratio_failed, cfg.edge_ratio_ok,
+                           cfg, "structural edges", "the scan's edges fit the photo", failed, suspect)
     rep = ev.get("repeatability")
     if rep is not None:
         if rep["spread_px"] > (cfg.spread_failed_px_nid if ev.get("objective") == "nid" else cfg.spread_failed_px):
@@ -242,13 +249,14 @@ def decide(ev: dict, cfg: VerifyConfig) -> tuple[str, list[str]]:
             suspect.append(f"nearby starts agree on the scan's points but not across the photo "
                            f"({rep['spread_photo_px']:.2f} px): the scan fixes the pose where it is only")
     folds = ev.get("frames")
+    fold_px = None if folds is None else max(folds["spread_px"], folds["spread_photo_px"])
     if folds is not None:
         if folds["spread_px"] > cfg.spread_failed_px_nid:
             failed.append(f"the frames disagree: refined apart in {folds['folds']} groups, they end "
                           f"{folds['spread_px']:.1f} px ({folds['spread_mm']:.0f} mm, {folds['spread_deg']:.2f} deg) from the result")
-        elif max(folds["spread_px"], folds["spread_photo_px"]) > cfg.fold_ok_px:
+        elif fold_px > cfg.fold_ok_px:
             suspect.append(f"the frames agree only roughly: refined apart in {folds['folds']} groups, they end "
-                           f"{max(folds['spread_px'], folds['spread_photo_px']):.1f} px from the result")
+                           f"{fold_px:.1f} px from the result")
     sh = ev.get("sharpness")
     if sh is not None:
         if sh["median_rise"] < cfg.sharpness_failed:
@@ -256,8 +264,7 @@ def decide(ev: dict, cfg: VerifyConfig) -> tuple[str, list[str]]:
         elif sh["min_rise"] < cfg.sharpness_ok:
             suspect.append(f"the objective is flat in some direction (smallest rise {sh['min_rise']:.2g} at {sh['step_px']} px)")
     unc = ev["uncertainty"]
-    agree = folds is not None and max(folds["spread_px"], folds["spread_photo_px"]) <= cfg.fold_ok_px
-    if not unc["image_px"] <= cfg.sigma_failed_px and agree:
+    if not unc["image_px"] <= cfg.sigma_failed_px and fold_px is not None and fold_px <= cfg.fold_ok_px:
         # a drive's frames that agree make the result; the objective is flat along one direction
         # (on Waymo: the optical axis with a turn about the vertical), within the noise of its Hessian
         suspect.append(f"the data fix the pose weakly along one direction (1-sigma {unc['image_px']:.2f} px), "
