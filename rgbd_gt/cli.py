@@ -529,41 +529,20 @@ def refine(
 
 def _refine_bundle(bundle: Path, output: Path, cfg, device: str, cache: Optional[Path], strict: bool, start: float) -> None:
     """refine --bundle: the photos solved together (`steps.bundle_step`), their files into the folder `output`."""
-    import json
-
-    from rgbd_gt.io import write_pose
     from rgbd_gt.io.bundle_file import read_bundle
-    from rgbd_gt.io.camera_file import write_camera
     from rgbd_gt.io.outputs import Outputs
-    from rgbd_gt.steps import bundle_step
+    from rgbd_gt.steps import bundle_step, write_bundled
 
     spec = read_bundle(bundle)
-    outs = Outputs([bundle, spec.scan] + [c.file for c in spec.cameras.values()]
-                   + [p for e in spec.photos for p in (e.image, e.init, e.mask) if p is not None]
-                   + [p.pose for p in spec.priors.values()])
+    outs = Outputs([bundle] + spec.files())
     staged = outs.folder(output, "-o")
     outs.checked_folder(cache, "--cache")
     with _progress() as bar:
         task = bar.add_task("bundle", total=None)
         done = bundle_step(spec, cfg, device, cache, progress=lambda message: bar.update(task, description=message))
     with outs:
-        for entry, refined in zip(spec.photos, done.photos):
-            (staged / entry.image.stem).mkdir(parents=True, exist_ok=True)
-            write_pose(staged / entry.image.stem / "pose.yaml", refined.T, **refined.meta)
-        (staged / "cameras").mkdir(exist_ok=True)
-        for name, (camera, keys) in done.cameras.items():
-            write_camera(staged / "cameras" / f"{name}.yaml", camera, **keys)
-        if done.rig is not None:
-            import yaml
-
-            (staged / "rig.yaml").write_text(yaml.safe_dump(done.rig, sort_keys=False, default_flow_style=None))
-        r = done.result
-        summary = {"bundle": str(bundle.resolve()), "photos": [
-            {"image": str(e.image), "pose": f"{e.image.stem}/pose.yaml", "camera": e.camera, "shot": e.shot,
-             "verdict": d.verification.verdict, "reasons": d.verification.reasons, **d.verification.evidence["bundle"]}
-            for e, d in zip(spec.photos, done.photos)], "iterations": r.iterations, "levels": r.levels,
-            "seconds": round(r.seconds, 3), "total_seconds": round(time.perf_counter() - start, 3)}
-        (staged / "bundle.json").write_text(json.dumps(summary, indent=1))
+        write_bundled(staged, spec, done, bundle, time.perf_counter() - start)
+    r = done.result
     table = Table(title=f"refine --bundle: {len(spec.photos)} photos", show_lines=False)
     for col in ("photo", "verdict", "moved from init", "left out", "residual vs others"):
         table.add_column(col)
@@ -811,7 +790,7 @@ def export_dataset(
 
 @app.command("run")
 def run_workflow(
-    config: Path = typer.Argument(..., help="Workflow config: one scan with its photos (configs/example.yaml) or a site, several scans each with its photos (configs/site.yaml)."),
+    config: Path = typer.Argument(..., help="Workflow config: one scan with its photos (configs/example.yaml), a site, several scans each with its photos (configs/site.yaml), or `bundle: BUNDLE.yaml` (several cameras, a stereo rig: docs/bundle.md)."),
     export_failed: bool = typer.Option(False, "--export-failed", help="Also write depth maps for photos whose pose verdict is 'failed'."),
     workers: int = typer.Option(1, "--workers", min=1, max=256, help="Local worker processes, one photo each at a time (the cores are shared out among them)."),
     ray_address: Optional[str] = typer.Option(None, "--ray", help="Run one task per photo on a Ray cluster: 'auto' (the cluster running on this machine) or its ADDRESS (host:port). Every node must see the config's files and the output folder at the same paths (docs/scale.md)."),
@@ -825,15 +804,18 @@ def run_workflow(
     --export-failed). Steps whose outputs exist are skipped (a rerun resumes, with any engine); a
     photo that fails is reported and the others go on. A site whose scans are the frames of one
     LiDAR-camera rig (sweeps, a photo each, one init and camera; `rig:` in the config) gets one
-    pose solved over all frames first (OUTPUT/rig.yaml), as refine --pairs does. Writes
+    pose solved over all frames first (OUTPUT/rig.yaml), as refine --pairs does. A config's
+    `bundle:` (a bundle file: several cameras, a rig) gets its photos solved together first, as
+    refine --bundle does (OUTPUT/bundle.json, cameras/, rig.yaml). Writes
     OUTPUT/<photo>/... (a site: OUTPUT/<scan>/<photo>/...) and OUTPUT/summary.csv."""
     import dataclasses
 
     from rgbd_gt.config import load_config
     from rgbd_gt.engine import CACHE_FOLDER, PhotoTask, check_ray_address, failed, prepare_job, rig_first, run_local, run_ray
+    from rgbd_gt.io.bundle_file import read_bundle
     from rgbd_gt.io.outputs import Outputs, hold_folder
-    from rgbd_gt.workflow import (RunConfig, job_camera, not_a_rig, resolve, shared_camera, verdict_counts, write_run_record,
-                                  write_summary)
+    from rgbd_gt.workflow import (RunConfig, job_camera, not_a_rig, resolve, shared_camera, solve_bundle, verdict_counts,
+                                  write_run_record, write_summary)
 
     if ray_address is not None and workers != 1:
         raise InputError("--workers is for local runs; on Ray every photo is a task (give one or the other)")
@@ -848,6 +830,7 @@ def run_workflow(
                              config) from None
     jobs, out_dir = resolve(config, cfg)
     inputs = [config] + [p for j in jobs for p in (j.scan, j.camera, *j.photos)]
+    inputs += [p for j in jobs if j.bundle is not None for p in (j.bundle, *read_bundle(j.bundle).files())]
     # checked only: each step commits its own files, so that a rerun resumes where one stopped
     Outputs(inputs).folder(out_dir, "output")
     cameras = {j.name: job_camera(j) for j in jobs}
@@ -891,6 +874,13 @@ def run_workflow(
             if p.job.name in rig_failed:
                 return []
             camera, run_cfg = cameras[p.job.name], cfg
+            if p.job.bundle is not None:  # every photo's pose first, solved together
+                solved, rig = solve_bundle(p.job, cfg, cache_root, step)
+                out.print(f"bundle: {len(solved)} photos solved together"
+                          + "".join(f"; rig {n} from {rig['reference']}: baseline {v['baseline_m'] * 1e3:.2f} mm"
+                                    for n, v in (rig or {}).get("relative", {}).items())
+                          + f"; wrote {p.job.out / 'bundle.json'}", highlight=False)
+                return [PhotoTask(photo, job, p.folder, cam, cfg, export_failed) for photo, job, cam in solved]
             if cfg.refine.refine_intrinsics != "none":  # one camera for all photos, then their poses with it
                 from rgbd_gt.prepared import open_prepared
 

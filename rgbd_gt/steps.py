@@ -445,3 +445,36 @@ def bundle_step(spec, cfg, device: str = "auto", cache: PathLike | None = None,
                 "T_cam_from_reference": result.rig[c].tolist(), "baseline_m": float(np.linalg.norm(invert(result.rig[c])[:3, 3])),
                 "sigma": {"rotation_deg": np.degrees(sd[:3]).tolist(), "translation_mm": (sd[3:] * 1e3).tolist()}}
     return Bundled(out, cameras, rig, result)
+
+
+def write_bundled(folder: Path, spec, done: Bundled, bundle: Path, total_seconds: float, **record) -> None:
+    """bundle_step's files in `folder` (docs/bundle.md), as `refine --bundle` and `run` with a
+    bundle write them: PHOTO/pose.yaml per photo, cameras/NAME.yaml, rig.yaml for a rig, and
+    last bundle.json (the bundle file, with its SHA-1, and each photo's verdict and cross-photo
+    evidence; `record`'s keys added), whose presence says the others are all there."""
+    import json
+
+    import yaml
+
+    from rgbd_gt.io import write_pose
+    from rgbd_gt.io.atomic import atomic_output
+    from rgbd_gt.io.camera_file import write_camera
+    from rgbd_gt.prepared import file_key
+
+    for entry, refined in zip(spec.photos, done.photos):
+        (folder / entry.image.stem).mkdir(parents=True, exist_ok=True)
+        write_pose(folder / entry.image.stem / "pose.yaml", refined.T, **refined.meta)
+    (folder / "cameras").mkdir(exist_ok=True)
+    for name, (camera, keys) in done.cameras.items():
+        write_camera(folder / "cameras" / f"{name}.yaml", camera, **keys)
+    if done.rig is not None:
+        with atomic_output(folder / "rig.yaml") as tmp:
+            tmp.write_text(yaml.safe_dump(done.rig, sort_keys=False, default_flow_style=None))
+    r = done.result
+    summary = {"bundle": str(Path(bundle).resolve()), "bundle_sha1": file_key(Path(bundle))["sha1"], "photos": [
+        {"image": str(e.image), "pose": f"{e.image.stem}/pose.yaml", "camera": e.camera, "shot": e.shot,
+         "verdict": d.verification.verdict, "reasons": d.verification.reasons, **d.verification.evidence["bundle"]}
+        for e, d in zip(spec.photos, done.photos)], "iterations": r.iterations, "levels": r.levels,
+        "seconds": round(r.seconds, 3), "total_seconds": round(total_seconds, 3), **record}
+    with atomic_output(folder / "bundle.json") as tmp:
+        tmp.write_text(json.dumps(summary, indent=1))

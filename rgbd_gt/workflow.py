@@ -15,7 +15,7 @@ from typing import Callable
 import numpy as np
 
 from rgbd_gt.align.config import RefineConfig
-from rgbd_gt.errors import InputError
+from rgbd_gt.errors import InputError, read_yaml
 
 # of the photo's extent: the points the refined pose sees within it must be in the view (a render
 # near the border needs the triangles and splats a little beyond it)
@@ -79,6 +79,9 @@ class RunConfig:
     # one camera): one pose solved over all of them (`refine --pairs`), OUTPUT/rig.yaml and each
     # frame's pose.yaml; null: so when the scans are sweeps (`render.points.is_sweep`) that qualify
     rig: bool | None = None
+    # a bundle file (docs/bundle.md) instead of scan, camera and photos: several cameras, a rig
+    # (stereo), each photo's init; all its photos solved together (`steps.bundle_step`) first
+    bundle: str | None = None
 
     def check(self) -> "RunConfig":
         if not self.output:
@@ -89,6 +92,12 @@ class RunConfig:
             raise ValueError(f"max_depth must be 0 or more, got {self.max_depth}")
         if self.scans and (self.scan or self.photos):
             raise ValueError("give either scan and photos (one scan) or scans (a site), not both")
+        if self.bundle is not None and (self.scan or self.camera or self.photos or self.scans or self.init):
+            raise ValueError("bundle: the bundle file names the scan, cameras, photos and inits; leave out "
+                             "scan, camera, photos, scans and init")
+        if self.bundle is not None and self.refine.refine_intrinsics != "none":
+            raise ValueError("bundle: each camera's refine: in the bundle file says what its photos share; "
+                             "leave out refine.refine_intrinsics")
         if self.rig and len(self.scans) < 2:
             raise ValueError("rig: true solves the frames of a site (scans:, two or more) together")
         self.board.check()
@@ -115,6 +124,7 @@ class ScanJob:
     out: Path
     board: BoardConfig
     init: Path | None = None  # the initial pose of every photo that has no init.yaml yet (else the board's)
+    bundle: Path | None = None  # a bundle file: its photos solved together (`solve_bundle`), each with its camera and init
 
 
 @dataclass
@@ -181,6 +191,12 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[list[ScanJob], Path]:
         return board if board.points is None else replace(board, points=str(existing(board.points, "board.points", "corners")))
 
     output = at(cfg.output)
+    if cfg.bundle is not None:
+        from rgbd_gt.io.bundle_file import read_bundle
+
+        spec = read_bundle(existing(cfg.bundle, "bundle", "bundle"))
+        return [ScanJob(spec.scan.stem, spec.scan, spec.cameras[spec.photos[0].camera].file, [e.image for e in spec.photos],
+                        output, board_of(cfg.board), bundle=at(cfg.bundle))], output
     if not cfg.scans:
         if not cfg.scan or not cfg.camera or not cfg.photos:
             raise InputError("the config needs scan, camera and photos (or scans: a list of them)", config_path)
@@ -251,9 +267,9 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     files = {"init": d / "init.yaml", "refine": d / "pose.yaml", "depth": d / "depth.exr", "qa": d / "qa.json",
              "overlay": d / "overlay.png"}
     progress("init-pose")
-    # a rig's frame: its init and pose were made with the other frames' (`solve_rig`), not skipped
-    rig = files["refine"].exists() and "rig" in read_pose(files["refine"])[1]
-    if files["init"].exists() and not rig:
+    # solved with the other photos (`solve_rig`, `solve_bundle`): its init and refine not skipped
+    joint = files["refine"].exists() and is_joint(read_pose(files["refine"])[1])
+    if files["init"].exists() and not joint:
         res.skipped.append("init")
     inputs, seen = photo_inputs(photo, prepared, camera, job, lap)
     image, T_init, scan, renders = inputs.photo, inputs.T_init, inputs.scan, inputs.renders
@@ -261,7 +277,7 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
 
     progress("refine")
     if files["refine"].exists():
-        if not rig:
+        if not joint:
             res.skipped.append("refine")
     else:
         refined = refine_step(inputs, cfg.refine, files["init"], cfg.device, job.camera)
@@ -463,6 +479,49 @@ def solve_rig(jobs: list[ScanJob], prepared: list, camera, cfg: RunConfig, out: 
     return T, meta
 
 
+def is_joint(meta: dict) -> bool:
+    """Whether a pose file's keys are those of a pose solved with other photos: a rig's frames
+    (`solve_rig`: `rig`) or a bundle's photos (`solve_bundle`: evidence.bundle)."""
+    return "rig" in meta or "bundle" in (meta.get("evidence") or {})
+
+
+def solve_bundle(job: ScanJob, cfg: RunConfig, cache: Path,
+                 progress: Callable[[str], None] = lambda step: None) -> tuple[list[tuple], dict | None]:
+    """The photos of a bundle job (`ScanJob.bundle`) solved together (`steps.bundle_step`, the
+    scan prepared under `cache`) into job.out as `refine --bundle` writes them
+    (`steps.write_bundled`: PHOTO/pose.yaml, cameras/, rig.yaml, bundle.json), so that each
+    photo's steps take its pose; reused while bundle.json records this bundle file's content.
+    Returns per photo (photo, its job: its camera file and init, its camera as solved), and
+    rig.yaml's keys for a rig (else None)."""
+    from rgbd_gt.io import read_camera, read_pose
+    from rgbd_gt.io.bundle_file import read_bundle
+    from rgbd_gt.prepared import file_key
+    from rgbd_gt.steps import bundle_step, write_bundled
+
+    spec = read_bundle(job.bundle)
+    record, poses = job.out / "bundle.json", [job.out / e.image.stem / "pose.yaml" for e in spec.photos]
+    if record.exists():
+        if _json_or_empty(record).get("bundle_sha1") != file_key(job.bundle)["sha1"]:
+            raise InputError("it was solved from another bundle file: remove it and the photos' folders to solve "
+                             f"again ({job.bundle})", record)
+        missing = next((p for p in poses if not p.exists()), None)
+        if missing is not None:
+            raise InputError(f"the bundle was solved, but {missing} is gone: remove bundle.json to solve all photos again",
+                             record)
+    else:
+        alone = next((p for p in poses if p.exists() and not is_joint(read_pose(p)[1])), None)
+        if alone is not None:
+            raise InputError("this photo was refined alone before: remove its pose.yaml to solve the bundle", alone)
+        start = time.perf_counter()
+        done = bundle_step(spec, cfg.refine, cfg.device, cache, progress)
+        job.out.mkdir(parents=True, exist_ok=True)
+        write_bundled(job.out, spec, done, job.bundle, time.perf_counter() - start)
+    cameras = {name: read_camera(job.out / "cameras" / f"{name}.yaml") for name in spec.cameras}
+    rig = read_yaml(job.out / "rig.yaml") if spec.rig else None
+    return [(e.image, replace(job, camera=spec.cameras[e.camera].file, photos=[e.image], init=e.init), cameras[e.camera])
+            for e in spec.photos], rig
+
+
 def shared_camera(job: ScanJob, prepared, camera, cfg: RunConfig, progress: Callable[[str], None] = lambda step: None):
     """With cfg.refine.refine_intrinsics, the one camera of all of job's photos: every photo's
     pose and the camera's corrections in one solve (`align.bundle.Bundle`) from the photos'
@@ -551,6 +610,8 @@ def write_run_record(path: Path, prepared: list, seconds: float, engine: str, wo
                  "folder": os.path.relpath(p.job.out, path.parent),
                  "photos": [str(f) for f in p.job.photos], "points": p.points, "cached": p.cached,
                  "seconds": round(p.seconds, 3), "steps": p.steps, "error": p.error}
+        if p.job.bundle is not None:
+            entry["bundle"] = str(p.job.bundle)
         if p.folder is not None and not p.cached:
             entry["prepare_seconds"] = json.loads((p.folder / "meta.json").read_text()).get("seconds")
         scans.append(entry)

@@ -3,12 +3,13 @@ synthetic scenes with exact truth."""
 
 from __future__ import annotations
 
+import csv
 import json
 
 import numpy as np
 import yaml
 
-from conftest import run_cli
+from conftest import assert_one_line_error, run_cli
 from rgbd_gt.io import read_camera, read_pose
 from rgbd_gt.pose import invert, rotation_error_deg, translation_error_m
 
@@ -273,3 +274,40 @@ def test_schur_step_and_covariance_are_the_dense_ones():
         J[:, 6 * nb:] = Js
         assert np.allclose(result.pose_covariance[i], J @ cov @ J.T, rtol=1e-8, atol=1e-14)
     assert np.allclose(result.rig_covariance[1], cov[6 * nb + 6:, 6 * nb + 6:], rtol=1e-8)
+
+
+def test_run_solves_a_bundle_and_exports_its_rig(rig_run, tmp_path):
+    """`run` with `bundle:` solves its photos together as `refine --bundle` does (the same files,
+    the same poses and rig), then each photo's depth, qa and overlay; export takes the run's rig
+    as stereo pairs; a rerun resumes without solving again."""
+    d, bout = rig_run
+    cfg = tmp_path / "run.yaml"
+    cfg.write_text(f"bundle: {d / 'bundle.yaml'}\noutput: out\ndevice: cpu\nrefine: {{verify: {{repeats: 1}}}}\n")
+    proc = run_cli("run", cfg)
+    assert proc.returncode == 0, proc.stderr + proc.stdout
+    out = tmp_path / "out"
+    assert "bundle: 4 photos solved together; rig right from left: baseline 119." in " ".join(proc.stdout.split())
+    for stem in ("photo", "photo_1", "right", "right_1"):
+        (T, meta), (T_b, meta_b) = read_pose(out / stem / "pose.yaml"), read_pose(bout / stem / "pose.yaml")
+        assert np.array_equal(T, T_b) and meta.keys() == meta_b.keys() and meta["verdict"] == meta_b["verdict"], stem
+        assert (out / stem / "depth.exr").is_file() and (out / stem / "qa.json").is_file() and (out / stem / "init.yaml").is_file()
+    assert yaml.safe_load((out / "rig.yaml").read_text()) == yaml.safe_load((bout / "rig.yaml").read_text())
+    assert read_camera(out / "cameras" / "right.yaml") == read_camera(bout / "cameras" / "right.yaml")
+    with open(out / "summary.csv") as f:
+        rows = [r for r in csv.DictReader(f) if not r["photo"].startswith("#")]
+    assert [r["skipped"] for r in rows] == [""] * 4 and {r["verdict"] for r in rows} <= {"ok", "suspect"}
+    assert json.loads((out / "run.json").read_text())["scans"][0]["bundle"] == str(d / "bundle.yaml")
+    proc = run_cli("export", out, "-o", tmp_path / "ds", "-f", "middlebury")
+    assert proc.returncode == 0 and "2 stereo pairs" in proc.stdout, proc.stderr + proc.stdout
+    assert (tmp_path / "ds" / "middlebury" / "000000" / "disp0GT.pfm").is_file()
+    before = (out / "bundle.json").read_bytes()
+    proc = run_cli("run", cfg)
+    assert proc.returncode == 0 and (out / "bundle.json").read_bytes() == before, proc.stderr
+    with open(out / "summary.csv") as f:
+        assert all(r["skipped"] == "depth qa overlay" for r in csv.DictReader(f) if not r["photo"].startswith("#"))
+    # another bundle file into the same output, and a config that also names a scan: one-line errors
+    (d / "other.yaml").write_text((d / "bundle.yaml").read_text().replace("refine: none}\n  right", "refine: focal}\n  right", 1))
+    cfg.write_text(f"bundle: {d / 'other.yaml'}\noutput: out\n")
+    assert_one_line_error(run_cli("run", cfg), "another bundle file", str(out / "bundle.json"))
+    cfg.write_text(f"bundle: {d / 'bundle.yaml'}\nscan: {d / 'scan.ply'}\noutput: out2\n")
+    assert_one_line_error(run_cli("run", cfg), "leave out scan")

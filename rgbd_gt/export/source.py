@@ -49,19 +49,21 @@ def read_run(folder: Path) -> list[Source]:
     """The scans of a finished `run` (OUTPUT/run.json) or `refine --bundle` output
     (bundle.json) in `folder`, every photo that has a refined pose."""
     folder = Path(folder)
-    if (folder / "bundle.json").is_file():
-        if (folder / "run.json").is_file():
-            raise InputError("holds both run.json (rgbd-gt run) and bundle.json (rgbd-gt refine --bundle): two runs "
-                             "wrote into one folder; give each its own", folder)
+    if (folder / "bundle.json").is_file() and not (folder / "run.json").is_file():
         try:
-            return [_bundle_source(folder)]
+            return [_bundle_source(folder, Path(_json(folder / "bundle.json")["bundle"]))]
         except (KeyError, TypeError) as exc:
             raise InputError(f"not a bundle record rgbd-gt wrote (no {exc})", folder / "bundle.json") from None
     if not (folder / "run.json").is_file():
         raise InputError("not a finished run: it holds neither run.json (rgbd-gt run) nor bundle.json "
                          "(rgbd-gt refine --bundle)", folder)
+    record = _json(folder / "run.json")
+    scans = record.get("scans") if isinstance(record, dict) else None
+    if (folder / "bundle.json").is_file() and not any(isinstance(e, dict) and "bundle" in e for e in scans or []):
+        raise InputError("holds both run.json (rgbd-gt run) and bundle.json (rgbd-gt refine --bundle): two runs "
+                         "wrote into one folder; give each its own", folder)
     try:
-        return _run_sources(folder, _json(folder / "run.json"))
+        return _run_sources(folder, record)
     except (KeyError, TypeError) as exc:
         raise InputError(f"not a run record rgbd-gt wrote (no {exc})", folder / "run.json") from None
 
@@ -75,6 +77,10 @@ def _run_sources(folder: Path, record: dict) -> list[Source]:
         if "photos" not in entry:
             raise InputError("run.json lists no photos (made by an older rgbd-gt): run it again", folder / "run.json")
         out = folder / entry.get("folder", ".")
+        errors = _errors(folder / "summary.csv")
+        if "bundle" in entry:  # its photos solved together (run's `bundle:`), with their cameras as solved
+            sources.append(_bundle_source(out, Path(entry["bundle"]), entry.get("name", "bundle"), errors))
+            continue
         camera_file = Path(entry["camera"])
         shared, sigma = out / "camera.yaml", {}
         if shared.is_file():  # the run's joint solve of the camera (refine_intrinsics)
@@ -84,7 +90,6 @@ def _run_sources(folder: Path, record: dict) -> list[Source]:
             sigma = {key: float(v) * f for key, v, f in zip(("focal_px", "cx_px", "cy_px"), s, (cam.fx, cam.fx, cam.fy))
                      if v is not None and np.isfinite(v)}
         photos, missing = [], {}
-        errors = _errors(folder / "summary.csv")
         camera = None
         for image in map(Path, entry["photos"]):
             pose = out / image.stem / "pose.yaml"
@@ -98,24 +103,29 @@ def _run_sources(folder: Path, record: dict) -> list[Source]:
     return sources
 
 
-def _bundle_source(folder: Path) -> Source:
+def _bundle_source(folder: Path, bundle: Path, name: str = "bundle", errors: dict[str, str] | None = None) -> Source:
+    """The photos of the bundle file `bundle` solved into `folder` (`steps.write_bundled`); a
+    photo without a pose file is missing, with its error in `errors` (summary.csv's) when given."""
     import yaml
 
     from rgbd_gt.io import read_camera
     from rgbd_gt.io.bundle_file import read_bundle
 
-    record = _json(folder / "bundle.json")
-    spec = read_bundle(Path(record["bundle"]))
-    photos = []
+    spec = read_bundle(bundle)
+    photos, missing = [], {}
     for entry in spec.photos:
+        pose = folder / entry.image.stem / "pose.yaml"
+        if errors is not None and not pose.is_file():
+            missing[entry.image.stem] = errors.get(entry.image.name) or "no refined pose"
+            continue
         cam_file = folder / "cameras" / f"{entry.camera}.yaml"
         keys = yaml.safe_load(cam_file.read_text()) if cam_file.is_file() else {}
-        shot = _shot(entry.image.stem, entry.image, read_camera(cam_file), entry.camera, folder / entry.image.stem / "pose.yaml",
+        shot = _shot(entry.image.stem, entry.image, read_camera(cam_file), entry.camera, pose,
                      {k: float(v) for k, v in (keys.get("sigma") or {}).items() if k in ("focal_px", "cx_px", "cy_px")})
         shot.shot, shot.mask = entry.shot, entry.mask
         photos.append(shot)
     rig = yaml.safe_load((folder / "rig.yaml").read_text()) if (folder / "rig.yaml").is_file() else None
-    return Source("bundle", spec.scan, folder, photos, rig)
+    return Source(name, spec.scan, folder, photos, rig, missing)
 
 
 def _shot(name: str, image: Path, camera: Camera, camera_name: str, pose_file: Path, sigma: dict) -> Shot:

@@ -57,6 +57,12 @@ class BundleSpec:
     rig: list[str] = field(default_factory=list)
     priors: dict[str, RigPriorEntry] = field(default_factory=dict)
 
+    def files(self) -> list[Path]:
+        """Every file the bundle names: the inputs that no output may overwrite."""
+        return ([self.scan] + [c.file for c in self.cameras.values()]
+                + [p for e in self.photos for p in (e.image, e.init, e.mask) if p is not None]
+                + [p.pose for p in self.priors.values()])
+
 
 def _number(value, what: str, path: Path) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < float(value) < float("inf"):
