@@ -1,6 +1,9 @@
 """Benchmarks: the paper's ICL-NUIM experiment (Sec. 4.1) and its baselines."""
 
+import os
 from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as the CLI runs (rgbd_gt/cli.py says why)
 
 
 def write_keeping(path: Path, text: str, marker: str = "\n## ") -> None:

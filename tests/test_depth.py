@@ -97,12 +97,14 @@ def test_export_depth_files(icl_dir, icl_files):
     with OpenEXR.File(str(d / "normals.exr")) as f:
         ch = f.channels()
         n = np.stack([ch["N.X"].pixels, ch["N.Y"].pixels, ch["N.Z"].pixels], -1)
+        assert n.dtype == np.float16 and ch["Z"].pixels.dtype == np.float32
     valid = z > 0
-    np.testing.assert_allclose(np.linalg.norm(n[valid], axis=1), 1, atol=1e-4)
+    n = n.astype(np.float32)
+    np.testing.assert_allclose(np.linalg.norm(n[valid], axis=1), 1, atol=1e-3)  # half floats: 3 digits
     from rgbd_gt.render.depth import pixel_rays
 
     rays = pixel_rays(ICL_CAMERA).reshape(480, 640, 3)
-    assert np.all(np.sum(n[valid] * rays[valid], axis=1) <= 1e-6)  # they face the camera
+    assert np.all(np.sum(n[valid] * rays[valid], axis=1) <= 1e-3)  # they face the camera (to a half float's rounding)
 
 
 def test_export_depth_errors(icl_files):

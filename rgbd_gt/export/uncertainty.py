@@ -38,7 +38,7 @@ def pixel_sigma(z: np.ndarray, normals: np.ndarray | None, camera: Camera, covar
     The surface's tangent plane n.p = d moves with the pose to n'.p = d + n.v (n' = n + w x n),
     so the depth along the fixed ray r (r_z = 1) moves by dz = (n.v - z w.(n x r)) / (n.r); a
     change of the ray r (the intrinsics) moves it by -z n.dr / (n.r)."""
-    from rgbd_gt.render.depth import pixel_rays
+    from rgbd_gt.render.depth import normalised_map
 
     h, w = z.shape
     if not np.isfinite(covariance).all():  # an undetermined pose: no pixel's depth is known to any sigma
@@ -46,35 +46,43 @@ def pixel_sigma(z: np.ndarray, normals: np.ndarray | None, camera: Camera, covar
         return PixelSigma(inf, inf.copy())
     on = np.flatnonzero(z.ravel() > 0)
     # float32 throughout: a sigma needs no more, and 1.2 million pixels cost half as much
-    r = (rays if rays is not None else pixel_rays(camera))[on].astype(np.float32)
+    ray_xy = (rays[:, :2] if rays is not None else normalised_map(camera).reshape(-1, 2))[on].astype(np.float32)
+    x, y = ray_xy[:, 0], ray_xy[:, 1]
     zz = z.ravel()[on].astype(np.float32)
-    n = normals.reshape(-1, 3)[on].astype(np.float32) if normals is not None else np.zeros_like(r)
-    unknown = ~n.any(axis=1)
-    n[unknown] = -r[unknown] / np.linalg.norm(r[unknown], axis=1, keepdims=True)
-    nr = np.einsum("ij,ij->i", n, r)
+    n = normals.reshape(-1, 3)[on].astype(np.float32) if normals is not None else np.zeros((len(on), 3), np.float32)
+    nx, ny, nz = n.T
+    unknown = np.flatnonzero((nx == 0) & (ny == 0) & (nz == 0))
+    if len(unknown):
+        r = np.stack([x[unknown], y[unknown], np.ones(len(unknown), np.float32)], 1)
+        n[unknown] = -r / np.linalg.norm(r, axis=1, keepdims=True)
+    nr = nx * x + ny * y + nz
     nr = np.where(np.abs(nr) < 1e-6, -1e-6, nr)  # a surface seen edge-on: its depth is undetermined
     lam, vec = np.linalg.eigh(0.5 * (covariance + covariance.T))
     L = (vec * np.sqrt(np.maximum(lam, 0))).astype(np.float32)  # covariance = L L^T: J cov J^T is |J L|^2
-    Lw, Lv = L[:3], L[3:]
-    # dz / d update = [-z (n x r), n] / (n.r)
-    AL = (np.cross(n, r) * (-zz / nr)[:, None]) @ Lw + (n / nr[:, None]) @ Lv
-    var_z = np.einsum("ij,ij->i", AL, AL)
-    # the image motion of the surface point p = z r: d(u, v) = f/z [[1, 0, -x], [0, 1, -y]] (w x p + v),
-    # w x p the rows of -[p]x
-    x, y = r[:, 0], r[:, 1]
-    px, py, pz = (r * zz[:, None]).T
-    U = np.stack([-x * py, pz + x * px, -py], 1) @ Lw + Lv[0] - x[:, None] * Lv[2]
-    V = np.stack([-pz - y * py, y * px, px], 1) @ Lw + Lv[1] - y[:, None] * Lv[2]
-    U *= (camera.fx / zz)[:, None]
-    V *= (camera.fy / zz)[:, None]
-    uu, vv, uv = np.einsum("ij,ij->i", U, U), np.einsum("ij,ij->i", V, V), np.einsum("ij,ij->i", U, V)
+    # the Jacobians by the update (w, v), one row per pixel, of z: [-z (n x r), n] / (n.r), and of
+    # the image position of the surface point p = z r: f/z [[1, 0, -x], [0, 1, -y]] (w x p + v)
+    # (r_z = 1), as rows of 6 in a (3, 6, N) block so that one product with L takes all three
+    k, iz = -zz / nr, 1 / zz
+    J = np.empty((3, 6, len(on)), np.float32)
+    J[0, 0], J[0, 1], J[0, 2] = (ny - nz * y) * k, (nz * x - nx) * k, (nx * y - ny * x) * k
+    J[0, 3], J[0, 4], J[0, 5] = nx / nr, ny / nr, nz / nr
+    xy = x * y
+    J[1, 0], J[1, 1], J[1, 2], J[1, 3], J[1, 4], J[1, 5] = -xy, 1 + x * x, -y, iz, 0, -x * iz
+    J[2, 0], J[2, 1], J[2, 2], J[2, 3], J[2, 4], J[2, 5] = -1 - y * y, xy, x, 0, iz, -y * iz
+    J[1] *= camera.fx
+    J[2] *= camera.fy
+    JL = np.matmul(L.T, J)  # (3, 6, N)
+    var_z = np.einsum("ij,ij->j", JL[0], JL[0])
+    uu, vv, uv = (np.einsum("ij,ij->j", JL[a], JL[b]) for a, b in ((1, 1), (2, 2), (1, 2)))
     var_px = 0.5 * (uu + vv) + np.sqrt(np.maximum(0.25 * (uu - vv) ** 2 + uv * uv, 0))  # the larger eigenvalue
     cs = camera_sigma or {}
     # r = ((u - cx) / f, (v - cy) / f, 1): dr/df = -(x, y, 0) / f, dr/dcx = (-1/f, 0, 0), dr/dcy = (0, -1/f, 0)
-    for key, n_dr, dpx in (("focal_px", -(n[:, 0] * x + n[:, 1] * y) / camera.fx, np.hypot(x, y)),
-                           ("cx_px", -n[:, 0] / camera.fx, 1.0), ("cy_px", -n[:, 1] / camera.fy, 1.0)):
+    terms = {"focal_px": lambda: (-(nx * x + ny * y) / camera.fx, np.hypot(x, y)),
+             "cx_px": lambda: (-nx / camera.fx, 1.0), "cy_px": lambda: (-ny / camera.fy, 1.0)}
+    for key, term in terms.items():
         s = float(cs.get(key, 0.0))
         if s > 0:
+            n_dr, dpx = term()
             var_z += (zz * n_dr / nr * s) ** 2
             var_px += (dpx * s) ** 2
     out_z, out_px = np.zeros(h * w, np.float32), np.zeros(h * w, np.float32)

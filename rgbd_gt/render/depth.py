@@ -300,6 +300,8 @@ def _raycast_mesh(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray 
     T_sc = invert(T)
     origin = (T_sc[:3, 3] - mesh.centre).astype(np.float32)
     R = T_sc[:3, :3]
+    if knows_sides:  # each scanner, from the camera, in the scene's frame
+        scanners = (scan.origins - mesh.centre).astype(np.float32) - origin
     z = np.zeros(h * w, np.float32)
     n = np.zeros((h * w, 3), np.float32) if want_normals else None
     colors = np.zeros((h * w, values.shape[1]), values.dtype) if values is not None else None
@@ -314,35 +316,35 @@ def _raycast_mesh(scan: Scan, camera: Camera, T: np.ndarray, values: np.ndarray 
         rays = np.concatenate([np.broadcast_to(origin, d_world.shape), d_world], 1)
         hit = mesh.scene.cast_rays(o3d.core.Tensor(rays))
         zb = hit["t_hit"].numpy()
-        zb = np.where(np.isfinite(zb), zb, 0).astype(np.float32)
-        ok = zb > 0
-        prim = hit["primitive_ids"].numpy()[ok].astype(np.int64)
-        n_scan = hit["primitive_normals"].numpy()[ok]
-        nb = np.zeros((len(zb), 3), np.float32)
-        nb[ok] = n_scan @ T[:3, :3].T.astype(np.float32)
-        facing = np.sum(nb * d_cam, axis=1)
+        on = np.flatnonzero(np.isfinite(zb) & (zb > 0))
+        normal = hit["primitive_normals"].numpy()  # (n, 3) in the scene's frame, 0 where nothing was hit
+        # the normal along the ray: the camera sees the triangle's back (taken on every ray: a
+        # product over all is cheaper than gathering the hits' rays)
+        facing = np.einsum("ij,ij->i", normal, d_world)[on]
         if knows_sides:  # is the camera on the side of the hit triangle that its scanner saw?
-            scanner = scan.origins[mesh.origin[prim]]
-            front = np.sign(np.einsum("ij,ij->i", n_scan, scanner - scan.xyz[tris[prim, 0]]))
-            behind = np.zeros(len(zb), bool)
-            # `render.normals.facing_camera` at tolerance 0 (a triangle's own normal is not off),
-            # on the normal turned to its scanner, from the dot product the normals take anyway
-            behind[ok] = facing[ok] * front > 0
-            zb[behind] = 0
-            back += int(behind.sum())
-            ok &= ~behind
+            # `render.normals.facing_camera` at tolerance 0 on the normal turned to its scanner, the
+            # triangle's plane taken at the hit point (camera + t d): n.(scanner - hit)
+            if len(scanners) == 1:
+                side = (normal @ scanners[0])[on]
+            else:
+                side = np.einsum("ij,ij->i", normal[on], scanners[mesh.origin[hit["primitive_ids"].numpy()[on]]])
+            behind = facing * np.sign(side - zb[on] * facing) > 0
+            if behind.any():
+                back += int(behind.sum())
+                on, facing = on[~behind], facing[~behind]
         sl = slice(r0 * w, r1 * w)
-        z[sl] = zb
-        if n is not None:
-            nb *= -np.sign(facing + 1e-12)[:, None]
-            nb[~ok] = 0
-            n[sl] = nb
-        if colors is not None and ok.any():  # barycentric interpolation of the hit triangle's vertex values
-            tri = tris[hit["primitive_ids"].numpy()[ok].astype(np.int64)]  # ok: hits seen from the front
-            bary = hit["primitive_uvs"].numpy()[ok]
+        z[sl][on] = zb[on]
+        if n is not None:  # in the camera's frame, turned towards it; 0 where there is no depth
+            turn = np.zeros(len(zb), np.float32)
+            turn[on] = -np.sign(facing + 1e-12)
+            n[sl] = normal @ T[:3, :3].T.astype(np.float32)
+            n[sl] *= turn[:, None]
+        if colors is not None and len(on):  # barycentric interpolation of the hit triangle's vertex values
+            tri = tris[hit["primitive_ids"].numpy()[on].astype(np.int64)]  # on: hits seen from the front
+            bary = hit["primitive_uvs"].numpy()[on]
             v0 = vals[tri[:, 0]]
             c = v0 + bary[:, :1] * (vals[tri[:, 1]] - v0) + bary[:, 1:] * (vals[tri[:, 2]] - v0)
-            colors[r0 * w + np.flatnonzero(ok)] = np.rint(c) if np.issubdtype(colors.dtype, np.integer) else c
+            colors[r0 * w + on] = np.rint(c) if np.issubdtype(colors.dtype, np.integer) else c
     return DepthMap(z.reshape(h, w), n.reshape(h, w, 3) if n is not None else None,
                     f"ray-cast grid mesh ({len(tris):,} triangles)",
                     colors.reshape(h, w, -1) if colors is not None else None, back_facing=back if knows_sides else None)
