@@ -65,7 +65,8 @@ def prepare_job(job: ScanJob, cache_root: Path, progress: Callable[[str], None] 
         out.cached = prepared.folder.name in before
         out.folder, out.points = prepared.folder, len(prepared)
         out.steps["scan"] = round(time.perf_counter() - start, 3)
-        if job.init is None and any(not (job.out / p.stem / "init.yaml").exists() for p in job.photos):
+        # a bundle's photos have their inits in the bundle file
+        if job.init is None and job.bundle is None and any(not (job.out / p.stem / "init.yaml").exists() for p in job.photos):
             progress("finding the board")
             t = time.perf_counter()
             board_in_prepared(prepared, board_spec(job.board), board_corners(job.board))

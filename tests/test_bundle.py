@@ -296,7 +296,9 @@ def test_run_solves_a_bundle_and_exports_its_rig(rig_run, tmp_path):
     with open(out / "summary.csv") as f:
         rows = [r for r in csv.DictReader(f) if not r["photo"].startswith("#")]
     assert [r["skipped"] for r in rows] == [""] * 4 and {r["verdict"] for r in rows} <= {"ok", "suspect"}
-    assert json.loads((out / "run.json").read_text())["scans"][0]["bundle"] == str(d / "bundle.yaml")
+    scan = json.loads((out / "run.json").read_text())["scans"][0]
+    # the inits are the bundle file's: no board is looked for (pumpA's scan has none)
+    assert scan["bundle"] == str(d / "bundle.yaml") and "board" not in scan["steps"]
     proc = run_cli("export", out, "-o", tmp_path / "ds", "-f", "middlebury")
     assert proc.returncode == 0 and "2 stereo pairs" in proc.stdout, proc.stderr + proc.stdout
     assert (tmp_path / "ds" / "middlebury" / "000000" / "disp0GT.pfm").is_file()
