@@ -447,11 +447,11 @@ def bundle_step(spec, cfg, device: str = "auto", cache: PathLike | None = None,
     return Bundled(out, cameras, rig, result)
 
 
-def write_bundled(folder: Path, spec, done: Bundled, bundle: Path, total_seconds: float, **record) -> None:
+def write_bundled(folder: Path, spec, done: Bundled, bundle: Path, total_seconds: float) -> None:
     """bundle_step's files in `folder` (docs/bundle.md), as `refine --bundle` and `run` with a
     bundle write them: PHOTO/pose.yaml per photo, cameras/NAME.yaml, rig.yaml for a rig, and
     last bundle.json (the bundle file, with its SHA-1, and each photo's verdict and cross-photo
-    evidence; `record`'s keys added), whose presence says the others are all there."""
+    evidence), whose presence says the others are all there."""
     import json
 
     import yaml
@@ -475,6 +475,6 @@ def write_bundled(folder: Path, spec, done: Bundled, bundle: Path, total_seconds
         {"image": str(e.image), "pose": f"{e.image.stem}/pose.yaml", "camera": e.camera, "shot": e.shot,
          "verdict": d.verification.verdict, "reasons": d.verification.reasons, **d.verification.evidence["bundle"]}
         for e, d in zip(spec.photos, done.photos)], "iterations": r.iterations, "levels": r.levels,
-        "seconds": round(r.seconds, 3), "total_seconds": round(total_seconds, 3), **record}
+        "seconds": round(r.seconds, 3), "total_seconds": round(total_seconds, 3)}
     with atomic_output(folder / "bundle.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=1))

@@ -305,16 +305,17 @@ class Nid:
             q = part.points @ R1.T + t1
             p = q + delta[3:].to(R0.dtype)
             uv, z = project_pinhole(p, part.photo.K)
-            ok = _on_photo(part.photo, uv, z, 0.1)
-            n = int(ok.sum())
+            # the points on the photo, as indices: one selection by them is a third of a mask's
+            ok = _on_photo(part.photo, uv, z, 0.1).nonzero().squeeze(1)
+            n = len(ok)
             if n < 50:
                 raise InputError("the pose left the scan: fewer than 50 points in view")
             if weights is None:
-                sampled = bilinear(part.image, uv[ok]).double()
+                sampled = bilinear(part.image, uv.index_select(0, ok)).double()
             else:
-                sampled, s_u, s_v = (x.double() for x in bilinear_with_gradient(part.image, uv[ok]))
+                sampled, s_u, s_v = (x.double() for x in bilinear_with_gradient(part.image, uv.index_select(0, ok)))
                 d_sampled = torch.zeros_like(sampled)  # d loss / d sampled channel
-            windows = part.windows[ok]
+            windows = part.windows.index_select(0, ok)
             for c in range(windows.shape[1]):
                 if weights is None:
                     value, h_ab = nid_of_windows(windows[:, c], parzen_windows(sampled[:, c], self.cfg.nid_bins))
@@ -329,8 +330,8 @@ class Nid:
                 counts.append(n)
                 entropies.append(float(h_ab.detach()))
             if weights is not None:
-                gradient += _pose_gradient((d_sampled * s_u).sum(1), (d_sampled * s_v).sum(1), p[ok].double(),
-                                           q[ok].double(), part.photo.K, delta[:3])
+                gradient += _pose_gradient((d_sampled * s_u).sum(1), (d_sampled * s_v).sum(1), p.index_select(0, ok).double(),
+                                           q.index_select(0, ok).double(), part.photo.K, delta[:3])
         return _Evaluation(torch.stack(nids), counts, entropies, gradient, edge)
 
     def _edge_score(self, part: _Part, R: torch.Tensor, t: torch.Tensor, delta: torch.Tensor,
