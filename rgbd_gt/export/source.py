@@ -72,12 +72,11 @@ def _run_sources(folder: Path, record: dict) -> list[Source]:
     from rgbd_gt.io import read_camera
     from rgbd_gt.io.image import read_image
 
-    sources = []
+    sources, errors = [], _errors(folder / "summary.csv")
     for entry in record["scans"]:
         if "photos" not in entry:
             raise InputError("run.json lists no photos (made by an older rgbd-gt): run it again", folder / "run.json")
         out = folder / entry.get("folder", ".")
-        errors = _errors(folder / "summary.csv")
         if "bundle" in entry:  # its photos solved together (run's `bundle:`), with their cameras as solved
             sources.append(_bundle_source(out, Path(entry["bundle"]), entry.get("name", "bundle"), errors))
             continue
