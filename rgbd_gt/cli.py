@@ -404,7 +404,7 @@ def refine(
     color_model: Optional[str] = typer.Option(None, "--color-model", help="quadratic (default), quadratic_rgb, linear, none, gray or gray_affine."),
     gradient: Optional[str] = typer.Option(None, "--gradient", help="direct (the bilinear interpolant's own derivative) or central."),
     optimizer: Optional[str] = typer.Option(None, "--optimizer", help="lm (Levenberg-Marquardt) or adam (the paper's)."),
-    levels: Optional[int] = typer.Option(None, "--levels", help="Image pyramid levels (1 = full resolution only)."),
+    levels: Optional[int] = typer.Option(None, "--levels", help="Image pyramid levels (1 = full resolution only; default: as many as bring the coarsest level to 40-79 px across, 5 for nid)."),
     upsample: Optional[int] = typer.Option(None, "--upsample", help="Sample the photo enlarged this much (bicubic) at the finest level; 1 = as it is."),
     iterations: Optional[int] = typer.Option(None, "--iterations", help="Maximum iterations per pyramid level."),
     max_points: Optional[int] = typer.Option(None, "--max-points", help="Scan points used at full resolution."),

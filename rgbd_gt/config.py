@@ -61,7 +61,12 @@ def _typed(value: Any, hint: Any, where: str) -> Any:
         if value is None and type(None) in args:
             return None
         inner = [a for a in args if a is not type(None)]
-        return _typed(value, inner[0], where)
+        for alt in inner[:-1]:  # e.g. `int | str`: a number, or a word such as "auto"
+            try:
+                return _typed(value, alt, where)
+            except InputError:
+                pass
+        return _typed(value, inner[-1], where)
     if origin is list:
         if not isinstance(value, list):
             raise InputError(f"{where}: expected a list, got {_name(value)}")

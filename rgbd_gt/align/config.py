@@ -95,7 +95,9 @@ class RefineConfig:
     color_model: str = "quadratic"  # one of color_models.MODELS
     gradient: str = "direct"  # 'direct' (strategy A) or 'central' (strategy B)
     optimizer: str = "lm"  # 'lm' (Levenberg-Marquardt on the 6 pose parameters) or 'adam' (the paper's)
-    levels: int = 5  # image pyramid levels (1 = full resolution only)
+    # image pyramid levels (1 = full resolution only), or "auto": photometric, as many as bring the
+    # coarsest level's longer side to 40-79 px (align/pyramid.py: `pyramid_levels`); nid, 5
+    levels: int | str = "auto"
     upsample: int = 4  # the finest level samples the photo enlarged this much (bicubic; pyramid.py says why)
     iterations: int = 30  # per level (lm) ...
     adam_iterations: int = 300  # ... and per level for adam
@@ -150,9 +152,12 @@ class RefineConfig:
             raise ValueError(f"refine_intrinsics must be one of {', '.join(INTRINSICS)}, got {self.refine_intrinsics!r}")
         if self.refine_intrinsics != "none" and (self.optimizer != "lm" or self.objective == "nid"):
             raise ValueError("refine_intrinsics works with the photometric objective and optimizer lm")
-        if self.levels < 1 or self.iterations < 1 or self.max_points < 10 or self.upsample < 1:
+        if isinstance(self.levels, str) and self.levels != "auto":
+            raise ValueError(f"levels must be a number or 'auto', got {self.levels!r}")
+        levels = 1 if self.levels == "auto" else self.levels
+        if levels < 1 or self.iterations < 1 or self.max_points < 10 or self.upsample < 1:
             raise ValueError("levels, upsample, iterations and max_points must be positive")
-        if self.levels > 12 or self.upsample > 8:
+        if levels > 12 or self.upsample > 8:
             raise ValueError(f"levels at most 12 and upsample at most 8, got {self.levels} and {self.upsample}")
         for name, most in (("iterations", 10_000), ("adam_iterations", 100_000), ("search_starts", 1_000), ("search_keep", 1_000),
                            ("search_iterations", 10_000), ("max_points", 100_000_000), ("min_points", 100_000_000),

@@ -41,9 +41,25 @@ def upsample_factor(size: tuple[int, int], upsample: int) -> int:
     return max(1, min(upsample, int(math.sqrt(MAX_UPSAMPLED_PIXELS / (w * h)))))
 
 
-def photo_pyramid(photo: np.ndarray, camera: Camera, levels: int, device: torch.device,
+COARSEST_SIDE = 40  # px: the coarsest level's longer side is 40-79 px at any photo size
+
+
+def pyramid_levels(size: tuple[int, int], levels: int | str = "auto") -> int:
+    """`levels`, or for "auto" as many levels as bring a photo of `size` (W, H) down to a
+    coarsest level whose longer side is COARSEST_SIDE to twice that (640x480: 5, 1280x960: 6,
+    3072x2304: 7). Why: an init's error is a fixed angle, so its size in coarsest-level pixels,
+    which decides whether the coarsest level's basin holds it, must not grow with the photo. With
+    a fixed 5 levels a 1280x960 photo's coarsest level was 80x60 and inits 1 deg off ended 1.2-1.4
+    deg off where 6 levels bring them to the truth (docs/trust.md, "Right poses refused on 1280x960 photos")."""
+    if levels != "auto":
+        return int(levels)
+    return int(min(12, 1 + max(0, math.floor(math.log2(max(size) / COARSEST_SIDE)))))
+
+
+def photo_pyramid(photo: np.ndarray, camera: Camera, levels: int | str, device: torch.device,
                   ignore: np.ndarray | None = None, upsample: int = 1) -> list[PhotoLevel]:
-    """Undistort `photo` (H, W, 3) uint8 and build `levels` levels, finest first.
+    """Undistort `photo` (H, W, 3) uint8 and build `levels` levels (or "auto": `pyramid_levels`),
+    finest first.
 
     Each coarser level halves the size by 2x2 box averaging (cv2.INTER_AREA), consistent with
     `camera.rescale` (pixel centres at (c + 0.5) * s - 0.5). `ignore`: (H, W) bool of masked pixels.
@@ -64,7 +80,7 @@ def photo_pyramid(photo: np.ndarray, camera: Camera, levels: int, device: torch.
     cam = without_distortion(camera)
     zoom = upsample_factor(cam.size, upsample)
     out = []
-    for level in range(levels):
+    for level in range(pyramid_levels(cam.size, levels)):
         if level:
             w, h = max(1, img.shape[1] // 2), max(1, img.shape[0] // 2)
             img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)

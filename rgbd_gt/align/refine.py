@@ -136,7 +136,7 @@ def make_aligner(inputs: RefineInputs, cfg: RefineConfig, device: str, more: lis
     """The aligner of cfg's objective for inputs (and the further pairs `more` that share its
     pose: nid only)."""
     from rgbd_gt.align.aligner import Aligner
-    from rgbd_gt.align.nid_objective import Frame, Nid
+    from rgbd_gt.align.nid_objective import NID_LEVELS, Frame, Nid
     from rgbd_gt.align.photometric import Photometric
     from rgbd_gt.align.pyramid import photo_pyramid
     from rgbd_gt.scan import colors_to_gray
@@ -151,7 +151,8 @@ def make_aligner(inputs: RefineInputs, cfg: RefineConfig, device: str, more: lis
         pyramid = photo_pyramid(inputs.photo, inputs.camera, cfg.levels, dev, inputs.ignore, cfg.upsample)
         return Aligner(Photometric(inputs.points, inputs.colors, pyramid, cfg, inputs.normals))
     # NID compares value distributions: an enlarged photo adds pixels, not information
-    frames = [Frame(i.points, colors_to_gray(i.colors) / 255.0, photo_pyramid(i.photo, i.camera, cfg.levels, dev, i.ignore),
+    levels = NID_LEVELS if cfg.levels == "auto" else cfg.levels
+    frames = [Frame(i.points, colors_to_gray(i.colors) / 255.0, photo_pyramid(i.photo, i.camera, levels, dev, i.ignore),
                     i.normals, i.scan.edge if i.scan is not None else None) for i in [inputs, *more]]
     return Aligner(Nid(frames, cfg))
 
