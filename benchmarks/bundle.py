@@ -20,14 +20,14 @@ AGREEMENT = 0.2  # configs/refine.yaml's bundle_agreement
 MODE = "focal+principal+k1k2"
 
 
-def scene(seed: int, photos: int, rig: str | None = None) -> Path:
-    """The small synthetic scene of seed with `photos` photos (shots), made once under WORK."""
+def scene(seed: int, photos: int, rig: str | None = None, size: str = "small") -> Path:
+    """The synthetic scene of seed and size with `photos` photos (shots), made once under WORK."""
     from rgbd_gt.config import load_config
     from rgbd_gt.synth.generate import SynthConfig, generate
 
-    d = WORK / f"seed{seed}_{photos}{'_' + rig if rig else ''}"
+    d = WORK / f"seed{seed}_{photos}{'_' + rig if rig else ''}{'' if size == 'small' else '_' + size}"
     if not (d / "scene.json").exists():
-        generate(d, seed, "small", load_config(SynthConfig, None, "synth.yaml"), photos=photos, rig=rig)
+        generate(d, seed, size, load_config(SynthConfig, None, "synth.yaml"), photos=photos, rig=rig)
     return d
 
 
@@ -195,11 +195,43 @@ def icl_section(folder: Path) -> list[str]:
             "|---|---|---|---|---|---|", *rows, ""]
 
 
+def stereo_rows(seeds: list[int], size: str) -> list[str]:
+    """The stereo table's rows for the scenes of `seeds` at `size`: each photo alone, the bundle
+    with its rig, and the bundle with the agreement term."""
+    from rgbd_gt.io import read_pose
+
+    acc = {k: [] for k in ("single", "joint", "agree")}
+    rig = {k: [] for k in acc}
+    secs = {k: 0.0 for k in acc}
+    for seed in seeds:
+        d = scene(seed, 4, "stereo", size)
+        scan, shots = load(d, rig=True)
+        T_rl = read_pose(d / "rig_gt.yaml")[0]
+        rows, s = singles(scan, shots, "none")
+        secs["single"] += s
+        acc["single"] += [r["err"] for r in rows]
+        by = {(sh.shot, sh.camera_index): r["T"] for sh, r in zip(shots, rows)}
+        rig["single"] += [rig_errors(by[(k, 1)] @ np.linalg.inv(by[(k, 0)]), T_rl) for k in range(4)]
+        for key, weight in (("joint", 0.0), ("agree", AGREEMENT)):
+            result, s = joint(scan, shots, "none", rig=2, agreement=weight)
+            secs[key] += s
+            acc[key] += [errors(T, sh) for T, sh in zip(result.poses, shots)]
+            rig[key].append(rig_errors(result.rig[1], T_rl))
+        print(size, seed, {k: stats(v) for k, v in acc.items()}, rig, flush=True)
+
+    def rig_text(rows):
+        b, r = np.abs([x[0] for x in rows]), np.array([x[1] for x in rows])
+        return f"{np.median(b):.2f} / {b.max():.2f} mm | {np.median(r):.4f} / {r.max():.4f} deg"
+
+    names = {"single": "per photo", "joint": "bundle (rig)",
+             "agree": f"bundle (rig) with the agreement term, weight {AGREEMENT} (the default)"}
+    return [f"| {size} | {names[k]} | {stats(acc[k])} | {rig_text(rig[k])} | {secs[k] / len(seeds):.1f} |" for k in acc]
+
+
 def main(argv: list[str] | None = None) -> None:
     from rgbd_gt.align.config import VerifyConfig
     from rgbd_gt.align.verify import bundle_reasons
     from benchmarks import write_keeping
-    from rgbd_gt.io import read_pose
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
@@ -255,43 +287,18 @@ def main(argv: list[str] | None = None) -> None:
               "", f"The bundle costs {secs['joint'] / secs['single']:.2f}x the 8 per-photo refines of the same mode and "
               f"{secs['joint'] / secs['true']:.2f}x those with the camera held.", ""]
 
-    # 2. a stereo rig, 4 shots
-    acc2 = {k: [] for k in ("single", "joint", "agree")}
-    rig_single, rig_joint, rig_agree, secs2 = [], [], [], {"single": 0.0, "joint": 0.0, "agree": 0.0}
-    for seed in args.seeds:
-        d = scene(seed, 4, "stereo")
-        scan, shots = load(d, rig=True)
-        T_rl = read_pose(d / "rig_gt.yaml")[0]
-        rows, s = singles(scan, shots, "none")
-        secs2["single"] += s
-        acc2["single"] += [r["err"] for r in rows]
-        by = {(sh.shot, sh.camera_index): r["T"] for sh, r in zip(shots, rows)}
-        rig_single += [rig_errors(by[(k, 1)] @ np.linalg.inv(by[(k, 0)]), T_rl) for k in range(4)]
-        result, s = joint(scan, shots, "none", rig=2)
-        secs2["joint"] += s
-        acc2["joint"] += [errors(T, sh) for T, sh in zip(result.poses, shots)]
-        rig_joint.append(rig_errors(result.rig[1], T_rl))
-        result, s = joint(scan, shots, "none", rig=2, agreement=AGREEMENT)
-        secs2["agree"] += s
-        acc2["agree"] += [errors(T, sh) for T, sh in zip(result.poses, shots)]
-        rig_agree.append(rig_errors(result.rig[1], T_rl))
-        print(seed, {k: stats(v) for k, v in acc2.items()}, rig_single, rig_joint, rig_agree, flush=True)
-
-    def rig_text(rows):
-        b, r = np.abs([x[0] for x in rows]), np.array([x[1] for x in rows])
-        return f"{np.median(b):.2f} / {b.max():.2f} mm | {np.median(r):.4f} / {r.max():.4f} deg"
-
+    # 2. a stereo rig, 4 shots, on the small scenes and on the default-size ones
     lines += ["## A stereo rig, 4 shots", "",
               "`synth --rig stereo --photos 4`: a 0.12 m baseline, the right camera turned by a few tenths of a degree, "
               "with its own lens and color response; both camera files true. Per photo: each of the 8 photos alone, the "
               "rig then taken per shot from its two poses. Bundle: the rig's relative pose shared by the 4 shots, "
-              "initialised from the first shot's two inits (no prior).", "",
-              "| solve | pose error, median | pose error, worst | baseline error, median / worst | relative rotation error, median / worst | aligner s |",
-              "|---|---|---|---|---|---|",
-              f"| per photo | {stats(acc2['single'])} | {rig_text(rig_single)} | {secs2['single'] / len(args.seeds):.1f} |",
-              f"| bundle (rig) | {stats(acc2['joint'])} | {rig_text(rig_joint)} | {secs2['joint'] / len(args.seeds):.1f} |",
-              f"| bundle (rig) with the agreement term, weight {AGREEMENT} (the default) | {stats(acc2['agree'])} | "
-              f"{rig_text(rig_agree)} | {secs2['agree'] / len(args.seeds):.1f} |", ""]
+              "initialised from the first shot's two inits (no prior). Small: 640x480 photos of a scan 0.15 deg apart; "
+              "default: 1280x960 photos of a scan 0.1 deg apart (`synth`'s default size).", "",
+              "| size | solve | pose error, median | pose error, worst | baseline error, median / worst | relative rotation error, median / worst | aligner s |",
+              "|---|---|---|---|---|---|---|"]
+    for size in ("small", "default"):
+        lines += stereo_rows(args.seeds, size)
+    lines += [""]
 
     # 2b. a shot that disagrees with the rig
     rows_rig = []
