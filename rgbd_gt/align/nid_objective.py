@@ -117,8 +117,8 @@ def _channels(image: torch.Tensor, edges: bool) -> torch.Tensor:
 EDGE_MIN_STEP_M = 0.1  # ring edges: returns at least this much nearer than their ring neighbour ...
 EDGE_NEAR_M = 1.0  # ... and this far in front of the camera
 CHECK_MIN_STEP_M = 1.0  # the ring-edge check: steps this large (on KITTI and Waymo their ratio is the clearest)
-# levels "auto" for nid: its search, sky charge and edge term were tuned and measured on 5 levels
-# (docs/lidar.md), not on the photometric rule (which gives 5 for KITTI's photos, 6 for Waymo's)
+# levels "auto" for nid: its search, sky charge and edge term were tuned on 5 levels; the photometric
+# rule's 6 for Waymo's photos took a joint solve from 0.06 to 1.4 deg (docs/lidar-method.md)
 NID_LEVELS = 5
 EDGE_LEVELS = 3  # the term applies on the 3 finest levels: coarser, the spread edges fill the image (a KITTI photo is 77 x 23 on level 4)
 
