@@ -143,6 +143,9 @@ def run_case(scenes: list[Scene], T_init: np.ndarray, cfg: RefineConfig, device:
                seconds=result.seconds)
     if v is not None:
         rec.update(verdict=v.verdict, reasons=v.reasons, verify_seconds=v.seconds)
+        loo = v.evidence.get("frames", {}).get("leave_one_out")
+        if loo is not None:  # the frames judged one by one (`verify.leave_one_frame_out`)
+            rec.update(worst_left_out_px=loo["worst_left_out_px"], frames_with_minimum=loo["frames_with_minimum"])
     return rec
 
 

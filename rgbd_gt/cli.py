@@ -512,6 +512,12 @@ def refine(
     if "frames" in ev:
         rows.append(("frames apart", f"{ev['frames']['folds']} groups end up to {ev['frames']['spread_px']:.2f} px "
                                      f"({ev['frames']['spread_mm']:.0f} mm, {ev['frames']['spread_deg']:.3f} deg) from the result"))
+        loo = ev["frames"].get("leave_one_out")
+        if loo is not None:
+            rows.append(("each frame left out", f"the result moves up to {loo['worst_left_out_px']:.2f} px (frame "
+                                                f"{loo['worst_frame'] + 1}); {loo['frames_with_minimum']} of "
+                                                f"{len(loo['left_out_px'])} frames alone have a minimum, median "
+                                                f"{loo['median_own_minimum_px']:.1f} px from it"))
     if "check" in ev:
         rows.append(("check pairs", f"{ev['check']['rms_init_px']:.2f} px at the init -> {ev['check']['rms_px']:.2f} px"))
     rows += [("verticals at init", upright_init.summary()), ("verticals", upright.summary())]

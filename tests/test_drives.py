@@ -66,7 +66,7 @@ def test_edge_term_gradient_is_autograds():
     weights = torch.ones(1, dtype=torch.float64)
     d = torch.as_tensor(np.r_[np.radians([0.3, -0.4, 0.3]), 0.05, -0.03, 0.05], dtype=torch.float64).requires_grad_(True)
     at = obj._evaluate(parts, T_local, d, weights)
-    assert float(at.edge.detach()) > 0
+    assert float(at.edges.sum().detach()) > 0
     at.objective(weights).backward()
     closed, auto = at.gradient.detach().numpy(), d.grad.numpy()
     np.testing.assert_allclose(closed, auto, rtol=1e-5, atol=1e-6 * np.abs(auto).max())  # autograd: float32 geometry
@@ -119,6 +119,39 @@ def test_a_sweep_is_judged_by_its_ring_edges_and_its_frames_agreement():
     assert verdict == "suspect" and len(reasons) == 1 and "weakly along one direction" in reasons[0]
     assert decide({**flat, "frames": {**ev["frames"], "spread_px": 4.0}}, cfg)[0] == "failed"
     assert decide({k: v for k, v in flat.items() if k != "frames"}, cfg)[0] == "failed"
+    # a frame that alone holds the result (left out, it moves more than fold_ok_px) makes it suspect;
+    # one without which the others leave a direction open (inf) has no say
+    loo = {"left_out_px": [0.2, 4.5, 0.3], "worst_left_out_px": 4.5, "worst_frame": 1}
+    hinged = decide({**ev, "frames": {**ev["frames"], "leave_one_out": loo}}, cfg)
+    assert hinged[0] == "suspect" and "hinges on frame 2" in hinged[1][0]
+    open_ = {**loo, "left_out_px": [0.2, float("inf"), 0.3], "worst_left_out_px": float("inf")}
+    assert decide({**ev, "frames": {**ev["frames"], "leave_one_out": open_}}, cfg) == ("ok", [])
+
+
+def test_leave_one_out_steps_are_the_minima_without_each_frame():
+    """Frames with quadratic shares of known minima m_f and curvatures A_f: the minimum of the
+    sum is the curvature-weighted mean of the m_f; each frame left out, the others' weighted mean;
+    each frame alone, its own m_f; all relative to the sum's minimum. A frame with no curvature of
+    its own has no minimum alone (nan), and without the only frame that fixes a direction the
+    others have none either."""
+    from rgbd_gt.align.verify import leave_one_out_steps
+
+    rng = np.random.default_rng(3)
+    m = rng.normal(size=(4, 6))
+    A = np.stack([(lambda B: B @ B.T + 6 * np.eye(6))(rng.normal(size=(6, 6))) for _ in range(4)])
+    g = -np.einsum("fij,fj->fi", A, m)  # the gradient at 0 of 0.5 (x - m)^T A (x - m)
+    left_out, own = leave_one_out_steps(g, A)
+    at = np.linalg.solve(A.sum(0), np.einsum("fij,fj->i", A, m))
+    for f in range(4):
+        rest = [k for k in range(4) if k != f]
+        expect = np.linalg.solve(A[rest].sum(0), np.einsum("fij,fj->i", A[rest], m[rest]))
+        np.testing.assert_allclose(left_out[f], expect - at, atol=1e-10)
+        np.testing.assert_allclose(own[f], m[f] - at, atol=1e-10)
+    # frame 0 alone fixes the last direction: left out, the others leave it open
+    A[1:, 5, :] = A[1:, :, 5] = 0
+    left_out, own = leave_one_out_steps(g, A)
+    assert np.isnan(left_out[0]).all() and np.isfinite(left_out[1:]).all()
+    assert np.isfinite(own[0]).all() and np.isnan(own[1:]).all()
 
 
 def test_joint_solve_of_kitti_frames_is_judged_by_its_frames_apart(tmp_path):
@@ -151,7 +184,11 @@ def test_joint_solve_of_kitti_frames_is_judged_by_its_frames_apart(tmp_path):
     assert [g["frames"] for g in ev["frames"]["groups"]] == [[0, 2], [1, 3]]
     assert all(np.isfinite(g["px"]) for g in ev["frames"]["groups"])
     assert ev["ring_edges"]["ring_edges"] > 2000 and ev["ring_edges"]["ratio"] > 1.0
-    assert set(ev["seconds"]) >= {"frames", "ring_edges"}
+    assert set(ev["seconds"]) >= {"frames", "ring_edges", "leave_one_frame_out"}
+    # each frame left out: the others alone fix the pose here, and none holds the result alone
+    loo = ev["frames"]["leave_one_out"]
+    assert len(loo["left_out_px"]) == 4 and 0 < loo["worst_left_out_px"] < 3.0
+    assert "each frame left out" in proc.stdout
 
 
 def test_one_sweep_alone_is_warned_about(tmp_path):

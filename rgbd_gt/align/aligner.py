@@ -57,6 +57,9 @@ class RefineResult:
     intrinsics_sigma: np.ndarray | None = None
     start_residuals: tuple[np.ndarray, np.ndarray] | None = None  # (uv (N, 2), |r| (N,)) at full resolution
     end_residuals: tuple[np.ndarray, np.ndarray] | None = None
+    # a joint solve (nid, several frames): each frame's share of the objective as a quadratic at
+    # the result, (g (F, 6), H (F, 6, 6), units (6,)) (`Nid.frame_quadratics`)
+    frame_quadratics: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
 
 def damped(H: np.ndarray, lam: float) -> np.ndarray:
@@ -142,6 +145,7 @@ class Aligner:
             covariance=cov[:6, :6] if cov is not None else None, objective=obj.name,
             intrinsics=q.double().cpu().numpy() if obj.free else None, intrinsics_sigma=sigma,
             start_residuals=start_res, end_residuals=obj.residuals(0, final) if keep_residuals else None,
+            frame_quadratics=getattr(final, "quadratics", None) if cov is not None else None,
             **obj.summary(final),
         )
 

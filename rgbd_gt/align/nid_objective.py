@@ -67,18 +67,22 @@ class _Evaluation:
     nid: torch.Tensor  # (F x C,) NID per frame and channel pair (the first plus the sky charge), float64
     counts: list[int]  # per frame and channel pair, the points that entered its histogram
     entropies: list[float]  # ... and its joint entropy H(A, B) (nats)
+    edges: torch.Tensor  # (F,) float64: per frame cfg.edge_weight x its ring edges' score (0 without)
     gradient: torch.Tensor | None = None  # (6,) float64 d objective / d delta, when asked
-    edge: torch.Tensor | float = 0.0  # cfg.edge_weight x sum over frames of the ring edges' scores (float64)
 
     @property
     def loss(self) -> torch.Tensor:
         """Mean NID less the edge score per unit of the frames' weights: the objective minimised
         (`objective`) over the sum of the weights, up to how the weights differ between frames."""
-        return self.nid.mean() - self.edge / self.weights().sum()
+        return self.nid.mean() - self.edges.sum() / self.weights().sum()
 
     def objective(self, weights: torch.Tensor) -> torch.Tensor:
         """What L-BFGS minimises: sum(weights * NID) - the edge score."""
-        return (self.nid * weights).sum() - self.edge
+        return self.per_frame(weights).sum()
+
+    def per_frame(self, weights: torch.Tensor) -> torch.Tensor:
+        """(F,) each frame's share of `objective`: the objective is a sum over the frames."""
+        return (self.nid * weights).reshape(len(self.edges), -1).sum(1) - self.edges
 
     def weights(self) -> torch.Tensor:
         """(F,) n H(A, B) per frame: n H(A, B) NID is, up to a constant, the negative
@@ -150,6 +154,8 @@ class NidTerms:
     parts: list[_Part]
     evaluation: _Evaluation
     weights: torch.Tensor  # (F x C,) float64
+    # the frames' shares as quadratics at this pose (`Nid.frame_quadratics`), once the covariance made them
+    quadratics: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     @property
     def loss(self) -> np.ndarray:
@@ -297,12 +303,12 @@ class Nid:
         R0, t0 = self._pose(T_local)
         R = so3_exp(delta[:3]).to(R0.dtype)
         R1, t1 = R @ R0, R @ t0
-        nids, counts, entropies, edge = [], [], [], 0.0
+        nids, counts, entropies, edges = [], [], [], torch.zeros(len(parts), dtype=torch.float64, device=self.device)
         gradient = None if weights is None else torch.zeros(6, dtype=torch.float64, device=self.device)
-        for part in parts:
+        for k, part in enumerate(parts):
             if part.edge_points is not None:
                 score, g = self._edge_score(part, R1, t1, delta, weights is not None)
-                edge = edge + self.cfg.edge_weight * score
+                edges[k] = self.cfg.edge_weight * score
                 if g is not None:
                     gradient -= self.cfg.edge_weight * g
             q = part.points @ R1.T + t1
@@ -335,7 +341,7 @@ class Nid:
             if weights is not None:
                 gradient += _pose_gradient((d_sampled * s_u).sum(1), (d_sampled * s_v).sum(1), p.index_select(0, ok).double(),
                                            q.index_select(0, ok).double(), part.photo.K, delta[:3])
-        return _Evaluation(torch.stack(nids), counts, entropies, gradient, edge)
+        return _Evaluation(torch.stack(nids), counts, entropies, edges, gradient)
 
     def _edge_score(self, part: _Part, R: torch.Tensor, t: torch.Tensor, delta: torch.Tensor,
                     with_gradient: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -412,32 +418,46 @@ class Nid:
         """(n, 3) float64 local-frame points of the first frame's finest level visible at T_local."""
         return self._parts(0, T_local)[0].points.double().cpu().numpy()
 
-    def covariance(self, level: int, T_local: np.ndarray, q, terms: "NidTerms") -> np.ndarray:
-        """Laplace approximation: the inverse Hessian of the negative log-likelihood
-        sum_f n_f H_f NID_f (`_Evaluation.weights`); a lower bound, as neighbouring points share
-        photo pixels. The Hessian comes from central differences of the objective's values over
-        one pixel of image motion along each parameter and each pair (73 evaluations): the exact
-        gradient of the bilinear interpolant jumps at pixel borders, and its differences over
-        half a pixel were not positive definite at most right results on real sweeps
-        (docs/lidar-method.md). All inf where it is not positive definite: no minimum. at: the
-        evaluation at T_local itself (its weights, and the centre value of the differences)."""
+    def frame_quadratics(self, level: int, T_local: np.ndarray, terms: "NidTerms") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each frame's share of the objective (`_Evaluation.per_frame`, its weights those of
+        `terms`, the evaluation at T_local) as a quadratic in the pose update measured in steps of
+        one pixel of image motion (`units`): gradients g (F, 6) and Hessians H (F, 6, 6) from
+        central differences over one pixel along each parameter and each pair (73 evaluations:
+        the exact gradient of the bilinear interpolant jumps at pixel borders, and its
+        differences over half a pixel were not positive definite at most right results on real
+        sweeps, docs/lidar-method.md); and the units (6,) (rad, m per step)."""
         parts, at = terms.parts, terms.evaluation
         units = self.units(level, T_local, terms)
         weights = at.weights()
 
-        def f(x: np.ndarray) -> float:
+        def f(x: np.ndarray) -> np.ndarray:
             with torch.no_grad():
-                return float(self._evaluate(parts, T_local, torch.as_tensor(x, device=self.device) * units).objective(weights))
+                e = self._evaluate(parts, T_local, torch.as_tensor(x, device=self.device) * units)
+                return e.per_frame(weights).cpu().numpy()
 
-        E = np.eye(6)  # steps of 1 px
-        f0 = float(at.objective(weights))
-        H = np.diag([f(e) - 2 * f0 + f(-e) for e in E])
+        E = np.eye(6)
+        f0 = at.per_frame(weights).cpu().numpy()
+        plus, minus = [f(e) for e in E], [f(-e) for e in E]
+        H = np.zeros((len(f0), 6, 6))
+        for i in range(6):
+            H[:, i, i] = plus[i] - 2 * f0 + minus[i]
         for i, j in zip(*np.triu_indices(6, 1)):
             a, b = E[i], E[j]
-            H[i, j] = H[j, i] = (f(a + b) - f(a - b) - f(b - a) + f(-a - b)) / 4
+            H[:, i, j] = H[:, j, i] = (f(a + b) - f(a - b) - f(b - a) + f(-a - b)) / 4
+        g = (np.stack(plus, 1) - np.stack(minus, 1)) / 2
+        return g, H, units.cpu().numpy()
+
+    def covariance(self, level: int, T_local: np.ndarray, q, terms: "NidTerms") -> np.ndarray:
+        """Laplace approximation: the inverse Hessian of the negative log-likelihood
+        sum_f n_f H_f NID_f (`_Evaluation.weights`), summed over the frames' `frame_quadratics`;
+        a lower bound, as neighbouring points share photo pixels. All inf where it is not
+        positive definite: no minimum. The quadratics stay in terms.quadratics (the verdict's
+        frames judged against each other use them)."""
+        terms.quadratics = self.frame_quadratics(level, T_local, terms)
+        _, H, u = terms.quadratics
+        H = H.sum(0)
         if np.linalg.eigvalsh(H)[0] <= 0:
             return np.full((6, 6), np.inf)
-        u = units.cpu().numpy()
         return np.linalg.inv(H) * u[:, None] * u[None, :]
 
     # -- what the verification asks (see `Aligner`) ---------------------------------------------------

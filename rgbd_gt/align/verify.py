@@ -24,7 +24,7 @@ import numpy as np
 from rgbd_gt.align.aligner import Aligner, RefineResult
 from rgbd_gt.align.config import VerifyConfig
 from rgbd_gt.camera import Camera, backproject, project, without_distortion
-from rgbd_gt.pose import random_starts, rotation_error_deg, transform_points, translation_error_m, worst_sigmas
+from rgbd_gt.pose import apply_update, random_starts, rotation_error_deg, transform_points, translation_error_m, worst_sigmas
 from rgbd_gt.render.project import Q_SIZE
 
 VERDICTS = ("ok", "suspect", "failed")
@@ -168,6 +168,56 @@ def frame_folds(aligner: Aligner, result: RefineResult, view: _View, cfg: Verify
             "spread_mm": worst["mm"], "spread_deg": worst["deg"], "groups": groups}
 
 
+def leave_one_out_steps(g: np.ndarray, H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Frames judged against each other, linearised: the objective is a sum over frames, each
+    frame's share a quadratic around the result (gradients g (F, k), Hessians H (F, k, k)).
+    Returns, relative to the minimum of the sum, (F, k) each: where the minimum lies with frame
+    f left out, and where frame f alone has its minimum; rows of nan where what is left (or the
+    frame alone) has no minimum (not positive definite)."""
+    Hs, gs = H.sum(0), g.sum(0)
+    if np.linalg.eigvalsh(Hs)[0] <= 0:
+        return np.full_like(g, np.nan), np.full_like(g, np.nan)
+    at = -np.linalg.solve(Hs, gs)
+
+    def minima(Hf: np.ndarray, gf: np.ndarray) -> np.ndarray:
+        ok = np.linalg.eigvalsh(Hf)[:, 0] > 0
+        out = np.full_like(gf, np.nan)
+        if ok.any():
+            out[ok] = -np.linalg.solve(Hf[ok], gf[ok][:, :, None])[:, :, 0] - at
+        return out
+
+    return minima(Hs - H, gs - g), minima(H, g)
+
+
+def leave_one_frame_out(result: RefineResult, view: _View) -> dict | None:
+    """Per frame of a joint solve: how far the result moves when the frame is left out, and how
+    far the frame's own minimum lies from it, both from the frames' shares of the objective as
+    quadratics at the result (`RefineResult.frame_quadratics`, which its covariance made;
+    `leave_one_out_steps`): no solve per frame. In pixels of the visible points (the larger of theirs and a grid
+    across the photo; inf where there is no minimum). A frame whose own structure made the result
+    moves it when left out; frames that each agree put their own minima near it (single sparse
+    frames seldom have a clear one: how many do is part of the evidence). None for a single frame."""
+    if result.frame_quadratics is None or len(result.frame_quadratics[0]) < 2:
+        return None
+    g, H, units = result.frame_quadratics
+    T = result.T_cam_from_scan
+    photo = view.across_photo(T)
+
+    def px(step: np.ndarray) -> float:
+        if not np.isfinite(step).all():
+            return float("inf")
+        moved = apply_update(T, step * units)
+        return max(view.motion_px(moved, T), photo.motion_px(moved, T))
+
+    left_out, own = leave_one_out_steps(g, H)
+    left_px = [px(x) for x in left_out]
+    own_px = [px(x) for x in own]
+    finite = [p for p in own_px if np.isfinite(p)]
+    return {"left_out_px": left_px, "worst_left_out_px": max(left_px), "worst_frame": int(np.argmax(left_px)),
+            "own_minimum_px": own_px, "frames_with_minimum": len(finite),
+            "median_own_minimum_px": float(np.median(finite)) if finite else float("inf")}
+
+
 def sharpness(aligner: Aligner, T: np.ndarray, M: np.ndarray, step_px: float, level: int,
               intrinsics: np.ndarray | None = None) -> dict:
     """The robust loss at the result against the same at the 12 poses that move the image by
@@ -257,6 +307,11 @@ def decide(ev: dict, cfg: VerifyConfig) -> tuple[str, list[str]]:
         elif fold_px > cfg.fold_ok_px:
             suspect.append(f"the frames agree only roughly: refined apart in {folds['folds']} groups, they end "
                            f"{fold_px:.1f} px from the result")
+        loo = folds.get("leave_one_out")
+        # inf: the other frames alone leave a direction open (Waymo's frames, one of which fixes it): no say
+        if loo is not None and cfg.fold_ok_px < loo["worst_left_out_px"] < float("inf"):
+            suspect.append(f"the result hinges on frame {loo['worst_frame'] + 1}: left out, the result moves "
+                           f"{loo['worst_left_out_px']:.1f} px")
     sh = ev.get("sharpness")
     if sh is not None:
         if sh["median_rise"] < cfg.sharpness_failed:
@@ -327,6 +382,9 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
     frames = len(getattr(aligner.objective, "frames", ()))
     if cfg.repeats > 0 and cfg.folds > 1 and frames >= cfg.folds:  # the frames' own agreement: no repeats needed on top
         ev["frames"] = timed("frames", frame_folds, aligner, result, view, cfg)
+        loo = timed("leave_one_frame_out", leave_one_frame_out, result, view)
+        if loo is not None:
+            ev["frames"]["leave_one_out"] = loo
     elif cfg.repeats > 0:
         ev["repeatability"] = timed("repeatability", repeatability, aligner, result, T_init, view, cfg, init_sigma, seed)
     if result.objective != "nid":  # NID's values rise by 1e-5..1e-3: its uncertainty, from their Hessian, stands for it
