@@ -563,7 +563,8 @@ def _refine_bundle(bundle: Path, output: Path, cfg, device: str, cache: Optional
         loo = ev.get("leave_one_out_sigmas")
         table.add_row(e.image.name, _verdict_text(d.verification.verdict),
                       f"{moved['translation_mm']:.2f} mm, {moved['rotation_deg']:.4f} deg",
-                      "-" if loo is None else f"{loo:.1f} sigma", f"{ev['residual_vs_others']:.2f}")
+                      "-" if loo is None else f"{loo:.1f} sigma",
+                      f"{ev['residual_vs_others']:.2f}" if "residual_vs_others" in ev else "-")
     out.print(table)
     for e, d in zip(spec.photos, done.photos):
         for reason in d.verification.reasons:

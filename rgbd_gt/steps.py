@@ -390,8 +390,10 @@ def bundle_step(spec, cfg, device: str = "auto", cache: PathLike | None = None,
     for k, entry in enumerate(spec.photos):
         progress(f"{entry.image.name}: reading")
         inp = load_inputs(spec.scan, entry.image, spec.cameras[entry.camera].file, entry.init, entry.mask, cache, prepared)
-        if objective_of(cfg, inp.colors) != "photometric":
-            raise InputError("a bundle is solved with the photometric objective: the scan needs colors", spec.scan)
+        mode = spec.cameras[entry.camera].refine
+        if objective_of(cfg, inp.colors) != "photometric" and mode != "none":
+            raise InputError(f"the bundle's cameras.{entry.camera}.refine: {mode} needs the photometric objective (a "
+                             "colored scan); with nid (intensity only) the camera files are held", spec.scan)
         mode_cfg = dataclasses.replace(cfg, refine_intrinsics=spec.cameras[entry.camera].refine)
         photos.append(BundlePhoto(make_aligner(inp, mode_cfg, device).objective, inp.T_init, order.index(entry.camera),
                                   entry.shot, entry.image.name))

@@ -2,6 +2,9 @@
 file leaves open (shared by all that camera's photos), and per rig the relative pose of each
 camera to the rig's first (shared by all shots). One Levenberg-Marquardt over all of it, coarse to
 fine, as ETH3D's pipeline (Schöps et al., CVPR 2017), on the photos' own photometric objectives.
+A scan with intensity alone (nid, no Gauss-Newton form): L-BFGS over the same unknowns (`_lbfgs`),
+the cameras held, and each photo's Laplace Hessian in the place of its Gauss-Newton matrix for the
+covariance and the evidence (`_quadratics`).
 
 Unknowns. A *body* is a pose of its own: a photo outside a rig, or a rig's shot (the pose of the
 rig's first camera). Photo i's pose is T_i = rig[c_i] @ body[b_i] (rig[0] = I; outside a rig
@@ -35,7 +38,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from rgbd_gt.align.aligner import damped
+from rgbd_gt.align import lbfgs
+from rgbd_gt.align.aligner import STEP_CAP_PX, damped
 from rgbd_gt.align.photometric import scaled_inverse
 from rgbd_gt.errors import InputError
 from rgbd_gt.pose import apply_update, invert, translated, update_of, update_through
@@ -98,6 +102,9 @@ class Bundle:
         self.priors = priors or {}
         self.cfg = photos[0].objective.cfg
         self.device = photos[0].objective.device
+        self.nid = photos[0].objective.name == "nid"
+        if any((p.objective.name == "nid") != self.nid for p in photos):
+            raise InputError("a bundle's photos share one objective: photometric (colored scan) or nid (intensity)")
         # bodies: one per shot of the rig, one per photo outside it
         keys = [("shot", p.shot) if p.shot is not None else ("photo", i) for i, p in enumerate(photos)]
         self.body_keys = list(dict.fromkeys(keys))
@@ -110,7 +117,7 @@ class Bundle:
         self.rig_at = int(self.free.sum()) + 6 * np.arange(-1, max(rig_cameras, 1) - 1)  # rig_at[c] for c >= 1
         self.shared = int(self.free.sum()) + 6 * max(rig_cameras - 1, 0)
         # the agreement term's pairs: in each rig shot, its first photo with each other one
-        self.weight = self.cfg.bundle_agreement
+        self.weight = 0.0 if self.nid else self.cfg.bundle_agreement  # the term compares colors by their fits
         self.pairs = []
         if self.weight > 0 and rig_cameras:
             for b in range(len(self.body_keys)):
@@ -231,8 +238,9 @@ class Bundle:
             Js[6 + k, self.q_at[c] + k] = 1.0
         return Jb, Js
 
-    def _system(self, terms: list, rig: np.ndarray, scale: list[float], pairs: list[dict] = ()):
-        """The joint Gauss-Newton system, each photo's terms divided by its scale, per body:
+    def _system(self, Hs: list, gs: list, rig: np.ndarray, scale: list[float], pairs: list[dict] = ()):
+        """The joint Gauss-Newton system of the photos' matrices Hs (P, P) and gradients gs (P,)
+        over their parameters (pose, free corrections), each divided by its scale, per body:
         U (nb, 6, 6), W (nb, 6, S), gb (nb, 6) and its share of the shared parameters' block
         Vb (nb, S, S) and gradient gsb (nb, S); with the agreement term's pairs (`_agreement`,
         each weighted by cfg.bundle_agreement over its scale)."""
@@ -240,7 +248,7 @@ class Bundle:
         U, W, gb = np.zeros((nb, 6, 6)), np.zeros((nb, 6, S)), np.zeros((nb, 6))
         Vb, gsb = np.zeros((nb, S, S)), np.zeros((nb, S))
         # (body, maps of its parameters, H, g): each photo, then each pair (both photos of one shot: one body)
-        parts = [(self.body_of[i], self._maps(i, rig), at.H[0] / scale[i], at.g[0] / scale[i]) for i, at in enumerate(terms)]
+        parts = [(self.body_of[i], self._maps(i, rig), H / scale[i], g / scale[i]) for i, (H, g) in enumerate(zip(Hs, gs))]
         for (i, j), pair in zip(self.pairs, pairs):
             (Jbi, Jsi), (Jbj, Jsj) = self._maps(i, rig), self._maps(j, rig)
             w = self.weight / pair["scale"]
@@ -306,7 +314,10 @@ class Bundle:
         top = min(levels) - 1
         level_info, total = [], 0
         for level in range(top, -1, -1):
-            bodies, rig, q, its, stop = self._lm(level, bodies, rig, q, self.cfg.iterations, progress)
+            if self.nid:
+                bodies, rig, its, stop = self._lbfgs(level, bodies, rig, self.cfg.iterations, progress)
+            else:
+                bodies, rig, q, its, stop = self._lm(level, bodies, rig, q, self.cfg.iterations, progress)
             level_info.append({"level": level, "iterations": its, "stop": stop})
             total += its
         terms = self._evaluate(0, bodies, rig, q)
@@ -328,7 +339,7 @@ class Bundle:
         lam, stop, it = 1e-4, "iteration cap", 0
         for it in range(1, iterations + 1):
             scale = [float(a.sigma2.reshape(-1)[0]) for a in at]
-            xb, xs = self._step(self._system(at, rig, scale, pairs), prior, lam)
+            xb, xs = self._step(self._system([a.H[0] for a in at], [a.g[0] for a in at], rig, scale, pairs), prior, lam)
             nb, nr, nq = self._moved(bodies, rig, q, xb, xs)
             trial = sum(float(p.objective.trial(level, [translated(self.pose(i, nb, nr), p.objective.centre)],
                                                 self._q(nq, p.camera), a)[0]) * float(a.count[0])
@@ -354,6 +365,51 @@ class Bundle:
                 break
         return bodies, rig, q, it, stop
 
+    def _lbfgs(self, level, bodies, rig, iterations, progress):
+        """nid (no Gauss-Newton form): L-BFGS on one level over every body's and rig camera's
+        update at once, each photo's update their linear map (`_maps`, as the LM step takes it),
+        on the points each photo sees at the level's start; each unknown in units of one level
+        pixel of its first photo and capped smoothly at STEP_CAP_PX, as the single aligner's."""
+        n, nb = len(self.photos), len(self.body_keys)
+        q = np.zeros((self.cameras, Q_SIZE))
+        Ts = [translated(self.pose(i, bodies, rig), p.objective.centre) for i, p in enumerate(self.photos)]
+        at = self._evaluate(level, bodies, rig, q)
+        maps = [self._maps(i, rig) for i in range(n)]
+        units = np.zeros(6 * nb + self.shared)
+        for i, p in enumerate(self.photos):  # each unknown measured on the first photo it moves
+            u = p.objective.units(level, Ts[i], at[i]).cpu().numpy()
+            blocks = [6 * self.body_of[i]] + ([6 * nb + self.rig_at[p.camera]] if self._in_rig(i) and p.camera >= 1 else [])
+            for b in blocks:
+                if not units[b:b + 6].any():
+                    units[b:b + 6] = u
+
+        def unknowns(y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            squash = np.tanh(y / STEP_CAP_PX)
+            return units * STEP_CAP_PX * squash, units * (1 - squash**2)
+
+        def objective(y: np.ndarray) -> tuple[float, np.ndarray]:
+            x, dx = unknowns(y)
+            value, grad = 0.0, np.zeros_like(y)
+            for i, p in enumerate(self.photos):
+                (Jb, Js), b = maps[i], self.body_of[i]
+                d = Jb @ x[6 * b:6 * b + 6] + Js @ x[6 * nb:]
+                try:
+                    v, g = p.objective.value_and_gradient(level, Ts[i], torch.as_tensor(d, device=self.device), at[i])
+                except InputError as exc:
+                    raise InputError(f"{p.name or f'photo {i + 1}'}: {exc}") from None
+                g = g.cpu().numpy()
+                value += v
+                grad[6 * b:6 * b + 6] += Jb.T @ g
+                grad[6 * nb:] += Js.T @ g
+            return value, grad * dx
+
+        y, its = lbfgs.minimize(objective, np.zeros(len(units)), iterations)
+        x = unknowns(y)[0]
+        bodies, rig, _ = self._moved(bodies, rig, q, x[:6 * nb].reshape(nb, 6), x[6 * nb:])
+        if progress is not None:
+            progress({"level": level, "iteration": its, "loss": objective(y)[0], "accepted": True})
+        return bodies, rig, its, "iteration cap" if its >= iterations else "converged"
+
     # -- what the result is worth ------------------------------------------------------------------
     def _uncertainty_and_evidence(self, result: BundleResult, bodies, rig, terms) -> None:
         """The covariance of every unknown from the joint Gauss-Newton matrix at the result (each
@@ -361,11 +417,11 @@ class Bundle:
         through the Schur complement (the shared parameters' covariance is its inverse), so that it
         costs what a step does; and the cross-photo evidence (the module's docstring)."""
         nb = len(self.body_keys)
-        scale = [float(a.wrr[0]) / max(float(a.count[0]) - a.H.shape[1], 1) for a in terms]
+        Hs, gs, scale, spread = self._quadratics(terms, bodies, rig)
         pairs = self._agreement(0, bodies, rig, result.q, terms)
         for pair in pairs:  # the residual variance, as for the photos
             pair["scale"] = pair["wrr"] / max(pair["count"] - len(pair["H"]), 1)
-        system = self._system(terms, rig, scale, pairs)
+        system = self._system(Hs, gs, rig, scale, pairs)
         U, W, _, Vb, _ = system
         prior = self._prior_terms(rig)
         Ui = [scaled_inverse(U[b]) for b in range(nb)]
@@ -385,9 +441,26 @@ class Bundle:
             for c in range(1, self.rig_cameras):
                 s = slice(self.rig_at[c], self.rig_at[c] + 6)
                 result.rig_covariance[c] = Si[s, s]
-        result.evidence = self._evidence(terms, scale, system, prior, Ui, cov_body)
+        result.evidence = self._evidence(Hs, gs, scale, spread, system, prior, Ui, cov_body)
 
-    def _evidence(self, terms, scale, system, prior, Ui, cov_body) -> list[dict]:
+    def _quadratics(self, terms: list, bodies, rig) -> tuple[list, list, list[float], list[float] | None]:
+        """Per photo at the result, finest level: its matrix H (P, P) and gradient g (P,) over
+        its parameters, the scale they are divided by, and its residuals' robust scale (None for
+        nid). Photometric: its Gauss-Newton terms and their residual variance. nid: the Laplace
+        Hessian of its negative log-likelihood (`Nid.frame_quadratics`, per unit of the
+        parameters), whose scale is already 1."""
+        if not self.nid:
+            return ([a.H[0] for a in terms], [a.g[0] for a in terms],
+                    [float(a.wrr[0]) / max(float(a.count[0]) - a.H.shape[1], 1) for a in terms],
+                    [float(np.sqrt(a.sigma2.reshape(-1)[0])) for a in terms])
+        Hs, gs = [], []
+        for i, (p, at) in enumerate(zip(self.photos, terms)):
+            g, H, u = p.objective.frame_quadratics(0, translated(self.pose(i, bodies, rig), p.objective.centre), at)
+            Hs.append(H[0] / u[:, None] / u[None, :])
+            gs.append(g[0] / u)
+        return Hs, gs, [1.0] * len(terms), None
+
+    def _evidence(self, Hs, gs, scale, spread, system, prior, Ui, cov_body) -> list[dict]:
         """Per photo: leave its body out, its residual scale against the others', and (in a rig)
         its pose freed from the rig; see the module's docstring."""
         U, W, gb, Vb, gsb = system
@@ -408,14 +481,13 @@ class Bundle:
                     and np.isfinite(C).all() else None  # None: the others alone do not fix the shared parameters
                 for i in np.nonzero(self.body_of == b)[0]:
                     ev[i]["leave_one_out_sigmas"] = sig
-        spread = np.sqrt([float(a.sigma2.reshape(-1)[0]) for a in terms])
-        for i in range(len(self.photos)):
+        for i in range(len(self.photos) if spread is not None else 0):
             others = np.delete(spread, i)
             ev[i]["residual_vs_others"] = float(spread[i] / np.median(others)) if len(others) else 1.0
-        for i, at in enumerate(terms):
+        for i, (H, g) in enumerate(zip(Hs, gs)):
             if self._in_rig(i):
-                Hp = at.H[0][:6, :6] / scale[i]
-                step = -np.linalg.solve(Hp, at.g[0][:6] / scale[i])
+                Hp = H[:6, :6] / scale[i]
+                step = -np.linalg.solve(Hp, g[:6] / scale[i])
                 ev[i]["freed_from_rig_sigmas"] = float(np.sqrt(max(step @ Hp @ step, 0.0)))
         # a shot off the rig pulls the rig, so that every shot moves when freed: how far each moves
         # against the typical shot tells the one that pulls
