@@ -452,7 +452,7 @@ class Bundle:
         if not self.nid:
             return ([a.H[0] for a in terms], [a.g[0] for a in terms],
                     [float(a.wrr[0]) / max(float(a.count[0]) - a.H.shape[1], 1) for a in terms],
-                    [float(np.sqrt(a.sigma2.reshape(-1)[0])) for a in terms])
+                    [float(a.sigma2.reshape(-1)[0]) ** 0.5 for a in terms])
         Hs, gs = [], []
         for i, (p, at) in enumerate(zip(self.photos, terms)):
             g, H, u = p.objective.frame_quadratics(0, translated(self.pose(i, bodies, rig), p.objective.centre), at)
