@@ -56,30 +56,48 @@ def objective(scan, shot: Shot, mode: str, camera=None, agreement: float = 0.0):
     return Photometric(scan.xyz, scan.rgb, pyr, cfg, getattr(scan, "normals", None))
 
 
+def nid_objective(scan, shot: Shot):
+    """The nid objective of the shot's photo against the scan's intensity alone (its colors
+    dropped: an uncolored scanner), as refine builds it for such a scan (`make_aligner`)."""
+    import torch
+
+    from rgbd_gt.align.config import RefineConfig
+    from rgbd_gt.align.nid_objective import NID_LEVELS, Frame, Nid
+    from rgbd_gt.align.pyramid import photo_pyramid
+
+    cfg = dataclasses.replace(RefineConfig(), objective="nid")
+    pyr = photo_pyramid(shot.image, shot.camera, NID_LEVELS, torch.device("cpu"), None)
+    return Nid([Frame(scan.xyz, scan.intensity, pyr, getattr(scan, "normals", None))], cfg)
+
+
 def errors(T: np.ndarray, shot: Shot) -> tuple[float, float]:
     from rgbd_gt.pose import rotation_error_deg, translation_error_m
 
     return translation_error_m(T, shot.T_true) * 1e3, rotation_error_deg(T, shot.T_true)
 
 
-def singles(scan, shots: list[Shot], mode: str, cameras: list | None = None) -> tuple[list[dict], float]:
-    """Each photo refined alone: per photo its errors and camera corrections; the seconds of all."""
+def singles(scan, shots: list[Shot], mode: str, cameras: list | None = None, nid: bool = False) -> tuple[list[dict], float]:
+    """Each photo refined alone: per photo its errors and camera corrections; the seconds of all.
+    nid: against the scan's intensity alone (`nid_objective`; mode "none")."""
     from rgbd_gt.align.aligner import Aligner
 
     rows, start = [], time.perf_counter()
     for k, s in enumerate(shots):
-        r = Aligner(objective(scan, s, mode, cameras[k] if cameras else None)).refine(s.T_init)
+        obj = nid_objective(scan, s) if nid else objective(scan, s, mode, cameras[k] if cameras else None)
+        r = Aligner(obj).refine(s.T_init)
         rows.append({"err": errors(r.T_cam_from_scan, s), "q": r.intrinsics, "T": r.T_cam_from_scan})
     return rows, time.perf_counter() - start
 
 
 def joint(scan, shots: list[Shot], mode: str, camera=None, rig: int = 0, photos_out: list | None = None,
-          agreement: float = 0.0):
-    """The bundle of the shots; returns (result, seconds); photos_out gets the bundle's photos."""
+          agreement: float = 0.0, nid: bool = False):
+    """The bundle of the shots; returns (result, seconds); photos_out gets the bundle's photos.
+    nid: against the scan's intensity alone (`nid_objective`; mode "none")."""
     from rgbd_gt.align.bundle import Bundle, BundlePhoto
 
     start = time.perf_counter()
-    photos = [BundlePhoto(objective(scan, s, mode, camera, agreement), s.T_init, s.camera_index, s.shot, s.name) for s in shots]
+    photos = [BundlePhoto(nid_objective(scan, s) if nid else objective(scan, s, mode, camera, agreement), s.T_init,
+                          s.camera_index, s.shot, s.name) for s in shots]
     result = Bundle(photos, max(s.camera_index for s in shots) + 1, rig).solve()
     if photos_out is not None:
         photos_out += photos
@@ -197,23 +215,25 @@ def icl_section(folder: Path) -> list[str]:
 
 def stereo_rows(seeds: list[int], size: str) -> list[str]:
     """The stereo table's rows for the scenes of `seeds` at `size`: each photo alone, the bundle
-    with its rig, and the bundle with the agreement term."""
+    with its rig, and the bundle with the agreement term; then the same scan's intensity alone
+    (nid): each photo alone and the bundle with its rig."""
     from rgbd_gt.io import read_pose
 
-    acc = {k: [] for k in ("single", "joint", "agree")}
+    acc = {k: [] for k in ("single", "joint", "agree", "nid single", "nid joint")}
     rig = {k: [] for k in acc}
     secs = {k: 0.0 for k in acc}
     for seed in seeds:
         d = scene(seed, 4, "stereo", size)
         scan, shots = load(d, rig=True)
         T_rl = read_pose(d / "rig_gt.yaml")[0]
-        rows, s = singles(scan, shots, "none")
-        secs["single"] += s
-        acc["single"] += [r["err"] for r in rows]
-        by = {(sh.shot, sh.camera_index): r["T"] for sh, r in zip(shots, rows)}
-        rig["single"] += [rig_errors(by[(k, 1)] @ np.linalg.inv(by[(k, 0)]), T_rl) for k in range(4)]
-        for key, weight in (("joint", 0.0), ("agree", AGREEMENT)):
-            result, s = joint(scan, shots, "none", rig=2, agreement=weight)
+        for key, nid in (("single", False), ("nid single", True)):
+            rows, s = singles(scan, shots, "none", nid=nid)
+            secs[key] += s
+            acc[key] += [r["err"] for r in rows]
+            by = {(sh.shot, sh.camera_index): r["T"] for sh, r in zip(shots, rows)}
+            rig[key] += [rig_errors(by[(k, 1)] @ np.linalg.inv(by[(k, 0)]), T_rl) for k in range(4)]
+        for key, weight, nid in (("joint", 0.0, False), ("agree", AGREEMENT, False), ("nid joint", 0.0, True)):
+            result, s = joint(scan, shots, "none", rig=2, agreement=weight, nid=nid)
             secs[key] += s
             acc[key] += [errors(T, sh) for T, sh in zip(result.poses, shots)]
             rig[key].append(rig_errors(result.rig[1], T_rl))
@@ -224,7 +244,8 @@ def stereo_rows(seeds: list[int], size: str) -> list[str]:
         return f"{np.median(b):.2f} / {b.max():.2f} mm | {np.median(r):.4f} / {r.max():.4f} deg"
 
     names = {"single": "per photo", "joint": "bundle (rig)",
-             "agree": f"bundle (rig) with the agreement term, weight {AGREEMENT} (the default)"}
+             "agree": f"bundle (rig) with the agreement term, weight {AGREEMENT} (the default)",
+             "nid single": "intensity only: per photo (nid, its wide search)", "nid joint": "intensity only: bundle (rig, nid)"}
     return [f"| {size} | {names[k]} | {stats(acc[k])} | {rig_text(rig[k])} | {secs[k] / len(seeds):.1f} |" for k in acc]
 
 
@@ -293,7 +314,8 @@ def main(argv: list[str] | None = None) -> None:
               "with its own lens and color response; both camera files true. Per photo: each of the 8 photos alone, the "
               "rig then taken per shot from its two poses. Bundle: the rig's relative pose shared by the 4 shots, "
               "initialised from the first shot's two inits (no prior). Small: 640x480 photos of a scan 0.15 deg apart; "
-              "default: 1280x960 photos of a scan 0.1 deg apart (`synth`'s default size).", "",
+              "default: 1280x960 photos of a scan 0.1 deg apart (`synth`'s default size). Intensity only: the same scan "
+              "with its colors dropped (its synthetic laser intensity), solved with nid (the Notes below).", "",
               "| size | solve | pose error, median | pose error, worst | baseline error, median / worst | relative rotation error, median / worst | aligner s |",
               "|---|---|---|---|---|---|---|"]
     for size in ("small", "default"):
