@@ -394,7 +394,7 @@ def bundle_step(spec, cfg, device: str = "auto", cache: PathLike | None = None,
         if objective_of(cfg, inp.colors) != "photometric" and mode != "none":
             raise InputError(f"the bundle's cameras.{entry.camera}.refine: {mode} needs the photometric objective (a "
                              "colored scan); with nid (intensity only) the camera files are held", spec.scan)
-        mode_cfg = dataclasses.replace(cfg, refine_intrinsics=spec.cameras[entry.camera].refine)
+        mode_cfg = dataclasses.replace(cfg, refine_intrinsics=mode)
         photos.append(BundlePhoto(make_aligner(inp, mode_cfg, device).objective, inp.T_init, order.index(entry.camera),
                                   entry.shot, entry.image.name))
         inputs.append(inp)

@@ -369,7 +369,8 @@ class Bundle:
         """nid (no Gauss-Newton form): L-BFGS on one level over every body's and rig camera's
         update at once, each photo's update their linear map (`_maps`, as the LM step takes it),
         on the points each photo sees at the level's start; each unknown in units of one level
-        pixel of its first photo and capped smoothly at STEP_CAP_PX, as the single aligner's."""
+        pixel of its first photo and capped smoothly at STEP_CAP_PX of them (the single aligner
+        also bounds each step by the wide search's size; the bundle has no search)."""
         n, nb = len(self.photos), len(self.body_keys)
         q = np.zeros((self.cameras, Q_SIZE))
         Ts = [translated(self.pose(i, bodies, rig), p.objective.centre) for i, p in enumerate(self.photos)]

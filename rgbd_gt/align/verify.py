@@ -193,8 +193,8 @@ def leave_one_frame_out(result: RefineResult, view: _View) -> dict | None:
     """Per frame of a joint solve: how far the result moves when the frame is left out, and how
     far the frame's own minimum lies from it, both from the frames' shares of the objective as
     quadratics at the result (`RefineResult.frame_quadratics`, which its covariance made;
-    `leave_one_out_steps`): no solve per frame. In pixels of the visible points (the larger of theirs and a grid
-    across the photo; inf where there is no minimum). A frame whose own structure made the result
+    `leave_one_out_steps`): no solve per frame. In pixels of the visible points (the larger of
+    theirs and a grid across the photo; inf where there is no minimum). A frame whose own structure made the result
     moves it when left out; frames that each agree put their own minima near it (single sparse
     frames seldom have a clear one: how many do is part of the evidence). None for a single frame."""
     if result.frame_quadratics is None or len(result.frame_quadratics[0]) < 2:
