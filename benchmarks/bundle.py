@@ -42,9 +42,9 @@ class Shot:
     shot: int | None = None
 
 
-def objective(scan, shot: Shot, mode: str, camera=None, agreement: float = 0.0):
-    """The photometric objective of the shot's photo against the scan (points, rgb, normals);
-    agreement: the bundle's agreement weight (rigs)."""
+def objective(scan, shot: Shot, mode: str, camera=None, agreement: float = 0.0, device: str = "cpu"):
+    """The photometric objective of the shot's photo against the scan (points, rgb, normals) on
+    device; agreement: the bundle's agreement weight (rigs)."""
     import torch
 
     from rgbd_gt.align.config import RefineConfig
@@ -52,13 +52,13 @@ def objective(scan, shot: Shot, mode: str, camera=None, agreement: float = 0.0):
     from rgbd_gt.align.pyramid import photo_pyramid
 
     cfg = dataclasses.replace(RefineConfig(), refine_intrinsics=mode, bundle_agreement=agreement)
-    pyr = photo_pyramid(shot.image, camera or shot.camera, cfg.levels, torch.device("cpu"), None, cfg.upsample)
+    pyr = photo_pyramid(shot.image, camera or shot.camera, cfg.levels, torch.device(device), None, cfg.upsample)
     return Photometric(scan.xyz, scan.rgb, pyr, cfg, getattr(scan, "normals", None))
 
 
-def nid_objective(scan, shot: Shot):
+def nid_objective(scan, shot: Shot, device: str = "cpu"):
     """The nid objective of the shot's photo against the scan's intensity alone (its colors
-    dropped: an uncolored scanner), as refine builds it for such a scan (`make_aligner`)."""
+    dropped: an uncolored scanner), as refine builds it for such a scan (`make_aligner`), on device."""
     import torch
 
     from rgbd_gt.align.config import RefineConfig
@@ -66,7 +66,7 @@ def nid_objective(scan, shot: Shot):
     from rgbd_gt.align.pyramid import photo_pyramid
 
     cfg = dataclasses.replace(RefineConfig(), objective="nid")
-    pyr = photo_pyramid(shot.image, shot.camera, NID_LEVELS, torch.device("cpu"), None)
+    pyr = photo_pyramid(shot.image, shot.camera, NID_LEVELS, torch.device(device), None)
     return Nid([Frame(scan.xyz, scan.intensity, pyr, getattr(scan, "normals", None))], cfg)
 
 
@@ -90,13 +90,13 @@ def singles(scan, shots: list[Shot], mode: str, cameras: list | None = None, nid
 
 
 def joint(scan, shots: list[Shot], mode: str, camera=None, rig: int = 0, photos_out: list | None = None,
-          agreement: float = 0.0, nid: bool = False):
-    """The bundle of the shots; returns (result, seconds); photos_out gets the bundle's photos.
-    nid: against the scan's intensity alone (`nid_objective`; mode "none")."""
+          agreement: float = 0.0, nid: bool = False, device: str = "cpu"):
+    """The bundle of the shots on device; returns (result, seconds); photos_out gets the bundle's
+    photos. nid: against the scan's intensity alone (`nid_objective`; mode "none")."""
     from rgbd_gt.align.bundle import Bundle, BundlePhoto
 
     start = time.perf_counter()
-    photos = [BundlePhoto(nid_objective(scan, s) if nid else objective(scan, s, mode, camera, agreement), s.T_init,
+    photos = [BundlePhoto(nid_objective(scan, s, device) if nid else objective(scan, s, mode, camera, agreement, device), s.T_init,
                           s.camera_index, s.shot, s.name) for s in shots]
     result = Bundle(photos, max(s.camera_index for s in shots) + 1, rig).solve()
     if photos_out is not None:

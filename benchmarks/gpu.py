@@ -1,9 +1,11 @@
 """The CUDA path against the CPU path on the same cases: the real PJLab scenes (nid, with the
-verdict unless --no-verdict) and ICL-NUIM pairs (photometric). Writes docs/gpu.md.
+verdict unless --no-verdict), ICL-NUIM pairs (photometric), the KITTI and Waymo drives (nid, one
+frame and every frame jointly, with the verdict) and a stereo rig's intensity-only bundle (nid).
+Writes docs/gpu.md.
 
 A GPU machine may lack open3d (it reads PCD files and makes a sweep's normals), so the work is
 split: `prepare` reads the scenes where the package is installed and writes them, normals made,
-into one pickle; `run` refines them on each device asked for. Both devices run the same code on
+into pickles; `run` refines them on each device asked for. Both devices run the same code on
 the same inputs, so what differs is the device alone.
 """
 
@@ -21,10 +23,12 @@ from typing import Callable
 import numpy as np
 
 from rgbd_gt.align.config import RefineConfig
-from benchmarks.lidar import JOINT, SIZES, group_inits, pjlab_scenes, run_case
+from benchmarks.lidar import DRIVES, JOINT, SIZES, group_inits, init_poses, pjlab_scenes, run_case, run_inputs
 from rgbd_gt.pose import rotation_error_deg, translation_error_m
 
 SCENES = "pjlab.pickle.gz"
+DRIVE_INPUTS = "drives.pickle.gz"  # per drive: its frames' refine inputs from one init, the photos beside
+STEREO = "stereo.pickle.gz"  # the bundle benchmark's stereo scene, seed 0, small, its scan with normals
 ICL = "icl_nuim_livingroom1"
 
 
@@ -34,6 +38,40 @@ def prepare(data: Path, out: Path) -> None:
     with gzip.open(out / SCENES, "wb", compresslevel=3) as f:
         pickle.dump(pjlab_scenes(data / "lidar_camera"), f)
     shutil.copytree(data / ICL, out / ICL, dirs_exist_ok=True)
+    prepare_drives(data, out)
+    prepare_stereo(out)
+
+
+def prepare_drives(data: Path, out: Path) -> None:
+    """Per drive of DRIVES: the refine inputs of every frame from the drives benchmark's first
+    1 deg / 10 cm draw (`bench.lidar.collect_drives`), the points in view only; each photo as
+    its file beside (the pickle holds its name), which keeps the whole small enough to travel."""
+    from benchmarks.lidar import drive_scenes, refine_inputs
+
+    drives = {}
+    for drive in DRIVES:
+        folder = data / "lidar_camera" / drive
+        scenes = drive_scenes(folder)
+        T0 = init_poses(scenes[0].T_ref, *SIZES[0], 1, seed=sum(map(ord, drive)))[0]
+        inputs = [refine_inputs(s, T0) for s in scenes]
+        for s, i in zip(scenes, inputs):
+            photo = next(p for p in (folder / "img").iterdir() if p.stem == s.name)
+            i.photo = f"{drive}_{photo.name}"
+            shutil.copyfile(photo, out / i.photo)
+        drives[drive] = {"T_ref": scenes[0].T_ref, "inputs": inputs}
+    with gzip.open(out / DRIVE_INPUTS, "wb", compresslevel=3) as f:
+        pickle.dump(drives, f)
+
+
+def prepare_stereo(out: Path) -> None:
+    """The stereo rig of docs/bundle.md (seed 0, 4 shots, small), its scan's normals made."""
+    from benchmarks.bundle import load, scene
+    from rgbd_gt.io import read_pose
+
+    d = scene(0, 4, "stereo")
+    scan, shots = load(d, rig=True)
+    with gzip.open(out / STEREO, "wb", compresslevel=3) as f:
+        pickle.dump({"scan": scan, "shots": shots, "T_rl": read_pose(d / "rig_gt.yaml")[0]}, f)
 
 
 def lidar_cases(inputs: Path, inits: int) -> list[tuple[str, list, np.ndarray]]:
@@ -45,6 +83,61 @@ def lidar_cases(inputs: Path, inits: int) -> list[tuple[str, list, np.ndarray]]:
     groups = [[s] for s in scenes] + [[by_name[n] for n in JOINT]]
     return [(f"{' + '.join(s.name for s in group)} {deg:g} deg #{i}", group, T0) for group in groups
             for deg, _, i, T0 in group_inits(group, inits, SIZES[:1] if len(group) > 1 else SIZES)]
+
+
+def drive_cases(inputs: Path) -> list[tuple[str, str, list, np.ndarray, bool]]:
+    """(kind, case, refine inputs, T_ref, judged): per drive its first frame alone (the aligner
+    alone: a frame's verdict is four more refines of the same kind) and every frame jointly."""
+    from rgbd_gt.io.image import read_image
+
+    with gzip.open(inputs / DRIVE_INPUTS, "rb") as f:
+        drives = pickle.load(f)
+    cases = []
+    for drive, d in drives.items():
+        for i in d["inputs"]:
+            i.photo = read_image(inputs / i.photo)
+        n = len(d["inputs"])
+        cases += [(f"nid ({drive}, single frame)", f"{drive} frame 0", d["inputs"][:1], d["T_ref"], False),
+                  (f"nid ({drive}, joint over {n} frames)", f"{drive} joint", d["inputs"], d["T_ref"], True)]
+    return cases
+
+
+def stereo_case(inputs: Path, device: str) -> dict:
+    """The stereo rig's intensity-only bundle (`bench.bundle.joint`, nid) on device: its worst
+    pose error and its baseline error against the truth."""
+    from benchmarks.bundle import errors, joint, rig_errors
+
+    with gzip.open(inputs / STEREO, "rb") as f:
+        st = pickle.load(f)
+    result, seconds = joint(st["scan"], st["shots"], "none", rig=2, nid=True, device=device)
+    errs = [errors(T, sh) for T, sh in zip(result.poses, st["shots"])]
+    worst = max(range(len(errs)), key=lambda k: errs[k][0])
+    T = result.poses[worst]
+    return {"deg": errs[worst][1], "cm": errs[worst][0] / 10, "T": T.tolist(), "seconds": seconds,
+            "baseline_mm": abs(rig_errors(result.rig[1], st["T_rl"])[0])}
+
+
+def spacing_without_open3d() -> bool:
+    """Where open3d is missing (the GPU machine's image), the verdict's point spacing
+    (`render.depth.local_spacing`, open3d's nearest-neighbour search) by an exact torch search
+    instead, so that the verdict runs there too. True when it was replaced."""
+    import importlib.util
+
+    import torch
+
+    if importlib.util.find_spec("open3d") is not None:
+        return False
+
+    import rgbd_gt.render.depth as depth
+
+    def local_spacing(points: np.ndarray, k: int = 3) -> np.ndarray:
+        p = torch.as_tensor(np.ascontiguousarray(points), dtype=torch.float64,
+                            device="cuda" if torch.cuda.is_available() else "cpu")
+        # the (k+1)-th smallest distance: the point itself is the first
+        return torch.cat([torch.cdist(a, p).kthvalue(k + 1, dim=1).values for a in p.split(2048)]).cpu().numpy()
+
+    depth.local_spacing = local_spacing
+    return True
 
 
 def _guarded(fn, *args) -> dict:
@@ -70,15 +163,20 @@ def profile(fn, *args, rows: int = 25) -> str:
 
 
 def run(inputs: Path, devices: list[str], inits: int = 3, icl_cases: int = 8, verdict: bool = True,
-        profiled: bool = False, log: Callable[[str], None] = print) -> list[dict]:
+        profiled: bool = False, log: Callable[[str], None] = print, partial: Path | None = None) -> list[dict]:
     """Every case on every device: pose, errors against the reference, verdict and seconds.
-    devices: cpu, cuda, or cpu@N (the CPU with N torch threads)."""
+    devices: cpu, cuda, or cpu@N (the CPU with N torch threads). partial: the records so far are
+    written there after each case (a run cut short by its machine's time keeps them)."""
     import torch
 
     from benchmarks.icl import make_cases
     from benchmarks.icl_bench import photometric_method, time_refine_command
 
-    lidar = lidar_cases(inputs, inits)
+    lidar = lidar_cases(inputs, inits) if inits else []
+    drives = drive_cases(inputs) if (inputs / DRIVE_INPUTS).exists() else []
+    stereo = (inputs / STEREO).exists()
+    if verdict and spacing_without_open3d():
+        log("no open3d here: the verdict's point spacing by a torch nearest-neighbour search")
     icl = make_cases(inputs / ICL, offsets=(1,), effects_per_pair=1, seed=1)[:icl_cases]
     all_threads = torch.get_num_threads()
     records = []
@@ -104,11 +202,14 @@ def run(inputs: Path, devices: list[str], inits: int = 3, icl_cases: int = 8, ve
 
         # the first run on a device pays its start (CUDA context, kernels' first loads): not timed
         t = time.perf_counter()
-        _guarded(run_case, lidar[0][1], lidar[0][2], cfg, device, verdict)
+        if drives:
+            _guarded(run_inputs, drives[0][2], drives[0][3], cfg, device, False)
+        elif lidar:
+            _guarded(run_case, lidar[0][1], lidar[0][2], cfg, device, False)
         for method in photometric.values():
             _guarded(icl_case, method, icl[0])
         log(f"{label:6s} first runs (not timed): {time.perf_counter() - t:.1f} s")
-        if profiled:
+        if profiled and lidar:
             log(profile(run_case, lidar[0][1], lidar[0][2], cfg, device, False))
             log(profile(icl_case, photometric["photometric (ICL-NUIM)"], icl[0]))
 
@@ -116,12 +217,18 @@ def run(inputs: Path, devices: list[str], inits: int = 3, icl_cases: int = 8, ve
             t = time.perf_counter()
             rec = {"device": label, "case": case, "kind": kind, **_guarded(fn, *args), "elapsed": time.perf_counter() - t}
             records.append(rec)
+            if partial is not None:
+                partial.write_text(json.dumps(records, indent=1, default=float))
             log(f"{label:6s} {case:28s} {rec['elapsed']:6.1f} s " + (rec["error"] if "error" in rec else " ".join(
-                f"{key} {rec[key]:.4g}" for key in ("deg", "cm", "seconds", "verify_seconds", "wall_seconds") if key in rec)
+                f"{key} {rec[key]:.4g}" for key in ("deg", "cm", "seconds", "verify_seconds", "wall_seconds", "baseline_mm") if key in rec)
                 + f" {rec.get('verdict', '')}"))
 
         for name, group, T0 in lidar:
             record("nid (PJLab)", name, run_case, group, T0, cfg, device, verdict)
+        for kind, case, ins, T_ref, judged in drives:
+            record(kind, case, run_inputs, ins, T_ref, cfg, device, verdict and judged)
+        if stereo:
+            record("nid bundle (stereo rig, 4 shots, intensity only)", "stereo seed 0", stereo_case, inputs, device)
         if not threads:  # a process of its own: it takes every thread
             record("`rgbd-gt refine` on an ICL-NUIM pair", "refine command", command)
         for kind, method in photometric.items():
@@ -164,7 +271,8 @@ def compare(records: list[dict], base: str = "cpu") -> list[dict]:
 
 
 def write_markdown(path: Path, rows: list[dict], machine: str, base: str = "cpu") -> None:
-    """The table below the file's `<!-- results -->` line (the text above it is kept)."""
+    """The table between the file's `<!-- results -->` and `<!-- end results -->` lines (the
+    text above and below is kept)."""
     fmt = lambda v, f, unit="": "" if v is None else format(v, f) + unit  # noqa: E731
     lines = [f"| cases | device | aligner s (median / worst) | verdict s | command s | median error | verdicts "
              f"(same as {base}) | furthest from {base}'s pose |", "|---|---|---|---|---|---|---|---|"]
@@ -179,8 +287,10 @@ def write_markdown(path: Path, rows: list[dict], machine: str, base: str = "cpu"
                      f"{fmt(r['aligner_worst_s'], '.2f')} | {fmt(r['verify_s'], '.2f')} | {fmt(r['wall_s'], '.2f')} | "
                      f"{error} | {verdicts}{same} | {apart} |")
     text = path.read_text() if path.exists() else ""
-    head = text.partition("<!-- results -->")[0]
-    path.write_text(head + "<!-- results -->\n" + f"Machine: {machine}.\n\n" + "\n".join(lines) + "\n")
+    head, _, rest = text.partition("<!-- results -->")
+    tail = rest.partition("<!-- end results -->")[2]
+    path.write_text(head + "<!-- results -->\n" + f"Machine: {machine}.\n\n" + "\n".join(lines)
+                    + "\n<!-- end results -->" + tail)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -194,7 +304,7 @@ def main(argv: list[str] | None = None) -> None:
     r = sub.add_parser("run", help="refine every case on every device")
     r.add_argument("--inputs", type=Path, default=Path("bench_out/gpu"))
     r.add_argument("--devices", nargs="+", default=["cuda", "cpu"], help="cpu, cuda or cpu@N (N torch threads); compared with the first cpu's poses")
-    r.add_argument("--inits", type=int, default=3, help="inits per scene and init size")
+    r.add_argument("--inits", type=int, default=3, help="inits per PJLab scene and init size (0: no PJLab cases)")
     r.add_argument("--icl-cases", type=int, default=8)
     r.add_argument("--no-verdict", action="store_true", help="the aligner alone (the verdict's edge check needs open3d)")
     r.add_argument("--profile", action="store_true", help="print torch.profiler's table of one case of each kind")
@@ -206,8 +316,9 @@ def main(argv: list[str] | None = None) -> None:
         return
     from benchmarks.icl_bench import machine
 
-    records = run(args.inputs, args.devices, args.inits, args.icl_cases, not args.no_verdict, args.profile)
     args.json.parent.mkdir(parents=True, exist_ok=True)
+    records = run(args.inputs, args.devices, args.inits, args.icl_cases, not args.no_verdict, args.profile,
+                  partial=args.json)
     args.json.write_text(json.dumps(records, indent=1, default=float))
     base = next((d for d in args.devices if d.startswith("cpu")), args.devices[0])
     rows = compare(records, base)

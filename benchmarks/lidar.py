@@ -125,11 +125,15 @@ def run_case(scenes: list[Scene], T_init: np.ndarray, cfg: RefineConfig, device:
              verdict: bool = True) -> dict:
     """Refine T_init against the scenes (jointly when several; they share T_ref) and, unless
     verdict is False (the aligner alone), judge it."""
+    return run_inputs([refine_inputs(s, T_init) for s in scenes], scenes[0].T_ref, cfg, device, verdict)
+
+
+def run_inputs(inputs: list, T_ref: np.ndarray, cfg: RefineConfig, device: str = "cpu", verdict: bool = True) -> dict:
+    """`run_case` on the refine inputs of the frames (`refine_inputs`, one init), against T_ref."""
     from rgbd_gt.align.refine import make_aligner, refine_verified
     from rgbd_gt.errors import InputError
 
-    inputs = [refine_inputs(s, T_init) for s in scenes]
-    T_ref = scenes[0].T_ref
+    T_init = inputs[0].T_init
     rec = {"init_deg": rotation_error_deg(T_init, T_ref), "init_cm": translation_error_m(T_init, T_ref) * 100}
     try:
         if verdict:
