@@ -176,7 +176,7 @@ def test_agreement_gradient_matches_its_loss(synth_scene, tmp_path):
         photos.append(BundlePhoto(Photometric(scan.xyz, scan.rgb, pyr, cfg, scan.normals), read_pose(d / f"{truth}.yaml")[0],
                                   c, 0, img))
     bundle = Bundle(photos, 2, 2)
-    bodies, rig = bundle._initial()
+    bodies, rig = bundle._initial(bundle._starts())
     q = np.zeros((2, 5))
     for i, p in enumerate(photos):
         p.objective.prepare(translated(bundle.pose(i, bodies, rig), p.objective.centre))
@@ -276,6 +276,52 @@ def test_schur_step_and_covariance_are_the_dense_ones():
         assert np.allclose(result.pose_covariance[i], J @ cov @ J.T, rtol=1e-8, atol=1e-14)
     assert np.allclose(result.rig_covariance[1], cov[6 * nb + 6:, 6 * nb + 6:], rtol=1e-8)
 
+
+
+def test_a_shot_at_no_minimum_is_left_out_of_the_covariances():
+    """A shot whose photos' matrices are not positive definite (solved off its basin: seen on the
+    intensity-only rig from 5 deg / 20 cm inits) says nothing of the rig: its photos' covariances
+    all inf and their leave-one-out None; the other shots' covariances and the rig's are those
+    of the bundle without it (a dense inverse of their joint system); quietly (no NumPy warning)."""
+    import warnings
+    from types import SimpleNamespace
+
+    import torch
+
+    from rgbd_gt.align.bundle import Bundle, BundlePhoto, BundleResult
+    from rgbd_gt.align.config import RefineConfig
+
+    rng = np.random.default_rng(2)
+    cfg = RefineConfig(bundle_agreement=0.0)
+    n = 6
+    photos = [BundlePhoto(SimpleNamespace(name="photometric", free=0, cfg=cfg, device="cpu", centre=np.zeros(3)), np.eye(4),
+                          k % 2, k // 2) for k in range(n)]
+    bundle = Bundle(photos, 2, 2)
+    terms = []
+    for k in range(n):
+        A = rng.normal(size=(6, 40))
+        H = A @ A.T
+        if k // 2 == 1:  # shot 1: a saddle
+            H -= 2 * np.linalg.eigvalsh(H)[-1] * np.outer(np.eye(6)[0], np.eye(6)[0])
+        terms.append(SimpleNamespace(H=H[None], g=rng.normal(size=(1, 6)), wrr=np.array([100.0]),
+                                     count=np.array([106]), sigma2=torch.tensor([[[1.0]]])))
+    rig = np.stack([np.eye(4), np.eye(4)])
+    rig[1, :3, 3] = [-0.12, 0.01, 0.0]
+    result = BundleResult([None] * n, np.zeros((2, 5)), np.full((2, 5), np.inf), [None] * n, rig, None, terms, 0, [], 0.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        bundle._uncertainty_and_evidence(result, [np.eye(4)] * 3, rig, terms)
+    without = Bundle([p for k, p in enumerate(photos) if k // 2 != 1], 2, 2)
+    kept = [t for k, t in enumerate(terms) if k // 2 != 1]
+    expected = BundleResult([None] * 4, np.zeros((2, 5)), np.full((2, 5), np.inf), [None] * 4, rig, None, kept, 0, [], 0.0)
+    without._uncertainty_and_evidence(expected, [np.eye(4)] * 2, rig, kept)
+    for k in range(n):
+        if k // 2 == 1:
+            assert np.isposinf(result.pose_covariance[k]).all() and result.evidence[k]["leave_one_out_sigmas"] is None
+        else:
+            assert np.allclose(result.pose_covariance[k], expected.pose_covariance[k - 2 * (k > 2)], rtol=1e-8)
+            assert np.isfinite(result.evidence[k]["leave_one_out_sigmas"])
+    assert np.allclose(result.rig_covariance[1], expected.rig_covariance[1], rtol=1e-8)
 
 def test_run_solves_a_bundle_and_exports_its_rig(rig_run, tmp_path):
     """`run` with `bundle:` solves its photos together as `refine --bundle` does (the same files,

@@ -3,8 +3,9 @@ file leaves open (shared by all that camera's photos), and per rig the relative 
 camera to the rig's first (shared by all shots). One Levenberg-Marquardt over all of it, coarse to
 fine, as ETH3D's pipeline (Schöps et al., CVPR 2017), on the photos' own photometric objectives.
 A scan with intensity alone (nid, no Gauss-Newton form): L-BFGS over the same unknowns (`_lbfgs`),
-the cameras held, and each photo's Laplace Hessian in the place of its Gauss-Newton matrix for the
-covariance and the evidence (`_quadratics`).
+started where each photo's own wide search lands (`_starts`), the cameras held, and each photo's
+Laplace Hessian in the place of its Gauss-Newton matrix for the covariance and the evidence
+(`_quadratics`).
 
 Unknowns. A *body* is a pose of its own: a photo outside a rig, or a rig's shot (the pose of the
 rig's first camera). Photo i's pose is T_i = rig[c_i] @ body[b_i] (rig[0] = I; outside a rig
@@ -39,7 +40,7 @@ import numpy as np
 import torch
 
 from rgbd_gt.align import lbfgs
-from rgbd_gt.align.aligner import STEP_CAP_PX, damped
+from rgbd_gt.align.aligner import STEP_CAP_PX, Aligner, damped
 from rgbd_gt.align.photometric import scaled_inverse
 from rgbd_gt.errors import InputError
 from rgbd_gt.pose import apply_update, invert, translated, update_of, update_through
@@ -88,6 +89,11 @@ class BundleResult:
     evidence: list[dict] = field(default_factory=list)  # per photo: the cross-photo evidence
 
 
+def determined(C: np.ndarray) -> np.ndarray:
+    """A covariance C (P, P), or all inf where any of it is not finite (inf - inf left NaN)."""
+    return C if np.isfinite(C).all() else np.full(C.shape, np.inf)
+
+
 class Bundle:
     """The joint solve of `photos` (each a `BundlePhoto`); rig_cameras: how many cameras the rig
     has (0: no rig); priors: {camera: RigPrior} for rig cameras >= 1."""
@@ -133,17 +139,33 @@ class Bundle:
         T = bodies[self.body_of[i]]
         return rig[self.photos[i].camera] @ T if self._in_rig(i) else T
 
-    def _initial(self) -> tuple[list[np.ndarray], np.ndarray]:
-        """The bodies and the rig from the photos' inits: a shot's body from its first camera's
-        photo (else another's, moved back through the rig); the rig from its prior, else from the
-        first shot holding both cameras."""
+    def _starts(self) -> list[np.ndarray]:
+        """Per photo where the solve starts: its init, or for objectives with far spurious minima
+        (nid) the pose its own wide search finds from it on the coarse levels, as a single refine
+        (`Aligner._searched`, down to level 1): the joint L-BFGS has no search of its own, and
+        from inits 5 deg / 20 cm off it ends a shot off its basin where single refines do not
+        (docs/bundle.md)."""
+        if not (self.photos[0].objective.wide_search and self.cfg.search_starts > 0):
+            return [p.T_init for p in self.photos]
+        starts = []
+        for i, p in enumerate(self.photos):
+            try:
+                starts.append(Aligner(p.objective).refine(p.T_init, finest=1).T_cam_from_scan)
+            except InputError as exc:
+                raise InputError(f"{p.name or f'photo {i + 1}'}: {exc}") from None
+        return starts
+
+    def _initial(self, starts: list[np.ndarray]) -> tuple[list[np.ndarray], np.ndarray]:
+        """The bodies and the rig from the photos' starting poses (`_starts`): a shot's body from
+        its first camera's photo (else another's, moved back through the rig); the rig from its
+        prior, else from the first shot holding both cameras."""
         rig = np.stack([np.eye(4)] * max(self.rig_cameras, 1))
         for c in range(1, self.rig_cameras):
             if c in self.priors:
                 rig[c] = self.priors[c].T
                 continue
             for k in self.body_keys:
-                members = {p.camera: p.T_init for p in self.photos if p.shot is not None and ("shot", p.shot) == k}
+                members = {p.camera: T for p, T in zip(self.photos, starts) if p.shot is not None and ("shot", p.shot) == k}
                 if 0 in members and c in members:
                     rig[c] = members[c] @ invert(members[0])
                     break
@@ -154,7 +176,7 @@ class Bundle:
         for i, p in sorted(enumerate(self.photos), key=lambda ip: ip[1].camera):
             b = self.body_of[i]
             if bodies[b] is None:
-                bodies[b] = invert(rig[p.camera]) @ p.T_init if self._in_rig(i) else p.T_init
+                bodies[b] = invert(rig[p.camera]) @ starts[i] if self._in_rig(i) else starts[i]
         return bodies, rig
 
     def _q(self, q: np.ndarray, c: int) -> torch.Tensor:
@@ -307,7 +329,7 @@ class Bundle:
         """Coarse to fine, Levenberg-Marquardt on all the unknowns at once; then the covariance
         and the cross-photo evidence at the result."""
         start = time.perf_counter()
-        bodies, rig = self._initial()
+        bodies, rig = self._initial(self._starts())
         q = np.zeros((self.cameras, Q_SIZE))
         levels = [p.objective.prepare(translated(self.pose(i, bodies, rig), p.objective.centre))
                   for i, p in enumerate(self.photos)]
@@ -426,23 +448,31 @@ class Bundle:
         U, W, _, Vb, _ = system
         prior = self._prior_terms(rig)
         Ui = [scaled_inverse(U[b]) for b in range(nb)]
-        UiW = [Ui[b] @ W[b] for b in range(nb)]
-        Si = scaled_inverse(Vb.sum(0) + prior[2] - sum(W[b].T @ UiW[b] for b in range(nb))) if self.shared else np.zeros((0, 0))
-        cov_body = [Ui[b] + UiW[b] @ Si @ UiW[b].T for b in range(nb)]  # each body's 6 x 6 block
-        for i in range(len(self.photos)):
-            Jb, Js = (m[:6] for m in self._maps(i, rig))
-            b = self.body_of[i]
-            cross = -Jb @ UiW[b] @ Si @ Js.T
-            result.pose_covariance[i] = Jb @ cov_body[b] @ Jb.T + cross + cross.T + Js @ Si @ Js.T
-        for c in range(self.cameras):
-            s = slice(self.q_at[c], self.q_at[c] + self.free[c])
-            result.q_sigma[c, :self.free[c]] = np.sqrt(np.diag(Si[s, s]))
-        if self.rig_cameras:
-            result.rig_covariance = np.zeros((self.rig_cameras, 6, 6))
-            for c in range(1, self.rig_cameras):
-                s = slice(self.rig_at[c], self.rig_at[c] + 6)
-                result.rig_covariance[c] = Si[s, s]
-        result.evidence = self._evidence(Hs, gs, scale, spread, system, prior, Ui, cov_body)
+        # a body at no minimum of its photos (U not positive definite: a shot solved off its basin,
+        # its inverse all inf) says nothing of the shared parameters, and its pose is undetermined;
+        # the others' covariances come from the kept bodies alone
+        kept = [bool(np.isfinite(Ui[b]).all()) for b in range(nb)]
+        UiW = [Ui[b] @ W[b] if kept[b] else np.zeros_like(W[b]) for b in range(nb)]
+        Si = scaled_inverse(sum(Vb[b] - W[b].T @ UiW[b] for b in range(nb) if kept[b]) + prior[2]) \
+            if self.shared else np.zeros((0, 0))
+        # shared parameters that the kept bodies do not fix leave Si all inf, and inf x 0 NaN
+        # below: `determined` makes those covariances all inf, quietly
+        with np.errstate(invalid="ignore"):
+            cov_body = [determined(Ui[b] + UiW[b] @ Si @ UiW[b].T) for b in range(nb)]  # each body's 6 x 6 block
+            for i in range(len(self.photos)):
+                Jb, Js = (m[:6] for m in self._maps(i, rig))
+                b = self.body_of[i]
+                cross = -Jb @ UiW[b] @ Si @ Js.T
+                result.pose_covariance[i] = determined(Jb @ cov_body[b] @ Jb.T + cross + cross.T + Js @ Si @ Js.T)
+            for c in range(self.cameras):
+                s = slice(self.q_at[c], self.q_at[c] + self.free[c])
+                result.q_sigma[c, :self.free[c]] = np.sqrt(np.diag(Si[s, s]))
+            if self.rig_cameras:
+                result.rig_covariance = np.zeros((self.rig_cameras, 6, 6))
+                for c in range(1, self.rig_cameras):
+                    s = slice(self.rig_at[c], self.rig_at[c] + 6)
+                    result.rig_covariance[c] = determined(Si[s, s])
+            result.evidence = self._evidence(Hs, gs, scale, spread, system, prior, Ui, cov_body, kept)
 
     def _quadratics(self, terms: list, bodies, rig) -> tuple[list, list, list[float], list[float] | None]:
         """Per photo at the result, finest level: its matrix H (P, P) and gradient g (P,) over
@@ -461,17 +491,18 @@ class Bundle:
             gs.append(g[0] / u)
         return Hs, gs, [1.0] * len(terms), None
 
-    def _evidence(self, Hs, gs, scale, spread, system, prior, Ui, cov_body) -> list[dict]:
+    def _evidence(self, Hs, gs, scale, spread, system, prior, Ui, cov_body, kept) -> list[dict]:
         """Per photo: leave its body out, its residual scale against the others', and (in a rig)
-        its pose freed from the rig; see the module's docstring."""
+        its pose freed from the rig; see the module's docstring. kept: per body whether it is at
+        a minimum of its photos (the others count without it)."""
         U, W, gb, Vb, gsb = system
         nb = len(self.body_keys)
         ev = [dict() for _ in self.photos]
         if self.shared:
             # the reduced problem of the shared parameters is a sum over bodies (and the prior):
             # without body b, its part is taken out and the others' Newton step taken
-            S_b = [Vb[b] - W[b].T @ Ui[b] @ W[b] for b in range(nb)]
-            r_b = [gsb[b] - W[b].T @ Ui[b] @ gb[b] for b in range(nb)]
+            S_b = [Vb[b] - W[b].T @ Ui[b] @ W[b] if kept[b] else np.zeros_like(Vb[b]) for b in range(nb)]
+            r_b = [gsb[b] - W[b].T @ Ui[b] @ gb[b] if kept[b] else np.zeros_like(gsb[b]) for b in range(nb)]
             S, r = sum(S_b) + prior[2], sum(r_b) + prior[1]
             for b in range(nb):
                 others = scaled_inverse(S - S_b[b])

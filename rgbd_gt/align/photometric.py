@@ -159,7 +159,9 @@ def _normal_equations(du: torch.Tensor, dv: torch.Tensor, a: torch.Tensor, b: to
 def scaled_inverse(H: np.ndarray) -> np.ndarray:
     """The inverse of a Gauss-Newton matrix H (P, P), inverted with its parameters scaled to unit
     diagonal (rotations, metres and camera corrections differ by orders of magnitude); all inf
-    where H is singular."""
+    where H is singular or not finite (built from another such inverse)."""
+    if not np.isfinite(H).all():
+        return np.full(H.shape, np.inf)
     s = 1.0 / np.sqrt(np.clip(np.diag(H), 1e-30, None))
     Hs = H * s[:, None] * s[None, :]
     eig = np.linalg.eigvalsh(Hs)
