@@ -392,7 +392,8 @@ class Bundle:
         update at once, each photo's update their linear map (`_maps`, as the LM step takes it),
         on the points each photo sees at the level's start; each unknown in units of one level
         pixel of its first photo and capped smoothly at STEP_CAP_PX of them (the single aligner
-        also bounds each step by the wide search's size; the bundle has no search)."""
+        also bounds each step by its wide search's size; the joint solve, after each photo's own
+        search in `_starts`, has no such bound)."""
         n, nb = len(self.photos), len(self.body_keys)
         q = np.zeros((self.cameras, Q_SIZE))
         Ts = [translated(self.pose(i, bodies, rig), p.objective.centre) for i, p in enumerate(self.photos)]
@@ -453,8 +454,9 @@ class Bundle:
         # the others' covariances come from the kept bodies alone
         kept = [bool(np.isfinite(Ui[b]).all()) for b in range(nb)]
         UiW = [Ui[b] @ W[b] if kept[b] else np.zeros_like(W[b]) for b in range(nb)]
-        Si = scaled_inverse(sum(Vb[b] - W[b].T @ UiW[b] for b in range(nb) if kept[b]) + prior[2]) \
-            if self.shared else np.zeros((0, 0))
+        # the reduced problem of the shared parameters is a sum over the kept bodies (and the prior)
+        S_b = [Vb[b] - W[b].T @ UiW[b] if kept[b] else np.zeros_like(Vb[b]) for b in range(nb)]
+        Si = scaled_inverse(sum(S_b) + prior[2]) if self.shared else np.zeros((0, 0))
         # shared parameters that the kept bodies do not fix leave Si all inf, and inf x 0 NaN
         # below: `determined` makes those covariances all inf, quietly
         with np.errstate(invalid="ignore"):
@@ -472,7 +474,7 @@ class Bundle:
                 for c in range(1, self.rig_cameras):
                     s = slice(self.rig_at[c], self.rig_at[c] + 6)
                     result.rig_covariance[c] = determined(Si[s, s])
-            result.evidence = self._evidence(Hs, gs, scale, spread, system, prior, Ui, cov_body, kept)
+            result.evidence = self._evidence(Hs, gs, scale, spread, system, prior, Ui, cov_body, kept, S_b)
 
     def _quadratics(self, terms: list, bodies, rig) -> tuple[list, list, list[float], list[float] | None]:
         """Per photo at the result, finest level: its matrix H (P, P) and gradient g (P,) over
@@ -491,17 +493,16 @@ class Bundle:
             gs.append(g[0] / u)
         return Hs, gs, [1.0] * len(terms), None
 
-    def _evidence(self, Hs, gs, scale, spread, system, prior, Ui, cov_body, kept) -> list[dict]:
+    def _evidence(self, Hs, gs, scale, spread, system, prior, Ui, cov_body, kept, S_b) -> list[dict]:
         """Per photo: leave its body out, its residual scale against the others', and (in a rig)
         its pose freed from the rig; see the module's docstring. kept: per body whether it is at
-        a minimum of its photos (the others count without it)."""
+        a minimum of its photos (the others count without it); S_b: each body's part of the
+        shared parameters' reduced matrix (0 where not kept)."""
         U, W, gb, Vb, gsb = system
         nb = len(self.body_keys)
         ev = [dict() for _ in self.photos]
         if self.shared:
-            # the reduced problem of the shared parameters is a sum over bodies (and the prior):
             # without body b, its part is taken out and the others' Newton step taken
-            S_b = [Vb[b] - W[b].T @ Ui[b] @ W[b] if kept[b] else np.zeros_like(Vb[b]) for b in range(nb)]
             r_b = [gsb[b] - W[b].T @ Ui[b] @ gb[b] if kept[b] else np.zeros_like(gsb[b]) for b in range(nb)]
             S, r = sum(S_b) + prior[2], sum(r_b) + prior[1]
             for b in range(nb):
