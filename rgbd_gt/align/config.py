@@ -119,7 +119,7 @@ class RefineConfig:
     max_depth: float = 0.0  # metres: points farther from the initial camera are not used (0: all)
     nid_bins: int = 16  # nid: bins per axis of the joint histogram
     nid_edges: bool = False  # nid: also NID of depth discontinuities against the photo's gradient magnitude
-    edge_weight: float = 1.0  # nid: weight of the ring-edge term (sweeps: depth steps along rings on the photo's edges; 0: off)
+    edge_weight: float = 3.0  # nid: weight of the ring-edge term (sweeps: depth steps along rings on the photo's edges; 0: off)
     sky_weight: float = 0.5  # nid: added to NID per unit fraction of points that land on the photo's sky (align/sky.py; 0: off) ...
     sky_coarse_level: int = 2  # ... on pyramid levels this coarse and coarser (0: every level; the sky is found at 1/8 scale)
     search_starts: int = 16  # nid: before the coarsest level, also run it from this many starts (0: none) ...
