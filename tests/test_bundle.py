@@ -277,7 +277,6 @@ def test_schur_step_and_covariance_are_the_dense_ones():
     assert np.allclose(result.rig_covariance[1], cov[6 * nb + 6:, 6 * nb + 6:], rtol=1e-8)
 
 
-
 def test_a_shot_at_no_minimum_is_left_out_of_the_covariances():
     """A shot whose photos' matrices are not positive definite (solved off its basin: seen on the
     intensity-only rig from 5 deg / 20 cm inits) says nothing of the rig: its photos' covariances
@@ -322,6 +321,7 @@ def test_a_shot_at_no_minimum_is_left_out_of_the_covariances():
             assert np.allclose(result.pose_covariance[k], expected.pose_covariance[k - 2 * (k > 2)], rtol=1e-8)
             assert np.isfinite(result.evidence[k]["leave_one_out_sigmas"])
     assert np.allclose(result.rig_covariance[1], expected.rig_covariance[1], rtol=1e-8)
+
 
 def test_run_solves_a_bundle_and_exports_its_rig(rig_run, tmp_path):
     """`run` with `bundle:` solves its photos together as `refine --bundle` does (the same files,
