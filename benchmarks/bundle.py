@@ -52,7 +52,7 @@ def objective(scan, shot: Shot, mode: str, camera=None, agreement: float = 0.0, 
     from rgbd_gt.align.pyramid import photo_pyramid
 
     cfg = dataclasses.replace(RefineConfig(), refine_intrinsics=mode, bundle_agreement=agreement)
-    pyr = photo_pyramid(shot.image, camera or shot.camera, cfg.levels, torch.device(device), None, cfg.upsample)
+    pyr = photo_pyramid(shot.image, camera or shot.camera, cfg.levels, torch.device(device), None, cfg.upsample, mode != "none")
     return Photometric(scan.xyz, scan.rgb, pyr, cfg, getattr(scan, "normals", None))
 
 

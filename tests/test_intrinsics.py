@@ -45,6 +45,39 @@ def test_corrected_projection_jacobian():
     np.testing.assert_allclose(ours, theirs, atol=1e-6)
 
 
+def test_refined_intrinsics_project_through_the_photo_as_taken():
+    """With refined intrinsics the photo keeps its distortion and the objective projects through
+    the file's distortion plus the corrections: exactly the camera `corrected` writes (on a photo
+    undistorted with the file, the corrections were only a first-order model of that camera)."""
+    from rgbd_gt.align.config import RefineConfig
+    from rgbd_gt.align.photometric import Photometric
+    from rgbd_gt.align.pyramid import photo_pyramid
+    from rgbd_gt.camera import Camera, corrected, project
+
+    rng = np.random.default_rng(1)
+    camera = Camera(640, 480, 500.0, 500.0, 320.0, 240.0, (0.1, -0.05, 0.001, -0.002, 0.01))
+    photo = rng.integers(0, 255, (480, 640, 3), dtype=np.uint8)
+    p = np.c_[rng.uniform(-1, 1, (200, 2)), rng.uniform(2, 4, 200)]
+    q = np.array([0.02, 0.003, -0.002, -0.05, 0.02, 0.0, 0.0, 0.0])
+    cfg = RefineConfig(refine_intrinsics="focal+principal+k1k2", levels=1, upsample=1)
+    kept = Photometric(p, rng.integers(0, 255, (200, 3), dtype=np.uint8),
+                       photo_pyramid(photo, camera, 1, torch.device("cpu"), distorted=True), cfg)
+    assert kept.pyramid[0].camera.distortion == camera.distortion and kept.pyramid[0].valid is None
+    uv = kept._uv(torch.as_tensor(p, dtype=torch.float32), kept.pyramid[0].K, torch.as_tensor(q, dtype=torch.float32))[0]
+    np.testing.assert_allclose(uv.numpy(), project(corrected(camera, q), p)[0], atol=2e-3)
+    # a barrel lens's model turns back beyond its fold: points there land on no pixel
+    barrel = Camera(640, 480, 500.0, 500.0, 320.0, 240.0, (-0.3, 0.0, 0.0, 0.0, 0.0))
+    ghosts = Photometric(p, rng.integers(0, 255, (200, 3), dtype=np.uint8),
+                         photo_pyramid(photo, barrel, 1, torch.device("cpu"), distorted=True), cfg)
+    far = torch.tensor([[1.5, 0.0, 1.0], [0.2, 0.1, 1.0]])
+    uv = ghosts._uv(far, ghosts.pyramid[0].K, None)[0].numpy()
+    assert (uv[0] < -1e5).all() and np.allclose(uv[1], project(barrel, far.numpy())[0][1], atol=1e-3)
+    # undistorted, the photo's camera is a pinhole and the objective adds the corrections alone
+    flat = Photometric(p, rng.integers(0, 255, (200, 3), dtype=np.uint8),
+                       photo_pyramid(photo, camera, 1, torch.device("cpu")), cfg)
+    assert not flat.pyramid[0].camera.distortion and not flat.distorted
+
+
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory, synth_scene):
     d = tmp_path_factory.mktemp("intr")

@@ -24,9 +24,10 @@ from rgbd_gt.align.pyramid import PhotoLevel
 from rgbd_gt.align.robust import student_t_loss, student_t_weights
 from rgbd_gt.align.sampling import bilinear, bilinear_sparse, bilinear_with_gradient, central_gradients
 from rgbd_gt.align.subset import near_view, point_keys
+from rgbd_gt.camera import fold_radius
 from rgbd_gt.errors import InputError
 from rgbd_gt.render.normals import facing_camera
-from rgbd_gt.render.project import INTRINSICS, corrected_jacobian, project_corrected, project_pinhole, projection_jacobian
+from rgbd_gt.render.project import INTRINSICS, Q_SIZE, corrected_jacobian, project_corrected, project_pinhole, projection_jacobian
 from rgbd_gt.render.cells import cell_size_for
 from rgbd_gt.render.zbuffer import check_spread_in_view, estimate_spacing, visible_points
 
@@ -240,6 +241,13 @@ class Photometric:
         # the camera corrections refined with the pose (cfg.refine_intrinsics: the first `free` of q),
         # parameters shared by every pose of a batch
         self.free = INTRINSICS[cfg.refine_intrinsics]
+        # a photo kept as taken (`photo_pyramid`'s `distorted`) is projected through its file's
+        # distortion, to which q's corrections add (q's distortion slots are OpenCV's k1 k2 p1 p2 k3)
+        lens = list(self.pyramid[0].camera.distortion)[:Q_SIZE - 3]
+        self.lens = torch.zeros(Q_SIZE, dtype=self.dtype, device=self.device)
+        self.lens[3:3 + len(lens)] = torch.as_tensor(lens, dtype=self.dtype)
+        self.distorted = bool(self.lens.abs().sum() > 0)
+        self.fold = fold_radius(self.pyramid[0].camera.distortion)  # beyond it the lens model turns back (ghosts)
         self.method = cfg.optimizer  # 'lm' or 'adam' (align/aligner.py)
         self.levels: list[Level] | None = None
 
@@ -262,7 +270,7 @@ class Photometric:
         finest = self.pyramid[0]
         R, t = self._pose_tensors([T_local])
         p = self.points @ R[0].T + t[0]
-        uv, z = project_pinhole(p, finest.K)
+        uv, z = self._uv(p, finest.K, None)
         w, h = finest.camera.size
         idx = torch.nonzero(near_view(uv, z, (w, h), 1e-3, self.cfg.max_depth)).squeeze(1)
         need = self.cfg.min_visible
@@ -297,9 +305,9 @@ class Photometric:
             target = target_near[:n]
             if level:
                 size = photo.camera.size
-                cells = pixel_sums(project_pinhole(p_near[seen], photo.K)[0], target_near[seen], size) if level == 1 \
+                cells = pixel_sums(self._uv(p_near[seen], photo.K, None)[0], target_near[seen], size) if level == 1 \
                     else halved(cells, self.pyramid[level - 1].camera.size)
-                target = blurred_targets(cells, size, project_pinhole(p_near[:n], photo.K)[0], target)
+                target = blurred_targets(cells, size, self._uv(p_near[:n], photo.K, None)[0], target)
             out.append(Level(photo, grads, self.points[sub], target, min(cell, 16 * photo.zoom),
                              None if self.normals is None else self.normals[sub]))
         self.levels = out
@@ -319,8 +327,19 @@ class Photometric:
         R, t = self._pose_tensors(Ts)
         pts = points if points is not None else lv.points if cols is None else lv.points[cols]
         p = _times_transposed(pts, R) + t[:, None]
-        uv, z = project_corrected(p.reshape(-1, 3), lv.photo.K, q) if self.free else project_pinhole(p.reshape(-1, 3), lv.photo.K)
+        uv, z = self._uv(p.reshape(-1, 3), lv.photo.K, q)
         return p, uv, z
+
+    def _uv(self, p: torch.Tensor, K: torch.Tensor, q: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Camera-frame points (n, 3) -> pixels (n, 2) and depths (n,) through K, the photo's
+        own distortion (a pyramid that keeps it) and the corrections q (Q_SIZE,; None: none)."""
+        if not (self.free or self.distorted):
+            return project_pinhole(p, K)
+        uv, z = project_corrected(p, K, self.lens if q is None else q + self.lens)
+        if math.isfinite(self.fold):  # no pixel images a point beyond the fold: sent far off the photo
+            r2 = (p[:, 0] ** 2 + p[:, 1] ** 2) / p[:, 2].clamp_min(1e-9) ** 2
+            uv = torch.where((r2 < self.fold**2)[:, None], uv, torch.full_like(uv, -1e6))
+        return uv, z
 
     def _visible(self, lv: Level, Ts: list[np.ndarray], q: torch.Tensor, lost_is_error: bool) -> torch.Tensor:
         """(B, n) the level's points visible at each pose on usable pixels. lost_is_error: a pose
@@ -416,9 +435,9 @@ class Photometric:
 
     def _jacobian(self, p: torch.Tensor, K: torch.Tensor, q: torch.Tensor, free: int) -> tuple[torch.Tensor, torch.Tensor]:
         """d(u, v) / d(pose, q[:free]): two (n, 6 + free)."""
-        if not self.free:
+        if not (self.free or self.distorted):
             return projection_jacobian(p, K[0, 0], K[1, 1])
-        return corrected_jacobian(p, K, q, free)
+        return corrected_jacobian(p, K, q + self.lens, free)
 
     def trial(self, level: int, Ts: list[np.ndarray], q: torch.Tensor, at: Terms) -> np.ndarray:
         """(B,) the robust loss at each pose of Ts on the points, color fit and scale of the

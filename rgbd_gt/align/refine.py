@@ -148,7 +148,8 @@ def make_aligner(inputs: RefineInputs, cfg: RefineConfig, device: str, more: lis
     if objective == "photometric":
         if more:
             raise InputError("several pairs are solved jointly with --objective nid only")
-        pyramid = photo_pyramid(inputs.photo, inputs.camera, cfg.levels, dev, inputs.ignore, cfg.upsample)
+        pyramid = photo_pyramid(inputs.photo, inputs.camera, cfg.levels, dev, inputs.ignore, cfg.upsample,
+                                distorted=cfg.refine_intrinsics != "none")
         return Aligner(Photometric(inputs.points, inputs.colors, pyramid, cfg, inputs.normals))
     # NID compares value distributions: an enlarged photo adds pixels, not information
     levels = NID_LEVELS if cfg.levels == "auto" else cfg.levels
