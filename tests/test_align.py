@@ -190,6 +190,7 @@ def test_refine_converges_on_a_synthetic_scene(scene, tmp_path):
     {"gradient": "central"},
     {"color_model": "linear"},
     {"color_model": "quadratic_rgb"},
+    {"fit_sharpness": False},
 ])
 def test_refine_variants_converge(scene, change):
     inputs = load_inputs(scene / "scan.ply", scene / "photo.png", scene / "camera.yaml", scene / "init_pose.yaml")
@@ -197,6 +198,45 @@ def test_refine_variants_converge(scene, change):
     gt, _ = read_pose(scene / "gt_pose.yaml")
     assert translation_error_m(res.T_cam_from_scan, gt) < 2e-3
     assert rotation_error_deg(res.T_cam_from_scan, gt) < 0.05
+
+
+def test_the_color_fit_sharpens_a_blurred_photo_and_blurs_a_sharpened_one(scene):
+    """At the true pose the fit's weights on the photo's high pass undo what was done to the photo:
+    positive (sharpening) on a photo blurred further, negative on one sharpened, and either way the
+    residuals' robust scale is smaller than without them. The pose's Jacobian includes them (the refine from the
+    init converges on the blurred photo)."""
+    import cv2
+
+    from rgbd_gt.align.aligner import Aligner
+    from rgbd_gt.align.photometric import Photometric
+
+    inputs = load_inputs(scene / "scan.ply", scene / "photo.png", scene / "camera.yaml", scene / "init_pose.yaml")
+    gt, _ = read_pose(scene / "gt_pose.yaml")
+    photo = inputs.photo.astype(np.float32)
+    blurred = cv2.GaussianBlur(photo, (0, 0), 1.2)
+    sharpened = np.clip(photo + 1.5 * (photo - cv2.GaussianBlur(photo, (0, 0), 1.0)), 0, 255)
+    sign = {}
+    for name, image in (("blurred", blurred), ("sharpened", sharpened)):
+        losses = []
+        for fit in (True, False):
+            cfg = dataclasses.replace(RefineConfig(), fit_sharpness=fit)
+            obj = Photometric(inputs.points, inputs.colors, photo_pyramid(image, inputs.camera, cfg.levels,
+                                                                              torch.device("cpu"), upsample=cfg.upsample), cfg)
+            aligner = Aligner(obj)
+            T = aligner._local(gt)
+            obj.prepare(T)
+            terms = obj.evaluate(0, [T], aligner._q(None), jacobian=False)
+            losses.append(float(terms.sigma2.reshape(-1)[0]))  # the residuals' robust scale
+            if fit:
+                assert terms.D.shape[2] == 13
+                sign[name] = float(torch.diagonal(terms.D[0][:, 10:]).mean())
+                if name == "blurred":
+                    res = aligner.refine(inputs.T_init)
+                    assert translation_error_m(res.T_cam_from_scan, gt) < 2e-3
+                    assert rotation_error_deg(res.T_cam_from_scan, gt) < 0.05
+                    assert res.color_transform.shape == (3, 10)
+        assert losses[0] < losses[1], (name, losses)
+    assert sign["blurred"] > 0.2 and sign["sharpened"] < -0.1, sign
 
 
 @pytest.mark.parametrize("objective,max_points", [("photometric", 20_000), ("photometric", 5_000), ("nid", 20_000)])

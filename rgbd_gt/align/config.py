@@ -110,6 +110,10 @@ class RefineConfig:
     adam_iterations: int = 300  # ... and per level for adam
     adam_lr_rotation: float = 2.0e-4  # radians per step
     adam_lr_translation: float = 5.0e-4  # metres per step
+    # photometric: the color fit also weighs the photo's high pass (align/photometric.py:
+    # `high_pass`), so that a photo blurrier or sharper than the scan's colors is compared as
+    # sharp as they are. Blur alone moved synthetic poses by about 1 mm, all photos of a scene alike
+    fit_sharpness: bool = True
     beta_max: float = 0.1  # color inlier threshold |D K(I) - c| for the color fit
     nu: float = 5.0  # Student-t degrees of freedom
     max_points: int = 80_000  # points used at full resolution (a quarter per coarser level)

@@ -36,6 +36,7 @@ class Level:
     """The objective's data on one pyramid level."""
 
     photo: PhotoLevel
+    image: torch.Tensor  # (H, W, C) what is sampled: the photo, and its high pass where the sharpness is fitted
     grads: tuple[torch.Tensor, torch.Tensor] | None
     points: torch.Tensor  # (n, 3) float32, local frame
     target: torch.Tensor  # (n, m)
@@ -139,6 +140,21 @@ def blurred_targets(cells: tuple[torch.Tensor, torch.Tensor], size: tuple[int, i
     m = target.shape[1]
     s = bilinear_sparse(*cells, size[::-1], uv)
     return torch.where(s[:, m:] > 1e-3, s[:, :m] / s[:, m:].clamp_min(1e-3), target)
+
+
+def high_pass(image: torch.Tensor, sigma: float) -> torch.Tensor:
+    """(H, W, C) image less its Gaussian blur of `sigma` pixels (reflected at the borders), on
+    the image's device (blurred by OpenCV on the CPU: 20 times torch's convolution there).
+
+    Part of the color fit (`RefineConfig.fit_sharpness`): a photo blurred more than the scan's
+    colors is about the scan's colors blurred, and blur minus sharp is about a multiple of this
+    high pass, which the fit's weights on it undo (or add, for a photo sharper than the scan).
+    """
+    import cv2
+
+    img = image.cpu().numpy()
+    blurred = cv2.GaussianBlur(img, (0, 0), sigma, borderType=cv2.BORDER_REFLECT).reshape(img.shape)
+    return image - torch.as_tensor(blurred, device=image.device)
 
 
 def _normal_equations(du: torch.Tensor, dv: torch.Tensor, a: torch.Tensor, b: torch.Tensor, r: torch.Tensor,
@@ -249,6 +265,7 @@ class Photometric:
         self.distorted = bool(self.lens.abs().sum() > 0)
         self.fold = fold_radius(self.pyramid[0].camera.distortion)  # beyond it the lens model turns back (ghosts)
         self.method = cfg.optimizer  # 'lm' or 'adam' (align/aligner.py)
+        self.sharpness = cfg.fit_sharpness and self.model.fitted
         self.levels: list[Level] | None = None
 
     def freeing(self, free: int) -> "Photometric":
@@ -301,14 +318,17 @@ class Photometric:
             n = min(idx.numel(), max(self.cfg.min_points, self.cfg.max_points // 4**level))
             sub = idx[:n]
             cell = cell_size_for(spacing * math.sqrt(idx.numel() / n), photo.camera.fx, depth)
-            grads = central_gradients(photo.image) if self.cfg.gradient == "central" else None
+            image = photo.image
+            if self.sharpness:  # one native pixel: the blur a lens, the pixels and a demosaic add
+                image = torch.cat([image, high_pass(image, float(photo.zoom))], 2)
+            grads = central_gradients(image) if self.cfg.gradient == "central" else None
             target = target_near[:n]
             if level:
                 size = photo.camera.size
                 cells = pixel_sums(self._uv(p_near[seen], photo.K, None)[0], target_near[seen], size) if level == 1 \
                     else halved(cells, self.pyramid[level - 1].camera.size)
                 target = blurred_targets(cells, size, self._uv(p_near[:n], photo.K, None)[0], target)
-            out.append(Level(photo, grads, self.points[sub], target, min(cell, 16 * photo.zoom),
+            out.append(Level(photo, image, grads, self.points[sub], target, min(cell, 16 * photo.zoom),
                              None if self.normals is None else self.normals[sub]))
         self.levels = out
         return len(out)
@@ -372,10 +392,21 @@ class Photometric:
         w, h = lv.photo.camera.size
         uv = torch.stack([uv[:, 0].clamp(0, w - 1), uv[:, 1].clamp(0, h - 1)], 1)
         if gradient:
-            I, Iu, Iv = bilinear_with_gradient(lv.photo.image, uv, self.cfg.gradient, lv.grads)
+            I, Iu, Iv = bilinear_with_gradient(lv.image, uv, self.cfg.gradient, lv.grads)
         else:
-            I, Iu, Iv = bilinear(lv.photo.image, uv), None, None
-        return p, uv.reshape(B, c, 2), I, self.model.kernel(I).reshape(B, c, -1), Iu, Iv
+            I, Iu, Iv = bilinear(lv.image, uv), None, None
+        return p, uv.reshape(B, c, 2), I, self._kernel(I).reshape(B, c, -1), Iu, Iv
+
+    def _kernel(self, I: torch.Tensor) -> torch.Tensor:
+        """Sampled colors (n, C) -> the color fit's kernel (n, k): the model's of the photo's colors,
+        then the high pass itself where the sharpness is fitted (`high_pass`)."""
+        K = self.model.kernel(I[:, :3])
+        return torch.cat([K, I[:, 3:]], 1) if self.sharpness else K
+
+    def _kernel_derivative(self, I: torch.Tensor, dI: torch.Tensor) -> torch.Tensor:
+        """dK/dI . dI (n, k) of `_kernel` at I (n, C) along dI (n, C)."""
+        dK = self.model.kernel_derivative(I[:, :3], dI[:, :3])
+        return torch.cat([dK, dI[:, 3:]], 1) if self.sharpness else dK
 
     def evaluate(self, level: int, Ts: list[np.ndarray], q: torch.Tensor, prev: Terms | None = None,
                  jacobian: bool = True, free: int | None = None, lost_is_error: bool = True) -> Terms:
@@ -394,7 +425,7 @@ class Photometric:
         B, c, k = Kk.shape
         m = target.shape[1]
         if self.model.fitted:
-            fit = seen & unclipped(I).reshape(B, c)
+            fit = seen & unclipped(I[:, :3]).reshape(B, c)
             few = fit.sum(1) < torch.clamp(0.05 * seen.sum(1), min=100)  # a photo clipped almost everywhere
             fit = torch.where(few[:, None], seen, fit)
             D0 = prev.D if prev is not None else None
@@ -423,8 +454,8 @@ class Photometric:
         if not jacobian:
             return terms
         # dr/du = D (dK/dI . dI/du), likewise for v: (B, c, m)
-        a = _times_transposed(self.model.kernel_derivative(I, Iu).reshape(B, c, k), D)
-        b = _times_transposed(self.model.kernel_derivative(I, Iv).reshape(B, c, k), D)
+        a = _times_transposed(self._kernel_derivative(I, Iu).reshape(B, c, k), D)
+        b = _times_transposed(self._kernel_derivative(I, Iv).reshape(B, c, k), D)
         du, dv = self._jacobian(p.reshape(-1, 3), lv.photo.K, q, free)
         ws = w if B == 1 else w * seen[..., None]  # one pose sees all of cols
         H, g = _normal_equations(du.reshape(B, c, -1), dv.reshape(B, c, -1), a, b, r, ws)
@@ -463,12 +494,12 @@ class Photometric:
             inside &= _valid_at(lv.photo.valid, uv)
         uv = torch.stack([uv[:, 0].clamp(0, w - 1), uv[:, 1].clamp(0, h - 1)], 1)
         if not jacobian:
-            return self.model.kernel(bilinear(lv.photo.image, uv)) @ D.T, inside, None
-        I, Iu, Iv = bilinear_with_gradient(lv.photo.image, uv, self.cfg.gradient, lv.grads)
-        a = self.model.kernel_derivative(I, Iu) @ D.T
-        b = self.model.kernel_derivative(I, Iv) @ D.T
+            return self._kernel(bilinear(lv.image, uv)) @ D.T, inside, None
+        I, Iu, Iv = bilinear_with_gradient(lv.image, uv, self.cfg.gradient, lv.grads)
+        a = self._kernel_derivative(I, Iu) @ D.T
+        b = self._kernel_derivative(I, Iv) @ D.T
         du, dv = self._jacobian(p[0], lv.photo.K, q, self.free)
-        return self.model.kernel(I) @ D.T, inside, a[..., None] * du[:, None] + b[..., None] * dv[:, None]
+        return self._kernel(I) @ D.T, inside, a[..., None] * du[:, None] + b[..., None] * dv[:, None]
 
     # -- what a result reports ---------------------------------------------------------------------
     def residuals(self, level: int, at: Terms) -> tuple[np.ndarray, np.ndarray]:
@@ -482,7 +513,8 @@ class Photometric:
 
     def summary(self, at: Terms) -> dict:
         """`RefineResult`'s objective-specific fields of the first pose of at."""
-        return {"color_transform": at.D[0].double().cpu().numpy(), "loss": float(at.loss[0]),
+        D = at.D[0].double().cpu().numpy()  # the color transform; then the high pass's weights, if fitted
+        return {"color_transform": D[:, :D.shape[1] - 3] if self.sharpness else D, "loss": float(at.loss[0]),
                 "inlier_fraction": float(at.inlier_fraction[0]), "visible_points": int(at.visible[0])}
 
     def visible_scan_points(self, T_local: np.ndarray, q: torch.Tensor) -> np.ndarray:
