@@ -49,10 +49,10 @@ def objective(scan, shot: Shot, mode: str, camera=None, agreement: float = 0.0, 
 
     from rgbd_gt.align.config import RefineConfig
     from rgbd_gt.align.photometric import Photometric
-    from rgbd_gt.align.pyramid import photo_pyramid
+    from rgbd_gt.align.refine import photometric_pyramid
 
     cfg = dataclasses.replace(RefineConfig(), refine_intrinsics=mode, bundle_agreement=agreement)
-    pyr = photo_pyramid(shot.image, camera or shot.camera, cfg.levels, torch.device(device), None, cfg.upsample, mode != "none")
+    pyr = photometric_pyramid(shot.image, camera or shot.camera, cfg, torch.device(device))
     return Photometric(scan.xyz, scan.rgb, pyr, cfg, getattr(scan, "normals", None))
 
 

@@ -40,12 +40,12 @@ def photometric_method(change: dict, device: str) -> Callable[[Case], np.ndarray
 
     from rgbd_gt.align.aligner import Aligner
     from rgbd_gt.align.photometric import Photometric
-    from rgbd_gt.align.pyramid import photo_pyramid
+    from rgbd_gt.align.refine import photometric_pyramid
 
     cfg = dataclasses.replace(RefineConfig(), **change)
 
     def run(case: Case) -> np.ndarray:
-        pyramid = photo_pyramid(case.photo, ICL_CAMERA, cfg.levels, torch.device(device), upsample=cfg.upsample)
+        pyramid = photometric_pyramid(case.photo, ICL_CAMERA, cfg, torch.device(device))
         return Aligner(Photometric(case.points, case.colors, pyramid, cfg)).refine(case.T_init).T_cam_from_scan
 
     return run

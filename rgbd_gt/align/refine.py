@@ -132,6 +132,15 @@ def refine_meta(result: RefineResult, cfg: RefineConfig, T_init: np.ndarray, ini
     return meta
 
 
+def photometric_pyramid(photo: np.ndarray, camera, cfg: RefineConfig, device, ignore: np.ndarray | None = None):
+    """The photometric objective's pyramid of `photo` (H, W, 3) uint8 by cfg: enlarged at the
+    finest level, and kept as taken (not undistorted) where the camera is refined, so that its
+    corrections add to the file's own lens (`photo_pyramid`'s `distorted`)."""
+    from rgbd_gt.align.pyramid import photo_pyramid
+
+    return photo_pyramid(photo, camera, cfg.levels, device, ignore, cfg.upsample, distorted=cfg.refine_intrinsics != "none")
+
+
 def make_aligner(inputs: RefineInputs, cfg: RefineConfig, device: str, more: list[RefineInputs] = ()):
     """The aligner of cfg's objective for inputs (and the further pairs `more` that share its
     pose: nid only)."""
@@ -148,8 +157,7 @@ def make_aligner(inputs: RefineInputs, cfg: RefineConfig, device: str, more: lis
     if objective == "photometric":
         if more:
             raise InputError("several pairs are solved jointly with --objective nid only")
-        pyramid = photo_pyramid(inputs.photo, inputs.camera, cfg.levels, dev, inputs.ignore, cfg.upsample,
-                                distorted=cfg.refine_intrinsics != "none")
+        pyramid = photometric_pyramid(inputs.photo, inputs.camera, cfg, dev, inputs.ignore)
         return Aligner(Photometric(inputs.points, inputs.colors, pyramid, cfg, inputs.normals))
     # NID compares value distributions: an enlarged photo adds pixels, not information
     levels = NID_LEVELS if cfg.levels == "auto" else cfg.levels
