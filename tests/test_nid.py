@@ -150,6 +150,38 @@ def test_pose_gradient_matches_autograd_and_finite_differences(intensity_scene, 
     assert np.linalg.norm(fd - mean) < 0.06 * np.linalg.norm(closed * units), (fd, mean, closed * units)
 
 
+def test_frames_evaluated_together_are_each_alone(intensity_scene):
+    """A rig's frames are evaluated stacked (`_Parts`, one gather for all): two frames with photos
+    of different sizes and different point counts give together each one's NID, counts and
+    joint entropy alone, and the sum of their gradients (what each adds to the objective)."""
+    import cv2
+
+    from rgbd_gt.camera import rescale
+
+    d = intensity_scene
+    scan, photo, camera = load_scan(d / "intensity.ply"), read_image(d / "photo.png"), read_camera(d / "camera.yaml")
+    T = read_pose(d / "init_pose.yaml")[0]
+    w, h = camera.size
+    small = cv2.resize(photo, (w * 3 // 4, h * 3 // 4), interpolation=cv2.INTER_AREA)
+    cpu = torch.device("cpu")
+    frames = [Frame(scan.xyz, scan.intensity, photo_pyramid(photo, camera, 3, cpu)),
+              Frame(scan.xyz[::3], scan.intensity[::3], photo_pyramid(small, rescale(camera, *small.shape[1::-1]), 3, cpu))]
+    cfg = RefineConfig(objective="nid", levels=3, nid_edges=True)
+    delta = torch.as_tensor([2e-3, -1e-3, 5e-4, 3e-3, -2e-3, 1e-3], dtype=torch.float64)
+    results = []
+    for obj in (Nid(frames, cfg), Nid(frames[:1], cfg), Nid(frames[1:], cfg)):
+        T_local = translated(T, obj.centre)
+        obj.prepare(T_local)
+        parts = obj._parts(1, T_local)
+        results.append(obj._evaluate(parts, T_local, delta, torch.ones(2 * len(obj.frames), dtype=torch.float64)))
+    together, first, second = results
+    assert together.counts == first.counts + second.counts and first.counts[0] > second.counts[0] > 0  # padded
+    np.testing.assert_allclose(together.nid.numpy(), np.r_[first.nid.numpy(), second.nid.numpy()], rtol=1e-5)
+    np.testing.assert_allclose(together.entropies, first.entropies + second.entropies, rtol=1e-5)
+    np.testing.assert_allclose(together.gradient.numpy(), (first.gradient + second.gradient).numpy(), rtol=1e-3,
+                               atol=1e-4 * float(together.gradient.abs().max()))
+
+
 def test_closed_form_pose_gradient_on_real_sweeps_with_their_sky():
     """pjlab_1 and pjlab_2 as one rig on level 2, where the sky is charged, at an update with a
     rotation of 1 deg (whose Jacobian the closed form carries) and 10 cm."""

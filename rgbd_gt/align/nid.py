@@ -18,8 +18,8 @@ import torch
 
 
 def _bin_coordinates(x: torch.Tensor, bins: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """(first of the 4 bins (n,) long, fractional part f (n,)) of values x (n,) in [0, 1], which
-    sit at bin coordinate 1 + x (bins - 3), so that the 4 neighbours floor - 1 .. floor + 2 exist."""
+    """(first of the 4 bins (..., n) long, fractional part f (..., n)) of values x (..., n) in [0, 1],
+    which sit at bin coordinate 1 + x (bins - 3), so that the 4 neighbours floor - 1 .. floor + 2 exist."""
     c = x.clamp(0, 1) * (bins - 3) + 1
     # clamped so that x = 1 (c = bins - 2, on a knot: f = 1) keeps its 4 neighbours inside
     first = c.detach().floor().clamp(max=bins - 3)
@@ -27,8 +27,8 @@ def _bin_coordinates(x: torch.Tensor, bins: int) -> tuple[torch.Tensor, torch.Te
 
 
 def bspline3_weights(x: torch.Tensor, bins: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Bin coordinates of values x (n,) in [0, 1] and their cubic B-spline windows: (first bin
-    (n,) long, weights (n, 4) summing to 1), the uniform cubic B-spline's 4 pieces at the
+    """Bin coordinates of values x (..., n) in [0, 1] and their cubic B-spline windows: (first bin
+    (..., n) long, weights (..., n, 4) summing to 1), the uniform cubic B-spline's 4 pieces at the
     fractional part f, which is the kernel sampled at the 4 neighbours without branches."""
     first, f = _bin_coordinates(x, bins)
     return first, _pieces(f)
@@ -37,49 +37,49 @@ def bspline3_weights(x: torch.Tensor, bins: int) -> tuple[torch.Tensor, torch.Te
 def _pieces(f: torch.Tensor) -> torch.Tensor:
     f2 = f * f
     f3 = f2 * f
-    return torch.stack([(1 - f) ** 3, 3 * f3 - 6 * f2 + 4, 3 * (f + f2 - f3) + 1, f3], dim=1) / 6
+    return torch.stack([(1 - f) ** 3, 3 * f3 - 6 * f2 + 4, 3 * (f + f2 - f3) + 1, f3], dim=-1) / 6
 
 
 def _slopes(f: torch.Tensor) -> torch.Tensor:
-    """(n, 4): d(`_pieces`)/df."""
+    """(..., n, 4): d(`_pieces`)/df."""
     f2 = f * f
-    return torch.stack([-0.5 * (1 - f) ** 2, 1.5 * f2 - 2 * f, 0.5 + f - 1.5 * f2, 0.5 * f2], dim=1)
+    return torch.stack([-0.5 * (1 - f) ** 2, 1.5 * f2 - 2 * f, 0.5 + f - 1.5 * f2, 0.5 * f2], dim=-1)
 
 
 def parzen_windows(x: torch.Tensor, bins: int) -> torch.Tensor:
-    """(n, bins): each value of x (n,) in [0, 1] spread over its 4 bins (`bspline3_weights`)."""
+    """(..., n, bins): each value of x (..., n) in [0, 1] spread over its 4 bins (`bspline3_weights`)."""
     return _spread(*bspline3_weights(x, bins), bins)[0]
 
 
 def _spread(first: torch.Tensor, w: torch.Tensor, bins: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """((n, bins) windows, (n, 4) their columns) of weights w (n, 4) from bins first (n,) on."""
-    cols = first[:, None] + torch.arange(4, device=w.device)
-    return torch.zeros(w.shape[0], bins, dtype=w.dtype, device=w.device).scatter(1, cols, w), cols
+    """((..., n, bins) windows, (..., n, 4) their columns) of weights w (..., n, 4) from bins first (..., n) on."""
+    cols = first[..., None] + torch.arange(4, device=w.device)
+    return torch.zeros(w.shape[:-1] + (bins,), dtype=w.dtype, device=w.device).scatter(-1, cols, w), cols
 
 
 def joint_histogram(a: torch.Tensor, b: torch.Tensor, bins: int) -> torch.Tensor:
-    """(bins, bins) joint probability of the values a, b (n,), each in [0, 1]."""
+    """(..., bins, bins) joint probability of the values a, b (..., n), each in [0, 1]."""
     return windows_histogram(parzen_windows(a, bins), parzen_windows(b, bins))
 
 
 def windows_histogram(wa: torch.Tensor, wb: torch.Tensor) -> torch.Tensor:
-    """(bins, bins) joint probability of paired values given as their windows wa, wb (n, bins)."""
-    hist = wa.T @ wb
-    return hist / hist.sum().clamp_min(1e-12)
+    """(..., bins, bins) joint probability of paired values given as their windows wa, wb (..., n, bins)."""
+    hist = wa.transpose(-1, -2) @ wb
+    return hist / hist.sum((-1, -2), keepdim=True).clamp_min(1e-12)
 
 
-def entropy(p: torch.Tensor) -> torch.Tensor:
-    """Shannon entropy (nats) of a probability table."""
-    return -(p * torch.log(p.clamp_min(1e-12))).sum()
+def entropy(p: torch.Tensor, dims: int = 2) -> torch.Tensor:
+    """Shannon entropy (nats) of probability tables p (..., table) whose last `dims` dimensions are the table."""
+    return -(p * torch.log(p.clamp_min(1e-12))).sum(tuple(range(-dims, 0)))
 
 
 def nid_of_windows(wa: torch.Tensor, wb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """NID (a scalar in [0, 1]) of paired values given as their windows wa, wb (n, bins)
+    """NID (...) in [0, 1] of paired values given as their windows wa, wb (..., n, bins)
     (`parzen_windows`; the scan's side can be spread once and reused), and their joint entropy
     H(A, B) in nats (the scale that turns NID into a log-likelihood)."""
     p = windows_histogram(wa, wb)
     h_ab = entropy(p)
-    return 2.0 - (entropy(p.sum(1)) + entropy(p.sum(0))) / h_ab.clamp_min(1e-12), h_ab
+    return 2.0 - (entropy(p.sum(-1), 1) + entropy(p.sum(-2), 1)) / h_ab.clamp_min(1e-12), h_ab
 
 
 def _entropy_slope(p: torch.Tensor) -> torch.Tensor:
@@ -89,26 +89,27 @@ def _entropy_slope(p: torch.Tensor) -> torch.Tensor:
 
 def nid_with_gradient(wa: torch.Tensor, b: torch.Tensor,
                       bins: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """`nid_of_windows`(wa, parzen_windows(b, bins)) and d NID / d b (n,), in closed form: the
+    """`nid_of_windows`(wa, parzen_windows(b, bins)) and d NID / d b (..., n), in closed form: the
     chain through the entropies, the histogram and the B-spline windows costs a few small
-    matrix products, where autograd's backward took a third of the aligner's time."""
+    matrix products, where autograd's backward took a third of the aligner's time. wa (..., n,
+    bins), b (..., n); a sample whose window wa is zero does not count (padding)."""
     first, f = _bin_coordinates(b, bins)
     wb, cols = _spread(first, _pieces(f), bins)
-    hist = wa.T @ wb
-    total = hist.sum().clamp_min(1e-12)
+    hist = wa.transpose(-1, -2) @ wb
+    total = hist.sum((-1, -2), keepdim=True).clamp_min(1e-12)
     p = hist / total
-    pa, pb = p.sum(1), p.sum(0)
-    h_ab, h_sum = entropy(p), entropy(pa) + entropy(pb)
-    h_ab_safe = h_ab.clamp_min(1e-12)
+    pa, pb = p.sum(-1), p.sum(-2)
+    h_ab, h_sum = entropy(p), entropy(pa, 1) + entropy(pb, 1)
+    h_ab_safe = h_ab.clamp_min(1e-12)[..., None, None]
     # NID = 2 - (H(A) + H(B)) / H(A, B), each entropy a function of p
-    d_sum = _entropy_slope(pa)[:, None] + _entropy_slope(pb)[None, :]
-    d_p = h_sum / h_ab_safe**2 * _entropy_slope(p) - d_sum / h_ab_safe
-    d_hist = (d_p - (d_p * p).sum()) / total  # through the normalisation p = hist / total
-    d_f = ((wa @ d_hist).gather(1, cols) * _slopes(f)).sum(1)
+    d_sum = _entropy_slope(pa)[..., :, None] + _entropy_slope(pb)[..., None, :]
+    d_p = h_sum[..., None, None] / h_ab_safe**2 * _entropy_slope(p) - d_sum / h_ab_safe
+    d_hist = (d_p - (d_p * p).sum((-1, -2), keepdim=True)) / total  # through the normalisation p = hist / total
+    d_f = ((wa @ d_hist).gather(-1, cols) * _slopes(f)).sum(-1)
     inside = ((b >= 0) & (b <= 1)).to(d_f.dtype)  # f moves with clamp(b)
-    return 2.0 - h_sum / h_ab_safe, h_ab, d_f * inside * (bins - 3)
+    return 2.0 - h_sum / h_ab_safe[..., 0, 0], h_ab, d_f * inside * (bins - 3)
 
 
 def nid(a: torch.Tensor, b: torch.Tensor, bins: int = 16) -> torch.Tensor:
-    """NID (a scalar in [0, 1]) of paired values a, b (n,) in [0, 1]."""
+    """NID (...) in [0, 1] of paired values a, b (..., n) in [0, 1]."""
     return nid_of_windows(parzen_windows(a, bins), parzen_windows(b, bins))[0]

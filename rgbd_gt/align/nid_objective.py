@@ -25,7 +25,7 @@ import torch
 from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.align.nid import nid_of_windows, nid_with_gradient, parzen_windows
 from rgbd_gt.align.pyramid import PhotoLevel
-from rgbd_gt.align.sampling import bilinear, bilinear_with_gradient, central_gradients
+from rgbd_gt.align.sampling import bilinear, bilinear_stacked, central_gradients
 from rgbd_gt.align.subset import near_view, point_keys
 from rgbd_gt.errors import InputError
 from rgbd_gt.pose import so3_exp, so3_left_jacobian
@@ -47,19 +47,78 @@ class Frame:
 
 
 @dataclass
-class _Part:
-    """One frame on one level: its points (local frame), their values and the photo's images,
-    as pairs of channels compared by NID: (scan value, gray) and, with cfg.nid_edges, (how far
-    the point stands in front of its sides, gray gradient magnitude)."""
+class _Stack:
+    """The F frames' images of one level in one tensor, so that one gather samples them all
+    (`bilinear_stacked`)."""
 
-    points: torch.Tensor  # (n, 3) float32
-    windows: torch.Tensor  # (n, C, bins) float64: the values, spread over NID's bins (`parzen_windows`)
-    image: torch.Tensor  # (H, W, C), or (H, W, C + 1) with the sky
-    photo: PhotoLevel
-    sky: bool  # the image's last channel is where the photo shows sky, in [0, 1] (align/sky.py)
-    edge_points: torch.Tensor | None = None  # (m, 3) float32 local frame: the frame's ring edges (cfg.edge_weight)
-    edge_strength: torch.Tensor | None = None  # (m,) float64 their sqrt(depth step / m)
-    edge_map: torch.Tensor | None = None  # (H, W, 1) the photo's edges spread (`edge_distance_map`)
+    flat: torch.Tensor  # (sum of W H, C) each frame's pixels row by row, frame after frame
+    base: torch.Tensor  # (F, 1) long: the row of flat where each frame starts
+    size: torch.Tensor  # (F, 2) long: each frame's (W, H)
+    valid: torch.Tensor | None = None  # (sum of W H,) bool: usable pixels, or None where all are
+
+    def sample(self, uv: torch.Tensor, gradient: bool = False):
+        """The frames' images at uv (F, n, 2): (F, n, C), with gradient also d/du and d/dv."""
+        return bilinear_stacked(self.flat, self.base, self.size, uv, gradient)
+
+    def on_photo(self, uv: torch.Tensor, z: torch.Tensor, near: float) -> torch.Tensor:
+        """(F, n) bool: points (pixels uv (F, n, 2), depths z (F, n)) at least `near` metres in
+        front that land on their frame's usable pixels (`_on_photo` for all frames at once)."""
+        w, h = self.size[:, 0:1], self.size[:, 1:2]
+        u, v = uv[..., 0], uv[..., 1]
+        ok = (z > near) & (u >= 0) & (v >= 0) & (u <= w - 1) & (v <= h - 1)
+        if self.valid is not None:
+            col = torch.minimum(u.detach().clamp_min(0).long(), w - 1)
+            row = torch.minimum(v.detach().clamp_min(0).long(), h - 1)
+            ok &= self.valid[(self.base + row * w + col).reshape(-1)].reshape(ok.shape)
+        return ok
+
+
+def _stack(images: list[torch.Tensor], valid: list[torch.Tensor | None] | None = None) -> _Stack:
+    """`_Stack` of F images (H, W, C_f), the channels each lacks zero; valid: their usable-pixel
+    masks (H, W) bool or None."""
+    c = max(img.shape[2] for img in images)
+    flat = torch.cat([torch.nn.functional.pad(img, (0, c - img.shape[2])).reshape(-1, c) for img in images])
+    sizes = torch.tensor([[img.shape[1], img.shape[0]] for img in images], device=flat.device)
+    base = torch.cumsum(sizes[:, 0] * sizes[:, 1], 0) - sizes[:, 0] * sizes[:, 1]
+    mask = None
+    if valid is not None and any(m is not None for m in valid):
+        mask = torch.cat([(torch.ones(img.shape[:2], dtype=torch.bool, device=flat.device) if m is None else m).reshape(-1)
+                          for img, m in zip(images, valid)])
+    return _Stack(flat, base[:, None], sizes, mask)
+
+
+def _padded(rows: list[torch.Tensor]) -> torch.Tensor:
+    """(F, n, ...) the F tensors (n_f, ...) one after another, each padded with zeros to the largest n."""
+    out = rows[0].new_zeros((len(rows), max(len(r) for r in rows)) + tuple(rows[0].shape[1:]))
+    for f, r in enumerate(rows):
+        out[f, :len(r)] = r
+    return out
+
+
+def _project(p: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """`project_pinhole` of each frame's camera-frame points p (F, n, 3) through its K (F, 4:
+    fx, fy, cx, cy): pixels (F, n, 2), depths (F, n)."""
+    z = p[..., 2]
+    zs = z.clamp_min(1e-9)
+    return torch.stack([K[:, 0:1] * p[..., 0] / zs + K[:, 2:3], K[:, 1:2] * p[..., 1] / zs + K[:, 3:4]], -1), z
+
+
+@dataclass
+class _Parts:
+    """The F frames on one level, batch-first, each padded to the n points of the largest (the
+    padding never counts: its windows and strengths are zero): their points (local frame), their
+    values and the photos' images, as pairs of channels compared by NID: (scan value, gray) and,
+    with cfg.nid_edges, (how far the point stands in front of its sides, gray gradient magnitude)."""
+
+    points: torch.Tensor  # (F, n, 3) float32
+    real: torch.Tensor  # (F, n) bool: not padding
+    windows: torch.Tensor  # (F, n, C, bins) float64: the values, spread over NID's bins (`parzen_windows`)
+    images: _Stack  # C channels, then the sky where a frame has one
+    K: torch.Tensor  # (F, 4) fx, fy, cx, cy of the level
+    sky: torch.Tensor  # (F,) float64: 1 where the images' last channel is the frame's sky, in [0, 1] (align/sky.py)
+    edge_points: torch.Tensor | None = None  # (F, m, 3) float32 local frame: the frames' ring edges (cfg.edge_weight)
+    edge_strength: torch.Tensor | None = None  # (F, m) float64 their sqrt(depth step / m)
+    edge_maps: _Stack | None = None  # (H, W, 1) per frame: the photo's edges spread (`edge_distance_map`)
 
 
 @dataclass
@@ -96,13 +155,14 @@ class _Evaluation:
 
 def _pose_gradient(d_u: torch.Tensor, d_v: torch.Tensor, p: torch.Tensor, q: torch.Tensor, K: torch.Tensor,
                    w: torch.Tensor) -> torch.Tensor:
-    """(6,) d loss / d delta of points p = so3_exp(w) q + delta[3:] (n, 3, camera frame), given
-    d loss / d (u, v) of their pinhole projections (n,) each."""
-    iz = 1.0 / p[:, 2]
-    g_x, g_y = d_u * K[0, 0] * iz, d_v * K[1, 1] * iz
-    d_p = torch.stack([g_x, g_y, -(g_x * p[:, 0] + g_y * p[:, 1]) * iz], 1)
+    """(6,) d loss / d delta of each frame's points p = so3_exp(w) q + delta[3:] (F, n, 3, camera
+    frame), given d loss / d (u, v) of their pinhole projections through K (F, 4) (F, n) each (0
+    for points that do not count)."""
+    iz = 1.0 / p[..., 2].clamp_min(1e-9)
+    g_x, g_y = d_u * K[:, 0:1] * iz, d_v * K[:, 1:2] * iz
+    d_p = torch.stack([g_x, g_y, -(g_x * p[..., 0] + g_y * p[..., 1]) * iz], -1).reshape(-1, 3)
     # dp = (J dw) x q, so d loss / dw = J^T sum(q x d_p)
-    d_w = so3_left_jacobian(w.double()).T @ torch.linalg.cross(q, d_p).sum(0)
+    d_w = so3_left_jacobian(w.double()).T @ torch.linalg.cross(q.reshape(-1, 3), d_p).sum(0)
     return torch.cat([d_w, d_p.sum(0)])
 
 
@@ -153,7 +213,7 @@ class NidTerms:
     these terms), the evaluation there and its frames' weights."""
 
     level: int
-    parts: list[_Part]
+    parts: _Parts
     evaluation: _Evaluation
     weights: torch.Tensor  # (F x C,) float64
     # the frames' shares as quadratics at this pose (`Nid.frame_quadratics`), once the covariance made them
@@ -187,11 +247,13 @@ class Nid:
         self._keys = [torch.as_tensor(point_keys(f.points, cfg.seed), device=self.device) for f in frames]
         self._normals = [None if f.normals is None else torch.as_tensor(f.normals, dtype=torch.float32, device=self.device)
                          for f in frames]
-        # per frame, per level: the channels NID compares, and the sky (`_Part`) once it is found
+        # per frame, per level: the channels NID compares, and the sky once it is found; then per
+        # level all frames' in one `_Stack` (`prepare`)
         self._images = [[_channels(lv.image, cfg.nid_edges) for lv in f.pyramid] for f in frames]
+        self._stacks: list[_Stack] | None = None
         # the ring edges of the ring-edge term (their indices and strengths), and the photos' maps once needed
         self._ring_edges = [None if f.edges is None else _ring_edges(f.edges, self.device) for f in frames]
-        self._edge_maps: dict[tuple[int, int], torch.Tensor] = {}
+        self._edge_maps: dict[int, _Stack] = {}  # per level, once needed
         self._prepared: list[list[torch.Tensor]] | None = None  # per level, per frame: point indices
         self._sky = [False] * len(frames)
 
@@ -229,6 +291,9 @@ class Nid:
             per_frame.append(idx[torch.argsort(self._keys[k][idx])])
         self._prepared = [[idx[: max(cfg.min_points, cfg.max_points // 4**level)] for idx in per_frame]
                           for level in range(len(self.frames[0].pyramid))]
+        self._stacks = [_stack([images[level] for images in self._images], [f.pyramid[level].valid for f in self.frames])
+                        for level in range(len(self._prepared))]
+        self._images = None  # held once, in the stacks
         return len(self._prepared)
 
     def _find_sky(self, frame: Frame, uv: torch.Tensor) -> list[torch.Tensor] | None:
@@ -256,11 +321,11 @@ class Nid:
             return None
         return facing_camera(self._points[k][idx] @ R.T + t, self._normals[k][idx] @ R.T)
 
-    def _parts(self, level: int, T_local: np.ndarray) -> list[_Part]:
+    def _parts(self, level: int, T_local: np.ndarray) -> _Parts:
         """The level's points that are visible at T_local (a Z-buffer with cells sized for their
-        density in the image)."""
+        density in the image), all frames in one `_Parts`."""
         R, t = self._pose(T_local)
-        parts = []
+        points, windows, edges = [], [], []
         for k, idx in enumerate(self._prepared[level]):
             photo = self.frames[k].pyramid[level]
             pts = self._points[k][idx]
@@ -271,108 +336,131 @@ class Nid:
             values = self._values[k][idx][:, None]
             if self.cfg.nid_edges:
                 values = torch.cat([values, depth_edges(uv, z, photo.camera.size, cell)[:, None]], 1)
-            values = values[vis].double()
-            windows = torch.stack([parzen_windows(values[:, c], self.cfg.nid_bins) for c in range(values.shape[1])], 1)
-            sky = self._sky[k] and level >= self.cfg.sky_coarse_level
-            parts.append(_Part(pts[vis], windows, self._images[k][level], photo, sky, *self._edges_of(k, level, R, t)))
+            points.append(pts[vis])
+            windows.append(parzen_windows(values[vis].double().T, self.cfg.nid_bins).transpose(0, 1))
+            edges.append(self._edges_of(k, level, R, t))
+        photos = [f.pyramid[level] for f in self.frames]
+        K = torch.stack([torch.stack([p.K[0, 0], p.K[1, 1], p.K[0, 2], p.K[1, 2]]) for p in photos]).float()
+        sky = torch.tensor([float(self._sky[k] and level >= self.cfg.sky_coarse_level) for k in range(len(photos))],
+                           dtype=torch.float64, device=self.device)
+        parts = _Parts(_padded(points), _padded([torch.ones(len(p), dtype=torch.bool, device=self.device) for p in points]),
+                       _padded(windows), self._stacks[level], K, sky)
+        if any(e is not None for e in edges):
+            none = (self._points[0][:0], torch.zeros(0, dtype=torch.float64, device=self.device))
+            parts.edge_points = _padded([(e or none)[0] for e in edges])
+            parts.edge_strength = _padded([(e or none)[1] for e in edges])
+            parts.edge_maps = self._edge_map_stack(level)
         return parts
 
-    def _edges_of(self, k: int, level: int, R: torch.Tensor, t: torch.Tensor) -> tuple:
-        """(edge points, strengths, edge map) of frame k on a level, or three Nones without the
-        term: the ring edges on the photo at (R, t), which the later evaluations of these parts
-        keep. A score over whatever edges land on the photo grew as the camera backed away and
-        took in more of them: on KITTI its pull alone ran to 20 cm along the optical axis."""
+    def _edges_of(self, k: int, level: int, R: torch.Tensor, t: torch.Tensor) -> tuple | None:
+        """(edge points, strengths) of frame k on a level, or None without the term: the ring
+        edges on the photo at (R, t), which the later evaluations of these parts keep. A score
+        over whatever edges land on the photo grew as the camera backed away and took in more of
+        them: on KITTI its pull alone ran to 20 cm along the optical axis."""
         if self._ring_edges[k] is None or self.cfg.edge_weight <= 0 or level >= EDGE_LEVELS:
-            return None, None, None
-        if (k, level) not in self._edge_maps:
-            from rgbd_gt.align.edge_map import edge_distance_map
-
-            self._edge_maps[k, level] = edge_distance_map(self.frames[k].pyramid[level].image)
+            return None
         idx, strength = self._ring_edges[k]
         pts = self._points[k][idx]
         photo = self.frames[k].pyramid[level]
         ok = _on_photo(photo, *project_pinhole(pts @ R.T + t, photo.K), EDGE_NEAR_M)
-        return pts[ok], strength[ok], self._edge_maps[k, level]
+        return pts[ok], strength[ok]
+
+    def _edge_map_stack(self, level: int) -> _Stack:
+        """The frames' photos' edges spread (`edge_distance_map`) on a level, zero for frames without ring edges."""
+        if level not in self._edge_maps:
+            from rgbd_gt.align.edge_map import edge_distance_map
+
+            photos = [f.pyramid[level] for f in self.frames]
+            self._edge_maps[level] = _stack([
+                edge_distance_map(p.image) if e is not None else p.image.new_zeros(p.image.shape[:2] + (1,))
+                for p, e in zip(photos, self._ring_edges)])
+        return self._edge_maps[level]
 
     # -- NID at a pose ------------------------------------------------------------------------------
-    def _evaluate(self, parts: list[_Part], T_local: np.ndarray, delta: torch.Tensor,
+    def _evaluate(self, parts: _Parts, T_local: np.ndarray, delta: torch.Tensor,
                   weights: torch.Tensor | None = None) -> _Evaluation:
         """NID per frame and channel pair at apply_update(T_local, delta) (delta (6,) float64), on
         the points that land on usable pixels. With weights (F x C,), also the gradient of
         sum(weights * NID) with respect to delta, in closed form (`nid_with_gradient` and the
         derivative of the bilinear interpolant, as strategy A); delta may also be differentiated
-        by autograd (tests compare the two)."""
+        by autograd (tests compare the two). All frames at once: a rig's 19 frames cost a few
+        operations each, not 19."""
         R0, t0 = self._pose(T_local)
         R = so3_exp(delta[:3]).to(R0.dtype)
         R1, t1 = R @ R0, R @ t0
-        nids, counts, entropies, edges = [], [], [], torch.zeros(len(parts), dtype=torch.float64, device=self.device)
+        F, C = parts.windows.shape[0], parts.windows.shape[2]
+        edges = torch.zeros(F, dtype=torch.float64, device=self.device)
         gradient = None if weights is None else torch.zeros(6, dtype=torch.float64, device=self.device)
-        for k, part in enumerate(parts):
-            if part.edge_points is not None:
-                score, g = self._edge_score(part, R1, t1, delta, weights is not None)
-                edges[k] = self.cfg.edge_weight * score
-                if g is not None:
-                    gradient -= self.cfg.edge_weight * g
-            q = part.points @ R1.T + t1
-            p = q + delta[3:].to(R0.dtype)
-            uv, z = project_pinhole(p, part.photo.K)
-            # the points on the photo, as indices: one selection by them is a third of a mask's
-            ok = _on_photo(part.photo, uv, z, 0.1).nonzero().squeeze(1)
-            n = len(ok)
-            if n < 50:
-                raise InputError("the pose left the scan: fewer than 50 points in view")
+        if parts.edge_points is not None:
+            score, g = self._edge_score(parts, R1, t1, delta, weights is not None)
+            edges = self.cfg.edge_weight * score
+            if g is not None:
+                gradient -= self.cfg.edge_weight * g
+        q = parts.points @ R1.T + t1
+        p = q + delta[3:].to(R0.dtype)
+        uv, z = _project(p, parts.K)
+        ok = parts.images.on_photo(uv, z, 0.1) & parts.real
+        n = ok.sum(1)
+        counts = n.tolist()
+        if min(counts) < 50:
+            raise InputError("the pose left the scan: fewer than 50 points in view")
+        use = ok.to(torch.float64)
+        if weights is None:
+            sampled = parts.images.sample(uv).double()
+        else:
+            sampled, s_u, s_v = (x.double() for x in parts.images.sample(uv, gradient=True))
+            d_sampled = torch.zeros_like(sampled)  # d loss / d sampled channel
+            w = weights.reshape(F, C)
+        sky = parts.sky.any()
+        nids, entropies = [], []
+        for c in range(C):
+            wa = parts.windows[:, :, c] * use[..., None]  # the points off the photo do not count
             if weights is None:
-                sampled = bilinear(part.image, uv.index_select(0, ok)).double()
+                value, h_ab = nid_of_windows(wa, parzen_windows(sampled[..., c], self.cfg.nid_bins))
             else:
-                sampled, s_u, s_v = (x.double() for x in bilinear_with_gradient(part.image, uv.index_select(0, ok)))
-                d_sampled = torch.zeros_like(sampled)  # d loss / d sampled channel
-            windows = part.windows.index_select(0, ok)
-            for c in range(windows.shape[1]):
-                if weights is None:
-                    value, h_ab = nid_of_windows(windows[:, c], parzen_windows(sampled[:, c], self.cfg.nid_bins))
-                else:
-                    value, h_ab, d_value = nid_with_gradient(windows[:, c], sampled[:, c], self.cfg.nid_bins)
-                    d_sampled[:, c] = weights[len(nids)] * d_value
-                if c == 0 and part.sky:
-                    value = value + self.cfg.sky_weight * sampled[:, -1].mean()
-                    if weights is not None:
-                        d_sampled[:, -1] = weights[len(nids)] * self.cfg.sky_weight / n
-                nids.append(value)
-                counts.append(n)
-                entropies.append(float(h_ab.detach()))
-            if weights is not None:
-                gradient += _pose_gradient((d_sampled * s_u).sum(1), (d_sampled * s_v).sum(1), p.index_select(0, ok).double(),
-                                           q.index_select(0, ok).double(), part.photo.K, delta[:3])
-        return _Evaluation(torch.stack(nids), counts, entropies, edges, gradient)
+                value, h_ab, d_value = nid_with_gradient(wa, sampled[..., c], self.cfg.nid_bins)
+                d_sampled[..., c] = w[:, c:c + 1] * d_value
+            if c == 0 and sky:
+                value = value + self.cfg.sky_weight * parts.sky * (sampled[..., -1] * use).sum(1) / n
+                if weights is not None:
+                    d_sampled[..., -1] = (w[:, 0] * self.cfg.sky_weight * parts.sky / n)[:, None] * use
+            nids.append(value)
+            entropies.append(h_ab)
+        if weights is not None:
+            gradient += _pose_gradient((d_sampled * s_u).sum(-1), (d_sampled * s_v).sum(-1), p.double(), q.double(),
+                                       parts.K.double(), delta[:3])
+        return _Evaluation(torch.stack(nids, 1).reshape(-1), [k for k in counts for _ in range(C)],
+                           torch.stack(entropies, 1).reshape(-1).detach().tolist(), edges, gradient)
 
-    def _edge_score(self, part: _Part, R: torch.Tensor, t: torch.Tensor, delta: torch.Tensor,
+    def _edge_score(self, parts: _Parts, R: torch.Tensor, t: torch.Tensor, delta: torch.Tensor,
                     with_gradient: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """The ring-edge score of a frame at apply_update((R, t), delta): sum over the part's ring
-        edges (those on the photo when the part was made, `_edges_of`) of strength x the photo's
-        edge map there, and its gradient (6,) with respect to delta when asked (else None). The edges are
-        not Z-buffered: a step's nearer return is the foreground, which the camera sees but for
-        the parallax of the sensor's offset."""
-        q = part.edge_points @ R.T + t
+        """The ring-edge score of each frame (F,) at apply_update((R, t), delta): sum over its ring
+        edges (those on the photo when the parts were made, `_edges_of`) of strength x the photo's
+        edge map there, and the gradient (6,) of their sum with respect to delta when asked (else
+        None). The edges are not Z-buffered: a step's nearer return is the foreground, which the
+        camera sees but for the parallax of the sensor's offset."""
+        q = parts.edge_points @ R.T + t
         p = q + delta[3:].to(R.dtype)
-        uv, z = project_pinhole(p, part.photo.K)
-        w, h = part.photo.camera.size
+        uv, z = _project(p, parts.K)
+        size = parts.edge_maps.size
         # an edge that leaves the photo keeps the border's value (the samplers clamp to it): the score is continuous
-        inside_u, inside_v = (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1), (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
-        strength = part.edge_strength * (z > 0.1)
+        inside_u = (uv[..., 0] >= 0) & (uv[..., 0] <= size[:, 0:1] - 1)
+        inside_v = (uv[..., 1] >= 0) & (uv[..., 1] <= size[:, 1:2] - 1)
+        strength = parts.edge_strength * (z > 0.1)
         if not with_gradient:
-            return (strength * bilinear(part.edge_map, uv)[:, 0].double()).sum(), None
-        sampled, s_u, s_v = (x[:, 0].double() for x in bilinear_with_gradient(part.edge_map, uv))
+            return (strength * parts.edge_maps.sample(uv)[..., 0].double()).sum(1), None
+        sampled, s_u, s_v = (x[..., 0].double() for x in parts.edge_maps.sample(uv, gradient=True))
         gradient = _pose_gradient(strength * s_u * inside_u, strength * s_v * inside_v, p.double(), q.double(),
-                                  part.photo.K, delta[:3])
-        return (strength * sampled).sum(), gradient
+                                  parts.K.double(), delta[:3])
+        return (strength * sampled).sum(1), gradient
 
     def units(self, level: int, T_local: np.ndarray, at: "NidTerms") -> torch.Tensor:
         """(6,) float64 size of each pose parameter that moves the points of `at` by 1 pixel (RMS)."""
         parts = at.parts
         R, t = self._pose(T_local)
         sq, n = torch.zeros(6, device=self.device), 0
-        for part in parts:
-            du, dv = projection_jacobian(part.points @ R.T + t, part.photo.K[0, 0], part.photo.K[1, 1])
+        for points, real, K in zip(parts.points, parts.real, parts.K):
+            du, dv = projection_jacobian(points[real] @ R.T + t, K[0], K[1])
             sq += (du * du + dv * dv).sum(0)
             n += du.shape[0]
         return (1.0 / torch.sqrt(sq / max(n, 1)).clamp_min(1e-12)).double()
@@ -418,7 +506,8 @@ class Nid:
 
     def visible_scan_points(self, T_local: np.ndarray, q=None) -> np.ndarray:
         """(n, 3) float64 local-frame points of the first frame's finest level visible at T_local."""
-        return self._parts(0, T_local)[0].points.double().cpu().numpy()
+        parts = self._parts(0, T_local)
+        return parts.points[0][parts.real[0]].double().cpu().numpy()
 
     def frame_quadratics(self, level: int, T_local: np.ndarray, terms: "NidTerms") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each frame's share of the objective (`_Evaluation.per_frame`, its weights those of

@@ -98,3 +98,25 @@ def bilinear_with_gradient(image: torch.Tensor, uv: torch.Tensor, gradient: str 
     c = image.shape[2]
     du, dv = (_blend(*_rows(g, i00, i10, i01, i11), a, b) for g in (gu.reshape(-1, c), gv.reshape(-1, c)))
     return value, du, dv
+
+
+def bilinear_stacked(flat: torch.Tensor, base: torch.Tensor, size: torch.Tensor, uv: torch.Tensor,
+                     gradient: bool = False):
+    """`bilinear` (with gradient: `bilinear_with_gradient`'s 'direct') of F images kept one after
+    another in flat (P, C), row by row: image f has size[f] = (W, H) (F, 2) and starts at row
+    base[f] (F, 1) of flat. uv (F, n, 2): points on each image. Returns (F, n, C), with gradient
+    (value, d/du, d/dv). One gather serves every frame of a rig, where a loop over the frames
+    paid each operation's overhead once per frame."""
+    F, n = uv.shape[:2]
+    w, h = size[:, 0:1].to(uv.dtype), size[:, 1:2].to(uv.dtype)
+    u = torch.minimum(uv[..., 0].nan_to_num(0.0).clamp_min(0), w - 1)
+    v = torch.minimum(uv[..., 1].nan_to_num(0.0).clamp_min(0), h - 1)
+    u0, v0 = torch.minimum(u.floor(), w - 2), torch.minimum(v.floor(), h - 2)
+    a, b = (u - u0).unsqueeze(-1), (v - v0).unsqueeze(-1)
+    row = size[:, 0:1].long()
+    i00 = base + v0.long() * row + u0.long()
+    f00, f10, f01, f11 = (x.reshape(F, n, -1) for x in _rows(flat, *(i.reshape(-1) for i in (i00, i00 + 1, i00 + row, i00 + row + 1))))
+    value = _blend(f00, f10, f01, f11, a, b)
+    if not gradient:
+        return value
+    return value, (1 - b) * (f10 - f00) + b * (f11 - f01), (1 - a) * (f01 - f00) + a * (f11 - f10)
