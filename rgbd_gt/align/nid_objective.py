@@ -229,8 +229,9 @@ class NidTerms:
 
 
 class Nid:
-    """The NID objective of one pose against one or more frames (`Frame`). A batch of poses is
-    evaluated one pose after another: ~10k points per frame leave little to batch."""
+    """The NID objective of one pose against one or more frames (`Frame`). The frames are
+    evaluated together (`_Parts`: a 19-frame KITTI joint solve took 55 s frame after frame, 39 s
+    so); a batch of poses one pose after another."""
 
     name = "nid"
     method = "lbfgs"
