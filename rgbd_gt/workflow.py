@@ -437,6 +437,22 @@ def not_a_rig(jobs: list[ScanJob]) -> str | None:
     return None
 
 
+def rig_made_from(jobs: list[ScanJob], prepared: list) -> dict:
+    """What a rig's pose is made from, recorded in rig.yaml so that a rerun with other inputs is
+    an error, not the old pose resumed: the camera and init files, and one SHA-1 over the frames'
+    scans and one over their photos, each with its path (`steps.made_from`'s keys)."""
+    import hashlib
+
+    from rgbd_gt.steps import made_from
+
+    frames = [made_from(p.source, p.sha1, {"photo": j.photos[0], "camera": j.camera, "init": j.init})
+              for j, p in zip(jobs, prepared)]
+    made = {k: frames[0][k] for k in ("camera", "camera_sha1", "init", "init_sha1")}
+    for kind in ("scan", "photo"):
+        made[f"{kind}s_sha1"] = hashlib.sha1(" ".join(f[f"{kind}_sha1"] for f in frames).encode()).hexdigest()
+    return made
+
+
 def solve_rig(jobs: list[ScanJob], prepared: list, camera, cfg: RunConfig, out: Path,
               progress: Callable[[str], None] = lambda step: None) -> tuple[np.ndarray, dict]:
     """One pose for the frames of a rig (`not_a_rig`: a scan and its photo each; prepared: their
@@ -449,10 +465,15 @@ def solve_rig(jobs: list[ScanJob], prepared: list, camera, cfg: RunConfig, out: 
 
     path = out / RIG_FILE
     names = [f"{j.name}/{j.photos[0].name}" for j in jobs]
+    made = rig_made_from(jobs, prepared)
     if path.exists():
         T, meta = read_pose(path)
         if meta.get("frames") != names:
             raise InputError(f"it was solved over other frames ({', '.join(meta.get('frames') or [])}): remove it to "
+                             "solve this config's frames", path)
+        kind = made_from_other(meta, made)
+        if kind is not None:
+            raise InputError(f"it was solved from other {kind} (SHA-1 {str(meta[kind + '_sha1'])[:12]}): remove it to "
                              "solve this config's frames", path)
     else:
         solo = [job.out / job.photos[0].stem / "pose.yaml" for job in jobs]
@@ -470,12 +491,12 @@ def solve_rig(jobs: list[ScanJob], prepared: list, camera, cfg: RunConfig, out: 
 
         first = jobs[0].out / jobs[0].photos[0].stem / "init.yaml"
         refined = refine_step(inputs[0], cfg.refine, first, cfg.device, jobs[0].camera, levels, more=inputs[1:])
-        T, meta = refined.T, {**refined.meta, "frames": names}
+        T, meta = refined.T, {**refined.meta, "frames": names, **made}
         write_pose(path, T, **meta)
     for job in jobs:
         d = job.out / job.photos[0].stem
         if not (d / "pose.yaml").exists():
-            write_pose(d / "pose.yaml", T, **{k: v for k, v in meta.items() if k != "frames"}, rig=os.path.relpath(path, d))
+            write_pose(d / "pose.yaml", T, **{k: v for k, v in meta.items() if k != "frames" and k not in made}, rig=os.path.relpath(path, d))
     return T, meta
 
 

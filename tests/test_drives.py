@@ -213,8 +213,8 @@ def test_run_solves_a_drives_frames_as_one_rig(tmp_path):
     """`rgbd-gt run` on a site of 4 KITTI sweeps, a photo each, sharing the config's init (0.3
     deg and 5 cm off the reference) and camera: the sweeps are one rig's frames by default, so
     one pose is solved over all four (3 levels, no wide search, to keep it short), written to
-    OUTPUT/rig.yaml and to every frame's pose.yaml, whose steps then take it. A rerun resumes it;
-    a rig that is not one is an error."""
+    OUTPUT/rig.yaml and to every frame's pose.yaml, whose steps then take it. A rerun resumes it,
+    but not once its init has other content; a rig that is not one is an error."""
     import csv
 
     import yaml
@@ -251,6 +251,11 @@ def test_run_solves_a_drives_frames_as_one_rig(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert (tmp_path / "out" / "rig.yaml").stat().st_mtime_ns == stamp
     assert all("refine" not in r["skipped"] and "depth" in r["skipped"] for r in list(csv.DictReader(open(tmp_path / "out" / "summary.csv")))[:-1])
+    # the rig's init calibrated again: rig.yaml is not resumed from the old one
+    write_pose(tmp_path / "init.yaml", apply_update(T_ref, np.r_[np.radians([0.2, -0.2, 0.1]), 0.03, -0.03, 0.04]))
+    proc = run_cli("run", tmp_path / "run.yaml")
+    assert "rig.yaml" in proc.stderr and "solved from other init" in proc.stderr, proc.stderr
+    assert (tmp_path / "out" / "rig.yaml").stat().st_mtime_ns == stamp
     # one frame's photo listed twice is no rig's frame
     config["rig"] = True
     config["scans"][0]["photos"].append(str(folder / "img" / f"{names[1]}.png"))
