@@ -71,7 +71,9 @@ def main(argv: list[str] | None = None) -> None:
               "qa-edges works at 1280 px (both scores from one rendering; its verticals check finds lines at 1920 px);",
               "overlay renders at the resolution the scan",
               "supports (2 pixels per scan step) and enlarges it, and draws the points picture (--points) from the points",
-              "in view, not per pixel; refine works on a pyramid and a fixed number of points.", ""]
+              "in view, not per pixel; refine works on a pyramid and a fixed number of points. Its finest level holds",
+              "the photo and, for the color fit (`fit_sharpness`), the photo's high pass beside it: measured on",
+              "2026-11-27, the high pass took this refine from 0.6 s aligner and 1.25 GB to 1.8 s and 1.96 GB.", ""]
     with atomic_output(args.out) as tmp_out:
         tmp_out.write_text("\n".join(lines))
     print("\n".join(lines))
