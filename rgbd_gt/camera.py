@@ -11,6 +11,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+# Camera corrections refined with the pose (`refine --refine-intrinsics`), per mode: how many of
+# q = (focal scale - 1, principal point shift x and y in normalised units, k1, k2, p1, p2, k3)
+# are free; `full` is OpenCV's model of five distortion coefficients (`render.project.project_corrected`).
+INTRINSICS = {"none": 0, "focal": 1, "focal+principal": 3, "focal+principal+k1k2": 5, "full": 8}
+Q_SIZE = 8
+
 
 @dataclass(frozen=True)
 class Camera:

@@ -26,7 +26,7 @@ from rgbd_gt.align import lbfgs
 from rgbd_gt.align.objective import Objective
 from rgbd_gt.errors import InputError
 from rgbd_gt.pose import apply_update, random_starts, rotation_error_deg, translated
-from rgbd_gt.render.project import Q_SIZE
+from rgbd_gt.camera import Q_SIZE
 
 # An L-BFGS level moves each pose parameter by at most this many of its pixels and at most the
 # search size (smoothly, through tanh): NID has spurious minima far away, where other structure

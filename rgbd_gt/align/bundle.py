@@ -44,7 +44,7 @@ from rgbd_gt.align.aligner import STEP_CAP_PX, Aligner, damped
 from rgbd_gt.align.photometric import scaled_inverse
 from rgbd_gt.errors import InputError
 from rgbd_gt.pose import apply_update, invert, translated, update_of, update_through
-from rgbd_gt.render.project import Q_SIZE
+from rgbd_gt.camera import Q_SIZE
 
 # the agreement term runs on the finest levels alone: on the coarse ones, blurred, the photos
 # agree wherever the scan lands, and the pose is not yet close enough for it to say more

@@ -136,7 +136,7 @@ class RefineConfig:
     search_translation_m: float = 0.2  # ... and moved this much from the init
     search_iterations: int = 10  # ... for at most this many iterations each ...
     search_keep: int = 3  # ... and this many of lowest NID go on to level 1, where the lowest NID wins
-    # photometric, lm: also refine the camera (render.project.INTRINSICS): none | focal |
+    # photometric, lm: also refine the camera (camera.INTRINSICS): none | focal |
     # focal+principal | focal+principal+k1k2 | full (k1 k2 p1 p2 k3)
     refine_intrinsics: str = "none"
     # refine --bundle, rigs: the weight of the agreement term between the photos of a shot
@@ -157,7 +157,7 @@ class RefineConfig:
         if (self.nid_bins < 6 or self.search_starts < 0 or self.search_iterations < 1 or self.search_keep < 1
                 or self.max_depth < 0):
             raise ValueError("nid_bins >= 6, search_starts >= 0, search_iterations >= 1, search_keep >= 1 and max_depth >= 0")
-        from rgbd_gt.render.project import INTRINSICS
+        from rgbd_gt.camera import INTRINSICS  # torch-free: a command's config is checked before torch is imported
 
         if self.refine_intrinsics not in INTRINSICS:
             raise ValueError(f"refine_intrinsics must be one of {', '.join(INTRINSICS)}, got {self.refine_intrinsics!r}")

@@ -24,10 +24,10 @@ from rgbd_gt.align.pyramid import PhotoLevel
 from rgbd_gt.align.robust import student_t_loss, student_t_weights
 from rgbd_gt.align.sampling import bilinear, bilinear_sparse, bilinear_with_gradient, central_gradients
 from rgbd_gt.align.subset import near_view, point_keys
-from rgbd_gt.camera import fold_radius
+from rgbd_gt.camera import INTRINSICS, Q_SIZE, fold_radius
 from rgbd_gt.errors import InputError
 from rgbd_gt.render.normals import facing_camera
-from rgbd_gt.render.project import INTRINSICS, Q_SIZE, corrected_jacobian, project_corrected, project_pinhole, projection_jacobian
+from rgbd_gt.render.project import corrected_jacobian, project_corrected, project_pinhole, projection_jacobian
 from rgbd_gt.render.cells import cell_size_for
 from rgbd_gt.render.zbuffer import check_spread_in_view, estimate_spacing, visible_points
 

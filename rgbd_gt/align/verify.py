@@ -25,7 +25,7 @@ from rgbd_gt.align.aligner import Aligner, RefineResult
 from rgbd_gt.align.config import VerifyConfig
 from rgbd_gt.camera import Camera, backproject, project, without_distortion
 from rgbd_gt.pose import apply_update, random_starts, rotation_error_deg, transform_points, translation_error_m, worst_sigmas
-from rgbd_gt.render.project import Q_SIZE
+from rgbd_gt.camera import Q_SIZE
 
 VERDICTS = ("ok", "suspect", "failed")
 

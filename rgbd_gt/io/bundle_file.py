@@ -22,9 +22,10 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from rgbd_gt.camera import INTRINSICS
 from rgbd_gt.errors import InputError, read_yaml, require_file
 
-MODES = ("none", "focal", "focal+principal", "focal+principal+k1k2", "full")  # render.project.INTRINSICS
+MODES = tuple(INTRINSICS)
 
 
 @dataclass

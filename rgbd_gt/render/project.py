@@ -30,11 +30,6 @@ def projection_jacobian(points: torch.Tensor, fx, fy) -> tuple[torch.Tensor, tor
     return du, dv
 
 
-# Camera corrections refined with the pose (`refine --refine-intrinsics`), per mode: how many of
-# q = (focal scale - 1, principal point shift x and y in normalised units, k1, k2, p1, p2, k3)
-# are free; `full` is OpenCV's model of five distortion coefficients.
-INTRINSICS = {"none": 0, "focal": 1, "focal+principal": 3, "focal+principal+k1k2": 5, "full": 8}
-Q_SIZE = 8
 
 
 def _distorted(x: torch.Tensor, y: torch.Tensor, q: torch.Tensor):
