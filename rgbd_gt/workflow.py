@@ -439,15 +439,16 @@ def not_a_rig(jobs: list[ScanJob]) -> str | None:
 
 def rig_made_from(jobs: list[ScanJob], prepared: list) -> dict:
     """What a rig's pose is made from, recorded in rig.yaml so that a rerun with other inputs is
-    an error, not the old pose resumed: the camera and init files, and one SHA-1 over the frames'
-    scans and one over their photos, each with its path (`steps.made_from`'s keys)."""
+    an error, not the old pose resumed: the camera file and its SHA-1, the init's SHA-1 (its path
+    is the pose file's own `init` key), and one SHA-1 over the frames' scans and one over their
+    photos (`steps.made_from`'s keys)."""
     import hashlib
 
     from rgbd_gt.steps import made_from
 
     frames = [made_from(p.source, p.sha1, {"photo": j.photos[0], "camera": j.camera, "init": j.init})
               for j, p in zip(jobs, prepared)]
-    made = {k: frames[0][k] for k in ("camera", "camera_sha1", "init", "init_sha1")}
+    made = {k: frames[0][k] for k in ("camera", "camera_sha1", "init_sha1")}
     for kind in ("scan", "photo"):
         made[f"{kind}s_sha1"] = hashlib.sha1(" ".join(f[f"{kind}_sha1"] for f in frames).encode()).hexdigest()
     return made

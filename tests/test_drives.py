@@ -244,6 +244,8 @@ def test_run_solves_a_drives_frames_as_one_rig(tmp_path):
         T_frame, frame_meta = read_pose(tmp_path / "out" / n / n / "pose.yaml")
         np.testing.assert_array_equal(T_frame, T)
         assert frame_meta["rig"] == "../../rig.yaml" and frame_meta["verdict"] == meta["verdict"]
+        # refine --pairs' keys (its `init` too), not what rig.yaml records to be resumed by
+        assert frame_meta["init"] == meta["init"] and "camera_sha1" in meta and "camera_sha1" not in frame_meta
         assert row["status"] == "ok" and row["verdict"] == meta["verdict"] and row["skipped"] == "", row
         assert (tmp_path / "out" / n / n / "depth.exr").exists()
     stamp = (tmp_path / "out" / "rig.yaml").stat().st_mtime_ns
