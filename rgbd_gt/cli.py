@@ -398,7 +398,7 @@ def refine(
     max_depth: Optional[float] = typer.Option(None, "--max-depth", help="Leave out scan points farther than this from the initial camera (metres; 0 = none)."),
     search_starts: Optional[int] = typer.Option(None, "--search-starts", help="nid: before the coarsest level, also run it from this many random starts around the init; the 3 of lowest NID (search_keep in the config) go on to level 1, where the lowest NID wins (default 16; 0 = none)."),
     config: Optional[Path] = typer.Option(None, "--config", help="Aligner settings (default: configs/refine.yaml)."),
-    device: str = typer.Option("auto", "--device", help="auto (CUDA when present, but the CPU for nid, which is faster there: docs/gpu.md), cpu or cuda."),
+    device: str = typer.Option("auto", "--device", help="auto (CUDA when present, but the CPU for nid on fewer than 5 frames solved together, which is faster there: docs/gpu.md), cpu or cuda."),
     report: Optional[Path] = typer.Option(None, "--report", help="Folder for a convergence plot and color-difference images."),
     mask: Optional[Path] = typer.Option(None, "--mask", help="Image of the photo's size: non-zero pixels are ignored (people, reflections)."),
     color_model: Optional[str] = typer.Option(None, "--color-model", help="quadratic (default), quadratic_rgb, linear, none, gray or gray_affine."),

@@ -540,14 +540,18 @@ def test_the_sky_is_charged_on_the_coarse_levels_only():
         assert losses[0.5][level] > losses[0.0][level] + 0.01, losses  # the points on the sky cost (measured 0.03)
 
 
-def test_auto_device_runs_nid_on_the_cpu():
-    """NID's few thousand points per level leave a GPU waiting on kernel launches (2x slower
-    than the CPU on an H100 machine, docs/gpu.md): 'auto' keeps it on the CPU."""
-    from rgbd_gt.align.refine import resolve_device
+def test_auto_device_runs_nid_on_the_cpu_unless_many_frames():
+    """NID's few thousand points per level of one frame leave a GPU waiting on kernel launches
+    (slower than the CPU on an H100 machine, docs/gpu.md): 'auto' keeps a frame on the CPU and
+    takes CUDA, when present, from NID_CUDA_FRAMES frames solved together."""
+    from rgbd_gt.align.refine import NID_CUDA_FRAMES, resolve_device
     from rgbd_gt.errors import InputError
 
+    gpu = "cuda" if torch.cuda.is_available() else "cpu"
     assert resolve_device("auto", "nid").type == "cpu"
-    assert resolve_device("auto", "photometric").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    assert resolve_device("auto", "nid", NID_CUDA_FRAMES - 1).type == "cpu"
+    assert resolve_device("auto", "nid", NID_CUDA_FRAMES).type == gpu
+    assert resolve_device("auto", "photometric").type == gpu
     assert resolve_device("cpu", "nid").type == "cpu"
     with pytest.raises(InputError, match="--device"):
         resolve_device("tpu")

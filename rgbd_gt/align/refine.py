@@ -18,14 +18,21 @@ if TYPE_CHECKING:  # the aligners import torch: loaded where they run, so that b
     from rgbd_gt.align.verify import Verification
 
 
-def resolve_device(name: str, objective: str = "photometric"):
+# nid on CUDA pays off from this many frames in one solve: on an H100 machine one frame took
+# 1.2-1.4x the CPU's time, 3 frames about the same, 5 frames 0.85x, 10 and 19 frames 0.70x and
+# 0.44x (docs/gpu.md); a photometric objective's thousands of points per level pay off at once
+NID_CUDA_FRAMES = 5
+
+
+def resolve_device(name: str, objective: str = "photometric", frames: int = 1):
     """'auto' | 'cpu' | 'cuda' -> torch.device. 'auto' takes CUDA when present, except for the
-    nid objective: its ~10k points per frame leave a GPU waiting on kernel launches, 2x slower
-    than the CPU on an H100 machine (docs/gpu.md)."""
+    nid objective on fewer than NID_CUDA_FRAMES frames solved together: a frame's ~10k points
+    per level leave a GPU waiting on kernel launches, and only many frames fill it."""
     import torch
 
     if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() and objective != "nid" else "cpu")
+        gpu = torch.cuda.is_available() and (objective != "nid" or frames >= NID_CUDA_FRAMES)
+        return torch.device("cuda" if gpu else "cpu")
     if name == "cuda" and not torch.cuda.is_available():
         raise InputError("--device cuda: no CUDA device is available")
     if name not in ("cpu", "cuda"):
@@ -151,7 +158,7 @@ def make_aligner(inputs: RefineInputs, cfg: RefineConfig, device: str, more: lis
     from rgbd_gt.scan import colors_to_gray
 
     objective = objective_of(cfg, inputs.colors)
-    dev = resolve_device(device, objective)
+    dev = resolve_device(device, objective, 1 + len(more))
     if cfg.refine_intrinsics != "none" and objective != "photometric":
         raise InputError("--refine-intrinsics works with the photometric objective (a colored scan) only")
     if objective == "photometric":
