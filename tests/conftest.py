@@ -63,12 +63,46 @@ def rig_run(synth_scene, tmp_path_factory):
     return d, out
 
 
-def run_cli(*args, cwd=None) -> subprocess.CompletedProcess:
-    """Run the real `rgbd-gt` entry point in a subprocess (exit codes and stderr as a user sees them)."""
-    return subprocess.run(
-        [sys.executable, "-c", "from rgbd_gt.cli import main; main()", *map(str, args)],
-        capture_output=True, text=True, cwd=cwd, timeout=600,
-    )
+_ZYGOTE: list = []  # the cli_fork server of this session, once started
+
+
+def _zygote() -> subprocess.Popen | None:
+    """The session's `tests/cli_fork.py` server (started on first use), or None where it cannot
+    run (no fork) or RGBD_GT_TESTS_FRESH=1 asks for a fresh interpreter per call."""
+    if os.environ.get("RGBD_GT_TESTS_FRESH") == "1" or not hasattr(os, "fork"):
+        return None
+    if not _ZYGOTE or _ZYGOTE[0].poll() is not None:
+        _ZYGOTE[:] = [subprocess.Popen([sys.executable, str(ROOT / "tests" / "cli_fork.py")], stdin=subprocess.PIPE,
+                                       stdout=subprocess.PIPE, text=True, cwd=ROOT)]
+    return _ZYGOTE[0]
+
+
+def run_cli(*args, cwd=None, timeout: float = 600, fresh: bool = False) -> subprocess.CompletedProcess:
+    """Run the real `rgbd-gt` entry point in a process of its own (exit codes and stderr as a user
+    sees them): a child forked from a Python that has the heavy imports done (tests/cli_fork.py),
+    or with fresh (or RGBD_GT_TESTS_FRESH=1) a fresh interpreter, which shows what importing prints."""
+    import json
+    import select
+    import tempfile
+
+    argv = [sys.executable, "-c", "from rgbd_gt.cli import main; main()", *map(str, args)]
+    server = None if fresh else _zygote()
+    if server is None:
+        return subprocess.run(argv, capture_output=True, text=True, cwd=cwd, timeout=timeout)
+    with tempfile.TemporaryDirectory() as tmp:
+        req = {"args": argv[3:], "cwd": str(cwd or os.getcwd()), "env": dict(os.environ),
+               "out": f"{tmp}/stdout", "err": f"{tmp}/stderr"}
+        server.stdin.write(json.dumps(req) + "\n")
+        server.stdin.flush()
+        ready, _, _ = select.select([server.stdout], [], [], timeout)
+        if not ready:  # the call ran past its time: a fresh server for the next call
+            server.kill()
+            raise subprocess.TimeoutExpired(argv, timeout)
+        line = server.stdout.readline()
+        if not line:
+            raise RuntimeError(f"tests/cli_fork.py ended (exit code {server.wait()}): its stderr says why")
+        read = lambda name: Path(tmp, name).read_text() if Path(tmp, name).exists() else ""  # noqa: E731
+        return subprocess.CompletedProcess(argv, json.loads(line)["returncode"], read("stdout"), read("stderr"))
 
 
 def assert_one_line_error(proc: subprocess.CompletedProcess, *needles: str) -> None:

@@ -11,8 +11,8 @@ import typer
 
 
 def test_help_and_version():
-    proc = run_cli("--help")
-    assert proc.returncode == 0 and "ingest" in proc.stdout
+    proc = run_cli("--help", fresh=True)  # a fresh interpreter: nothing printed on the way in
+    assert proc.returncode == 0 and "ingest" in proc.stdout and proc.stderr == ""
     proc = run_cli("--version")
     assert proc.returncode == 0 and proc.stdout.startswith("rgbd-gt ")
     for cmd in typer.main.get_command(app).commands:
