@@ -228,8 +228,8 @@ def test_the_color_fit_sharpens_a_blurred_photo_and_blurs_a_sharpened_one(scene)
             terms = obj.evaluate(0, [T], aligner._q(None), jacobian=False)
             losses.append(float(terms.sigma2.reshape(-1)[0]))  # the residuals' robust scale
             if fit:
-                assert terms.D.shape[2] == 13
-                sign[name] = float(torch.diagonal(terms.D[0][:, 10:]).mean())
+                assert terms.D.shape[2] == 11  # the kernel's 10, then the gray's high pass
+                sign[name] = float(terms.D[0][:, 10].mean())
                 if name == "blurred":
                     res = aligner.refine(inputs.T_init)
                     assert translation_error_m(res.T_cam_from_scan, gt) < 2e-3
@@ -432,5 +432,8 @@ def test_a_pose_is_a_batch_of_one(tmp_path, synth_scene):
                                    rtol=1e-5)
     refined = [aligner.refine(T).T_cam_from_scan for T in (inputs.T_init, other)]
     for T_many, T_one in zip(aligner.refine_many([inputs.T_init, other]), refined):
-        # float32 sums in another order: measured 0.6 um and 1e-5 deg apart
-        assert translation_error_m(T_many, T_one) < 1e-5 and rotation_error_deg(T_many, T_one) < 1e-4
+        # float32 sums in another order can end a level one update earlier or later: within two
+        # of the smallest updates that go on (measured 0.5 and 14 um, 7e-6 and 2.3e-4 deg apart)
+        cfg = RefineConfig()
+        assert translation_error_m(T_many, T_one) < 2 * cfg.stop_translation_m
+        assert rotation_error_deg(T_many, T_one) < 2 * cfg.stop_rotation_deg

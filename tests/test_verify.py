@@ -78,7 +78,10 @@ def test_mirrored_photo_is_failed_and_strict_exits_3(scene, tmp_path):
     doc = yaml.safe_load(out.read_text())  # written even when failed, with the verdict
     assert doc["verdict"] == "failed", doc
     assert proc.returncode == 3, (proc.returncode, proc.stderr)
-    assert doc["reasons"] and any("chance" in r for r in doc["reasons"]), doc["reasons"]
+    # the edge check flags it: a mirrored scene's edges at chance (ratio about 1.0-1.1, at the
+    # failed threshold 1.1 or under it: "weakly" or "no better than chance")
+    assert any("the scan's edges fit the photo" in r for r in doc["reasons"]), doc["reasons"]
+    assert doc["evidence"]["edges"]["edge_ratio"] < 1.2, doc["evidence"]["edges"]
 
 
 def test_photo_of_another_scene_is_not_ok(scene, tmp_path_factory, tmp_path, synth_scene):

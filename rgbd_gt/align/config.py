@@ -110,7 +110,7 @@ class RefineConfig:
     adam_iterations: int = 300  # ... and per level for adam
     adam_lr_rotation: float = 2.0e-4  # radians per step
     adam_lr_translation: float = 5.0e-4  # metres per step
-    # photometric: the color fit also weighs the photo's high pass (align/photometric.py:
+    # photometric: the color fit also weighs the high pass of the photo's gray (align/photometric.py:
     # `high_pass`), so that a photo blurrier or sharper than the scan's colors is compared as
     # sharp as they are. Blur alone moved synthetic poses by about 1 mm, all photos of a scene alike
     fit_sharpness: bool = True

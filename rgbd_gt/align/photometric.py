@@ -36,7 +36,7 @@ class Level:
     """The objective's data on one pyramid level."""
 
     photo: PhotoLevel
-    image: torch.Tensor  # (H, W, C) what is sampled: the photo, and its high pass where the sharpness is fitted
+    image: torch.Tensor  # (H, W, C) what is sampled: the photo, and its gray's high pass where the sharpness is fitted
     grads: tuple[torch.Tensor, torch.Tensor] | None
     points: torch.Tensor  # (n, 3) float32, local frame
     target: torch.Tensor  # (n, m)
@@ -320,7 +320,10 @@ class Photometric:
             cell = cell_size_for(spacing * math.sqrt(idx.numel() / n), photo.camera.fx, depth)
             image = photo.image
             if self.sharpness:  # one native pixel: the blur a lens, the pixels and a demosaic add
-                image = torch.cat([image, high_pass(image, float(photo.zoom))], 2)
+                # of the gray alone: a blur is the same in every channel, and a weight per output
+                # channel (3, not 9 for a high pass per channel) leaves the fit little noise to
+                # learn (ICL-NUIM: no loss where the per-channel one lost 7 %, docs/bundle.md)
+                image = torch.cat([image, high_pass(image.mean(2, keepdim=True), float(photo.zoom))], 2)
             grads = central_gradients(image) if self.cfg.gradient == "central" else None
             target = target_near[:n]
             if level:
@@ -399,7 +402,7 @@ class Photometric:
 
     def _kernel(self, I: torch.Tensor) -> torch.Tensor:
         """Sampled colors (n, C) -> the color fit's kernel (n, k): the model's of the photo's colors,
-        then the high pass itself where the sharpness is fitted (`high_pass`)."""
+        then the gray's high pass itself where the sharpness is fitted (`high_pass`)."""
         K = self.model.kernel(I[:, :3])
         return torch.cat([K, I[:, 3:]], 1) if self.sharpness else K
 
@@ -514,7 +517,7 @@ class Photometric:
     def summary(self, at: Terms) -> dict:
         """`RefineResult`'s objective-specific fields of the first pose of at."""
         D = at.D[0].double().cpu().numpy()  # the color transform; then the high pass's weights, if fitted
-        return {"color_transform": D[:, :D.shape[1] - 3] if self.sharpness else D, "loss": float(at.loss[0]),
+        return {"color_transform": D[:, :-1] if self.sharpness else D, "loss": float(at.loss[0]),
                 "inlier_fraction": float(at.inlier_fraction[0]), "visible_points": int(at.visible[0])}
 
     def visible_scan_points(self, T_local: np.ndarray, q: torch.Tensor) -> np.ndarray:
