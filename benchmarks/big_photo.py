@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> None:
               "overlay renders at the resolution the scan",
               "supports (2 pixels per scan step) and enlarges it, and draws the points picture (--points) from the points",
               "in view, not per pixel; refine works on a pyramid and a fixed number of points. Its finest level holds",
-              "the photo and, for the color fit (`fit_sharpness`), the photo's high pass beside it (the second refine",
+              "the photo and, for the color fit (`fit_sharpness`), the high pass of its gray beside it (the second refine",
               "row is without it).", ""]
     with atomic_output(args.out) as tmp_out:
         tmp_out.write_text("\n".join(lines))
