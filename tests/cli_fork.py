@@ -28,6 +28,7 @@ def _child(req: dict) -> None:
             os.dup2(f, fd)
             os.close(f)
         sys.argv = ["-c", *req["args"]]
+        sys.path[0] = ""  # as `python -c` has it: the working folder, not this file's
         from rgbd_gt.cli import main
 
         main()  # ends the process itself (os._exit after the exit handlers)
