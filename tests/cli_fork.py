@@ -31,13 +31,9 @@ def _child(req: dict) -> None:
         sys.path[0] = ""  # as `python -c` has it: the working folder, not this file's
         from rgbd_gt.cli import main
 
-        main()  # ends the process itself (os._exit after the exit handlers)
+        main()  # ends the process itself, sys.exit's codes included (`cli._end`)
         code = 0
-    except SystemExit as exc:  # as the interpreter ends a process on sys.exit
-        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
-        if exc.code is not None and not isinstance(exc.code, int):
-            print(exc.code, file=sys.stderr)
-    except BaseException:  # noqa: BLE001 - an uncaught exception: its traceback, exit 1
+    except Exception:  # noqa: BLE001 - an uncaught exception: its traceback, exit 1
         sys.excepthook(*sys.exc_info())
     finally:
         for stream in (sys.stdout, sys.stderr):
