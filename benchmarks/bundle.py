@@ -44,30 +44,25 @@ class Shot:
 
 def objective(scan, shot: Shot, mode: str, camera=None, agreement: float = 0.0, device: str = "cpu"):
     """The photometric objective of the shot's photo against the scan (points, rgb, normals) on
-    device; agreement: the bundle's agreement weight (rigs)."""
-    import torch
-
+    device, as refine builds it (`make_aligner`); agreement: the bundle's agreement weight (rigs)."""
     from rgbd_gt.align.config import RefineConfig
-    from rgbd_gt.align.photometric import Photometric
-    from rgbd_gt.align.refine import photometric_pyramid
 
     cfg = dataclasses.replace(RefineConfig(), refine_intrinsics=mode, bundle_agreement=agreement)
-    pyr = photometric_pyramid(shot.image, camera or shot.camera, cfg, torch.device(device))
-    return Photometric(scan.xyz, scan.rgb, pyr, cfg, getattr(scan, "normals", None))
+    return _made(scan, scan.rgb, shot, camera or shot.camera, cfg, device)
 
 
 def nid_objective(scan, shot: Shot, device: str = "cpu"):
     """The nid objective of the shot's photo against the scan's intensity alone (its colors
     dropped: an uncolored scanner), as refine builds it for such a scan (`make_aligner`), on device."""
-    import torch
-
     from rgbd_gt.align.config import RefineConfig
-    from rgbd_gt.align.nid_objective import NID_LEVELS, Frame, Nid
-    from rgbd_gt.align.pyramid import photo_pyramid
 
-    cfg = dataclasses.replace(RefineConfig(), objective="nid")
-    pyr = photo_pyramid(shot.image, shot.camera, NID_LEVELS, torch.device(device), None)
-    return Nid([Frame(scan.xyz, scan.intensity, pyr, getattr(scan, "normals", None))], cfg)
+    return _made(scan, scan.intensity.reshape(-1, 1), shot, shot.camera, dataclasses.replace(RefineConfig(), objective="nid"), device)
+
+
+def _made(scan, colors: np.ndarray, shot: Shot, camera, cfg, device: str):
+    from rgbd_gt.align.refine import RefineInputs, make_aligner
+
+    return make_aligner(RefineInputs(scan.xyz, colors, shot.image, camera, shot.T_init, None, scan=scan), cfg, device).objective
 
 
 def errors(T: np.ndarray, shot: Shot) -> tuple[float, float]:
