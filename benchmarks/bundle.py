@@ -178,14 +178,13 @@ def icl_section(folder: Path) -> list[str]:
     """ICL-NUIM: frame 2's depth and colors as the scan, frames 0, 1, 3, 4 as the photos, each
     from frame 2's pose (the paper's init, 24-50 mm and 0.75-1.5 deg off): per photo against
     the bundle, with the true camera and with a file 2 % off in focal."""
-    from types import SimpleNamespace
-
     from benchmarks.icl import ICL_CAMERA, frame_cloud, read_color, read_trajectory
     from rgbd_gt.pose import invert
+    from rgbd_gt.scan import Scan
 
     poses = read_trajectory(folder / "trajectory.log")
     xyz, rgb, _ = frame_cloud(folder, 2)
-    scan = SimpleNamespace(xyz=xyz, rgb=rgb)
+    scan = Scan(xyz=xyz, rgb=rgb)
     shots = [Shot(read_color(folder, j), ICL_CAMERA, invert(poses[2]), invert(poses[j]), f"frame {j}") for j in (0, 1, 3, 4)]
     off = dataclasses.replace(ICL_CAMERA, fx=ICL_CAMERA.fx * 1.02, fy=ICL_CAMERA.fy * 1.02)
     rows = []
