@@ -57,6 +57,11 @@ AGREEMENT_FINEST_LEVELS = 2
 # 0.0001 deg and 0.0001 % (docs/bundle.md, "Costs")
 CAMERA_STOP_PX = 0.05
 
+# a coarse level also stops when this many accepted steps in a row each turn back on the one
+# before (cosine below -0.5): the re-fits between steps (colors, scale, inliers) then hold the
+# level at that precision, and its pose only goes on to a finer one
+OSCILLATION_STEPS = 3
+
 
 @dataclass
 class RigPrior:
@@ -366,6 +371,7 @@ class Bundle:
         prior = self._prior_terms(rig)
         loss = self._loss(at, pairs, prior)
         lam, stop, it = 1e-4, "iteration cap", 0
+        last, reversals = None, 0
         for it in range(1, iterations + 1):
             scale = [float(a.sigma2.reshape(-1)[0]) for a in at]
             xb, xs = self._step(self._system([a.H[0] for a in at], [a.g[0] for a in at], rig, scale, pairs), prior, lam)
@@ -389,6 +395,13 @@ class Bundle:
             if accepted and self._converged(xb, xs, level):
                 stop = "converged"
                 break
+            if accepted and level > 0:
+                step = np.r_[xb.ravel(), xs]
+                reversals = reversals + 1 if last is not None and step @ last < -0.5 * np.linalg.norm(step) * np.linalg.norm(last) else 0
+                last = step
+                if reversals >= OSCILLATION_STEPS:
+                    stop = "oscillating"
+                    break
             if lam > 1e6:
                 stop = "damping ran away"
                 break
