@@ -43,7 +43,8 @@ from rgbd_gt.align import lbfgs
 from rgbd_gt.align.aligner import STEP_CAP_PX, Aligner, damped
 from rgbd_gt.align.photometric import scaled_inverse
 from rgbd_gt.errors import InputError
-from rgbd_gt.pose import apply_update, invert, translated, update_of, update_through
+from rgbd_gt.pose import (apply_update, invert, rotation_error_deg, translated, translation_error_m, update_of,
+                          update_through)
 from rgbd_gt.camera import Q_SIZE
 
 # the agreement term runs on the finest levels alone: on the coarse ones, blurred, the photos
@@ -101,6 +102,11 @@ class BundleResult:
     evidence: list[dict] = field(default_factory=list)  # per photo: the cross-photo evidence
 
 
+def _apart(T: np.ndarray, U: np.ndarray) -> float:
+    """How far two relative poses lie apart: degrees plus centimetres."""
+    return rotation_error_deg(T, U) + 100 * translation_error_m(T, U)
+
+
 def determined(C: np.ndarray) -> np.ndarray:
     """A covariance C (P, P), or all inf where any of it is not finite (inf - inf left NaN)."""
     return C if np.isfinite(C).all() else np.full(C.shape, np.inf)
@@ -151,45 +157,69 @@ class Bundle:
         T = bodies[self.body_of[i]]
         return rig[self.photos[i].camera] @ T if self._in_rig(i) else T
 
-    def _starts(self) -> list[np.ndarray]:
-        """Per photo where the solve starts: its init, or for objectives with far spurious minima
-        (nid) the pose its own wide search finds from it on the coarse levels, as a single refine
-        (`Aligner._searched`, down to level 1): the joint L-BFGS has no search of its own, and
-        from inits 5 deg / 20 cm off it ends a shot off its basin where single refines do not
-        (docs/bundle.md)."""
-        if not (self.photos[0].objective.wide_search and self.cfg.search_starts > 0):
-            return [p.T_init for p in self.photos]
+    def _starts(self) -> tuple[list[np.ndarray], bool]:
+        """Per photo where the solve starts, and whether that is its own refine: its init, or the
+        pose its own refine reaches from it on the coarse levels (down to level 1) for objectives
+        with far spurious minima (nid: its wide search; the joint L-BFGS has no search of its own)
+        and for a rig without a prior, whose relative pose would otherwise come from one shot's
+        two inits. From inits 5 deg / 20 cm off either ended a shot off its basin where single
+        refines do not (docs/bundle.md)."""
+        search = self.photos[0].objective.wide_search and self.cfg.search_starts > 0
+        unknown_rig = any(c not in self.priors for c in range(1, self.rig_cameras))
+        if not (search or unknown_rig):
+            return [p.T_init for p in self.photos], False
         starts = []
         for i, p in enumerate(self.photos):
             try:
                 starts.append(Aligner(p.objective).refine(p.T_init, finest=1).T_cam_from_scan)
             except InputError as exc:
                 raise InputError(f"{p.name or f'photo {i + 1}'}: {exc}") from None
-        return starts
+        return starts, True
 
-    def _initial(self, starts: list[np.ndarray]) -> tuple[list[np.ndarray], np.ndarray]:
-        """The bodies and the rig from the photos' starting poses (`_starts`): a shot's body from
-        its first camera's photo (else another's, moved back through the rig); the rig from its
-        prior, else from the first shot holding both cameras."""
+    def _initial(self, starts: list[np.ndarray], refined: bool) -> tuple[list[np.ndarray], np.ndarray]:
+        """The bodies and the rig from the photos' starting poses (`_starts`). The rig from its
+        prior, else from the shots holding both cameras: the relative pose closest to the other
+        shots' (one photo off its basin spoils its shot's, not the rig's). A shot's body from its
+        first camera's photo, or, where the starts are the photos' own refines, from whichever of
+        its photos the others fit best there (`_confirmed`)."""
         rig = np.stack([np.eye(4)] * max(self.rig_cameras, 1))
         for c in range(1, self.rig_cameras):
             if c in self.priors:
                 rig[c] = self.priors[c].T
                 continue
+            found = []
             for k in self.body_keys:
                 members = {p.camera: T for p, T in zip(self.photos, starts) if p.shot is not None and ("shot", p.shot) == k}
                 if 0 in members and c in members:
-                    rig[c] = members[c] @ invert(members[0])
-                    break
-            else:
+                    found.append(members[c] @ invert(members[0]))
+            if not found:
                 raise InputError(f"rig camera {c}: no shot has photos of it and of the rig's first camera, and the "
                                  "rig gives no prior for it")
-        bodies: list[np.ndarray | None] = [None] * len(self.body_keys)
-        for i, p in sorted(enumerate(self.photos), key=lambda ip: ip[1].camera):
-            b = self.body_of[i]
-            if bodies[b] is None:
-                bodies[b] = invert(rig[p.camera]) @ starts[i] if self._in_rig(i) else starts[i]
+            rig[c] = found[int(np.argmin([sum(_apart(T, U) for U in found) for T in found]))]
+        bodies = []
+        for b in range(len(self.body_keys)):
+            members = sorted(np.nonzero(self.body_of == b)[0], key=lambda i: self.photos[i].camera)
+            found = [invert(rig[self.photos[i].camera]) @ starts[i] if self._in_rig(i) else starts[i] for i in members]
+            bodies.append(self._confirmed(members, found, rig, starts) if refined and len(found) > 1 else found[0])
         return bodies, rig
+
+    def _confirmed(self, members: list[int], found: list[np.ndarray], rig: np.ndarray, starts: list[np.ndarray]) -> np.ndarray:
+        """Of a shot's candidate bodies `found` (one per member photo), the one its photos fit
+        best on level 1: each photo's loss there on the points, color fit and scale of its own
+        start, summed over the photos whose start sees the scan."""
+        q = self._q(np.zeros((self.cameras, Q_SIZE)), 0)
+        score = np.zeros(len(found))
+        for i in members:
+            obj = self.photos[i].objective
+            start = translated(starts[i], obj.centre)
+            level = min(1, obj.prepare(start) - 1)  # prepared by the photo's own refine already
+            try:
+                at = obj.evaluate(level, [start], q, jacobian=False)
+            except InputError:
+                continue
+            score += [float(obj.trial(level, [translated(rig[self.photos[i].camera] @ B if self._in_rig(i) else B, obj.centre)],
+                                      q, at)[0]) for B in found]
+        return found[int(np.argmin(score))]
 
     def _q(self, q: np.ndarray, c: int) -> torch.Tensor:
         return torch.as_tensor(q[c], dtype=torch.float32, device=self.device)
@@ -341,7 +371,7 @@ class Bundle:
         """Coarse to fine, Levenberg-Marquardt on all the unknowns at once; then the covariance
         and the cross-photo evidence at the result."""
         start = time.perf_counter()
-        bodies, rig = self._initial(self._starts())
+        bodies, rig = self._initial(*self._starts())
         q = np.zeros((self.cameras, Q_SIZE))
         levels = [p.objective.prepare(translated(self.pose(i, bodies, rig), p.objective.centre))
                   for i, p in enumerate(self.photos)]
