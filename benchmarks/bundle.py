@@ -307,7 +307,7 @@ def main(argv: list[str] | None = None) -> None:
               "`synth --rig stereo --photos 4`: a 0.12 m baseline, the right camera turned by a few tenths of a degree, "
               "with its own lens and color response; both camera files true. Per photo: each of the 8 photos alone, the "
               "rig then taken per shot from its two poses. Bundle: the rig's relative pose shared by the 4 shots, "
-              "initialised from the first shot's two inits (no prior). Small: 640x480 photos of a scan 0.15 deg apart; "
+              "initialised (no prior) from the shots' own refines as `Bundle._initial` takes them. Small: 640x480 photos of a scan 0.15 deg apart; "
               "default: 1280x960 photos of a scan 0.1 deg apart (`synth`'s default size). Intensity only: the same scan "
               "with its colors dropped (its synthetic laser intensity), solved with nid (the Notes below).", "",
               "| size | solve | pose error, median | pose error, worst | baseline error, median / worst | relative rotation error, median / worst | aligner s |",

@@ -176,7 +176,7 @@ def test_agreement_gradient_matches_its_loss(synth_scene, tmp_path):
         photos.append(BundlePhoto(Photometric(scan.xyz, scan.rgb, pyr, cfg, scan.normals), read_pose(d / f"{truth}.yaml")[0],
                                   c, 0, img))
     bundle = Bundle(photos, 2, 2)
-    bodies, rig = bundle._initial([p.T_init for p in photos], False)
+    bodies, rig = bundle._initial([p.T_init for p in photos], None)
     q = np.zeros((2, 5))
     for i, p in enumerate(photos):
         p.objective.prepare(translated(bundle.pose(i, bodies, rig), p.objective.centre))

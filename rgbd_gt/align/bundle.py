@@ -5,7 +5,9 @@ fine, as ETH3D's pipeline (Schöps et al., CVPR 2017), on the photos' own photom
 A scan with intensity alone (nid, no Gauss-Newton form): L-BFGS over the same unknowns (`_lbfgs`),
 started where each photo's own wide search lands (`_starts`), the cameras held, and each photo's
 Laplace Hessian in the place of its Gauss-Newton matrix for the covariance and the evidence
-(`_quadratics`).
+(`_quadratics`). A rig without a prior starts from each photo's own coarse refine too: its
+relative pose from the shots that agree, each shot's pose from the photo its others confirm
+(`_initial`), so that one photo off its basin does not hold the others back.
 
 Unknowns. A *body* is a pose of its own: a photo outside a rig, or a rig's shot (the pose of the
 rig's first camera). Photo i's pose is T_i = rig[c_i] @ body[b_i] (rig[0] = I; outside a rig
@@ -157,31 +159,32 @@ class Bundle:
         T = bodies[self.body_of[i]]
         return rig[self.photos[i].camera] @ T if self._in_rig(i) else T
 
-    def _starts(self) -> tuple[list[np.ndarray], bool]:
-        """Per photo where the solve starts, and whether that is its own refine: its init, or the
-        pose its own refine reaches from it on the coarse levels (down to level 1) for objectives
-        with far spurious minima (nid: its wide search; the joint L-BFGS has no search of its own)
-        and for a rig without a prior, whose relative pose would otherwise come from one shot's
-        two inits. From inits 5 deg / 20 cm off either ended a shot off its basin where single
-        refines do not (docs/bundle.md)."""
+    def _starts(self) -> tuple[list[np.ndarray], int | None]:
+        """Per photo where the solve starts, and the pyramid level its own refine ended on (None:
+        its init). Objectives with far spurious minima (nid) start where the photo's wide search
+        and its refine down to level 1 land (the joint L-BFGS has no search of its own); a rig
+        without a prior starts where each photo's refine down to level 2 lands, since its
+        relative pose would otherwise come from one shot's two inits. From inits 5 deg / 20 cm
+        off either ended a shot off its basin where single refines do not (docs/bundle.md)."""
         search = self.photos[0].objective.wide_search and self.cfg.search_starts > 0
         unknown_rig = any(c not in self.priors for c in range(1, self.rig_cameras))
         if not (search or unknown_rig):
-            return [p.T_init for p in self.photos], False
+            return [p.T_init for p in self.photos], None
+        level = 1 if search else 2
         starts = []
         for i, p in enumerate(self.photos):
             try:
-                starts.append(Aligner(p.objective).refine(p.T_init, finest=1).T_cam_from_scan)
+                starts.append(Aligner(p.objective).refine(p.T_init, finest=level).T_cam_from_scan)
             except InputError as exc:
                 raise InputError(f"{p.name or f'photo {i + 1}'}: {exc}") from None
-        return starts, True
+        return starts, level
 
-    def _initial(self, starts: list[np.ndarray], refined: bool) -> tuple[list[np.ndarray], np.ndarray]:
+    def _initial(self, starts: list[np.ndarray], level: int | None) -> tuple[list[np.ndarray], np.ndarray]:
         """The bodies and the rig from the photos' starting poses (`_starts`). The rig from its
         prior, else from the shots holding both cameras: the relative pose closest to the other
         shots' (one photo off its basin spoils its shot's, not the rig's). A shot's body from its
-        first camera's photo, or, where the starts are the photos' own refines, from whichever of
-        its photos the others fit best there (`_confirmed`)."""
+        first camera's photo, or, where the starts are the photos' own refines (down to `level`),
+        from whichever of its photos the others fit best there (`_confirmed`)."""
         rig = np.stack([np.eye(4)] * max(self.rig_cameras, 1))
         for c in range(1, self.rig_cameras):
             if c in self.priors:
@@ -200,24 +203,25 @@ class Bundle:
         for b in range(len(self.body_keys)):
             members = sorted(np.nonzero(self.body_of == b)[0], key=lambda i: self.photos[i].camera)
             found = [invert(rig[self.photos[i].camera]) @ starts[i] if self._in_rig(i) else starts[i] for i in members]
-            bodies.append(self._confirmed(members, found, rig, starts) if refined and len(found) > 1 else found[0])
+            bodies.append(self._confirmed(members, found, rig, starts, level) if level is not None and len(found) > 1 else found[0])
         return bodies, rig
 
-    def _confirmed(self, members: list[int], found: list[np.ndarray], rig: np.ndarray, starts: list[np.ndarray]) -> np.ndarray:
+    def _confirmed(self, members: list[int], found: list[np.ndarray], rig: np.ndarray, starts: list[np.ndarray],
+                   level: int) -> np.ndarray:
         """Of a shot's candidate bodies `found` (one per member photo), the one its photos fit
-        best on level 1: each photo's loss there on the points, color fit and scale of its own
-        start, summed over the photos whose start sees the scan."""
+        best on `level` (where their starts ended): each photo's loss there on the points, color
+        fit and scale of its own start, summed over the photos whose start sees the scan."""
         q = self._q(np.zeros((self.cameras, Q_SIZE)), 0)
         score = np.zeros(len(found))
         for i in members:
             obj = self.photos[i].objective
             start = translated(starts[i], obj.centre)
-            level = min(1, obj.prepare(start) - 1)  # prepared by the photo's own refine already
+            on = min(level, obj.prepare(start) - 1)  # prepared by the photo's own refine already
             try:
-                at = obj.evaluate(level, [start], q, jacobian=False)
+                at = obj.evaluate(on, [start], q, jacobian=False)
             except InputError:
                 continue
-            score += [float(obj.trial(level, [translated(rig[self.photos[i].camera] @ B if self._in_rig(i) else B, obj.centre)],
+            score += [float(obj.trial(on, [translated(rig[self.photos[i].camera] @ B if self._in_rig(i) else B, obj.centre)],
                                       q, at)[0]) for B in found]
         return found[int(np.argmin(score))]
 
