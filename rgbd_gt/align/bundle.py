@@ -163,14 +163,14 @@ class Bundle:
         """Per photo where the solve starts, and the pyramid level its own refine ended on (None:
         its init). Objectives with far spurious minima (nid) start where the photo's wide search
         and its refine down to level 1 land (the joint L-BFGS has no search of its own); a rig
-        without a prior starts where each photo's refine down to level 2 lands, since its
+        without a prior starts where each photo's refine down to level 3 lands, since its
         relative pose would otherwise come from one shot's two inits. From inits 5 deg / 20 cm
         off either ended a shot off its basin where single refines do not (docs/bundle.md)."""
         search = self.photos[0].objective.wide_search and self.cfg.search_starts > 0
         unknown_rig = any(c not in self.priors for c in range(1, self.rig_cameras))
         if not (search or unknown_rig):
             return [p.T_init for p in self.photos], None
-        level = 1 if search else 2
+        level = 1 if search else 3
         starts = []
         for i, p in enumerate(self.photos):
             try:
