@@ -156,8 +156,11 @@ class Bundle:
 
     def pose(self, i: int, bodies: list[np.ndarray], rig: np.ndarray) -> np.ndarray:
         """Photo i's 4x4 T_cam_from_scan (scan frame)."""
-        T = bodies[self.body_of[i]]
-        return rig[self.photos[i].camera] @ T if self._in_rig(i) else T
+        return self._of_body(i, bodies[self.body_of[i]], rig)
+
+    def _of_body(self, i: int, body: np.ndarray, rig: np.ndarray) -> np.ndarray:
+        """Photo i's 4x4 T_cam_from_scan where its body's pose is `body`."""
+        return rig[self.photos[i].camera] @ body if self._in_rig(i) else body
 
     def _starts(self) -> tuple[list[np.ndarray], int | None]:
         """Per photo where the solve starts, and the pyramid level its own refine ended on (None:
@@ -211,7 +214,7 @@ class Bundle:
         """Of a shot's candidate bodies `found` (one per member photo), the one its photos fit
         best on `level` (where their starts ended): each photo's loss there on the points, color
         fit and scale of its own start, summed over the photos whose start sees the scan."""
-        q = self._q(np.zeros((self.cameras, Q_SIZE)), 0)
+        q = torch.zeros(Q_SIZE, device=self.device)
         score = np.zeros(len(found))
         for i in members:
             obj = self.photos[i].objective
@@ -221,8 +224,7 @@ class Bundle:
                 at = obj.evaluate(on, [start], q, jacobian=False)
             except InputError:
                 continue
-            score += [float(obj.trial(on, [translated(rig[self.photos[i].camera] @ B if self._in_rig(i) else B, obj.centre)],
-                                      q, at)[0]) for B in found]
+            score += [float(obj.trial(on, [translated(self._of_body(i, B, rig), obj.centre)], q, at)[0]) for B in found]
         return found[int(np.argmin(score))]
 
     def _q(self, q: np.ndarray, c: int) -> torch.Tensor:
