@@ -241,12 +241,15 @@ class Bundle:
                 raise InputError(f"{p.name or f'photo {i + 1}'}: {exc}") from None
         return out
 
-    def _agreement(self, level: int, bodies, rig, q, at: list, held: list | None = None) -> list[dict]:
+    def _agreement(self, level: int, bodies, rig, q, at: list, held: list | None = None,
+                   tried: list | None = None) -> list[dict]:
         """The agreement term of each pair (i, j) of a shot (ETH3D's multi-view term): at the
         points photo i sees, photo i's colors mapped into the scan's by its color fit minus photo
         j's by its own, Student-t weighted. Per pair: its sum of negative log-likelihoods `rho`,
         and (without `held`) its Gauss-Newton system over photo i's parameters then photo j's,
-        its points and scale. held: the pairs' terms a trial step keeps (points, scale)."""
+        its points and scale. held: the pairs' terms a trial step keeps (points, scale); tried:
+        then each photo's predictions at its trial pose (`trial_colors`). Photo i's colors are
+        those its own evaluation or trial sampled at these points."""
         from rgbd_gt.align.robust import student_t_loss, student_t_weights
 
         out = []
@@ -256,12 +259,11 @@ class Bundle:
             pi, pj = self.photos[i], self.photos[j]
             pts = pi.objective.levels[level].points[at[i].mask[0]]
             shift = torch.as_tensor(pi.objective.centre - pj.objective.centre, dtype=pts.dtype, device=pts.device)
-            Ti = translated(self.pose(i, bodies, rig), pi.objective.centre)
             Tj = translated(self.pose(j, bodies, rig), pj.objective.centre)
             jac = held is None
-            ci, ok_i, Ji = pi.objective.seen_colors(level, Ti, self._q(q, pi.camera), pts, at[i].D[0], jac)
+            ci, Ji = pi.objective.own_colors(at[i]) if jac else (tried[i], None)
             cj, ok_j, Jj = pj.objective.seen_colors(level, Tj, self._q(q, pj.camera), pts + shift, at[j].D[0], jac)
-            ok = (ok_i & ok_j) if jac else held[k]["ok"]
+            ok = ok_j if jac else held[k]["ok"]  # photo i sees all its visible points
             r = (ci - cj)[ok]
             if not jac:
                 out.append({"rho": float(student_t_loss(r, self.cfg.nu, held[k]["sigma2"])) * r.numel()})
@@ -377,11 +379,13 @@ class Bundle:
         """Coarse to fine, Levenberg-Marquardt on all the unknowns at once; then the covariance
         and the cross-photo evidence at the result."""
         start = time.perf_counter()
-        bodies, rig = self._initial(*self._starts())
+        starts, start_level = self._starts()
+        bodies, rig = self._initial(starts, start_level)
         q = np.zeros((self.cameras, Q_SIZE))
         levels = [p.objective.prepare(translated(self.pose(i, bodies, rig), p.objective.centre))
                   for i, p in enumerate(self.photos)]
-        top = min(levels) - 1
+        # where the photos' own refines ended, the joint solve goes on: their coarser levels are done
+        top = min(levels) - 1 if start_level is None else min(min(levels) - 1, start_level)
         level_info, total = [], 0
         for level in range(top, -1, -1):
             if self.nid:
@@ -412,10 +416,11 @@ class Bundle:
             scale = [float(a.sigma2.reshape(-1)[0]) for a in at]
             xb, xs = self._step(self._system([a.H[0] for a in at], [a.g[0] for a in at], rig, scale, pairs), prior, lam)
             nb, nr, nq = self._moved(bodies, rig, q, xb, xs)
-            trial = sum(float(p.objective.trial(level, [translated(self.pose(i, nb, nr), p.objective.centre)],
-                                                self._q(nq, p.camera), a)[0]) * float(a.count[0])
-                        for i, (p, a) in enumerate(zip(self.photos, at)))
-            trial += self.weight * sum(p["rho"] for p in self._agreement(level, nb, nr, nq, at, pairs))
+            tried = [p.objective.trial_colors(level, [translated(self.pose(i, nb, nr), p.objective.centre)],
+                                              self._q(nq, p.camera), a) for i, (p, a) in enumerate(zip(self.photos, at))]
+            trial = sum(float(loss[0]) * float(a.count[0]) for (loss, _), a in zip(tried, at))
+            trial += self.weight * sum(p["rho"] for p in self._agreement(level, nb, nr, nq, at, pairs,
+                                                                           [colors[0] for _, colors in tried]))
             new_prior = self._prior_terms(nr)
             accepted = trial + new_prior[0] <= loss
             if accepted:

@@ -62,6 +62,9 @@ class Terms:
     g: np.ndarray | None = None  # (B, P) J^T W r
     wrr: np.ndarray | None = None  # (B,) sum of w r^2 over points and channels
     count: np.ndarray | None = None  # (B,) residuals: points x channels
+    # one pose, with its system: the unclipped predictions (c, m) at its visible points and their
+    # derivatives' factors dr/du, dr/dv (c, m) and du, dv (c, P) (`own_colors`)
+    seen: tuple | None = None
 
     def where(self, keep: np.ndarray, other: "Terms") -> "Terms":
         """Per pose: these terms where keep (B,) is True, else other's."""
@@ -70,7 +73,7 @@ class Terms:
         k = torch.as_tensor(keep, device=self.D.device)
 
         def pick(a, b):
-            if a is None:
+            if a is None or isinstance(a, tuple):
                 return None
             if isinstance(a, np.ndarray):
                 return np.where(keep.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)
@@ -440,7 +443,8 @@ class Photometric:
         else:
             D = self.model.identity(k, m, Kk).expand(B, m, k)
             inliers = seen & ((_times_transposed(Kk, D) - target).norm(dim=2) < cfg.beta_max)
-        r = _times_transposed(Kk, D).clamp(0, 1) - target  # clipped values; the Jacobian below is the unclipped one
+        pred = _times_transposed(Kk, D)
+        r = pred.clamp(0, 1) - target  # clipped values; the Jacobian below is the unclipped one
         # one pose sees all of cols: its plain means are the masked ones, at less cost
         mask = seen if B > 1 else None
         w, sigma2 = student_t_weights(r, cfg.nu, prev.sigma2 if prev is not None else None, mask=mask)
@@ -465,6 +469,8 @@ class Photometric:
         terms.H, terms.g = H.cpu().numpy(), g.cpu().numpy()
         terms.wrr = (ws * r * r).sum((1, 2)).double().cpu().numpy()
         terms.count = visible * m
+        if B == 1:
+            terms.seen = (pred[0], a[0], b[0], du, dv)
         return terms
 
     def _jacobian(self, p: torch.Tensor, K: torch.Tensor, q: torch.Tensor, free: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -476,11 +482,24 @@ class Photometric:
     def trial(self, level: int, Ts: list[np.ndarray], q: torch.Tensor, at: Terms) -> np.ndarray:
         """(B,) the robust loss at each pose of Ts on the points, color fit and scale of the
         terms `at` (so that it compares with at.loss as a smooth function of the pose)."""
+        return self.trial_colors(level, Ts, q, at)[0]
+
+    def trial_colors(self, level: int, Ts: list[np.ndarray], q: torch.Tensor, at: Terms) -> tuple[np.ndarray, torch.Tensor]:
+        """`trial`, and the predictions it compared (B, c, m), unclipped, at the c points some
+        pose of `at` sees: the bundle's agreement term reuses them."""
         lv = self.levels[level]
         cols = torch.nonzero(at.mask.any(0)).squeeze(1)
         _, _, _, Kk, _, _ = self._sample(lv, Ts, q, cols, gradient=False)
-        r = _times_transposed(Kk, at.D).clamp(0, 1) - lv.target[cols]
-        return student_t_loss(r, self.cfg.nu, at.sigma2, mask=at.mask[:, cols]).double().cpu().numpy()
+        pred = _times_transposed(Kk, at.D)
+        r = pred.clamp(0, 1) - lv.target[cols]
+        return student_t_loss(r, self.cfg.nu, at.sigma2, mask=at.mask[:, cols]).double().cpu().numpy(), pred
+
+    @staticmethod
+    def own_colors(at: Terms) -> tuple[torch.Tensor, torch.Tensor]:
+        """`seen_colors` at the points the one pose of `at` sees, from its evaluation (with its
+        system): the predictions (c, m) and their derivative (c, m, P)."""
+        pred, a, b, du, dv = at.seen
+        return pred, a[..., None] * du[:, None] + b[..., None] * dv[:, None]
 
     def seen_colors(self, level: int, T_local: np.ndarray, q: torch.Tensor, points: torch.Tensor, D: torch.Tensor,
                     jacobian: bool = True):
