@@ -183,6 +183,12 @@ def test_agreement_gradient_matches_its_loss(synth_scene, tmp_path):
     at = bundle._evaluate(0, bodies, rig, q)
     (pair,) = bundle._agreement(0, bodies, rig, q, at)
     analytic = pair["g"][6:12] / pair["scale"]  # photo j's pose part: the rig's relative pose
+    # the first photo's colors and derivatives come from its own evaluation: as sampled anew
+    pts = photos[0].objective.levels[0].points[at[0].mask[0]]
+    T0 = translated(bundle.pose(0, bodies, rig), photos[0].objective.centre)
+    colors, _, J = photos[0].objective.seen_colors(0, T0, bundle._q(q, 0), pts, at[0].D[0])
+    own_colors, own_J = Photometric.own_colors(at[0])
+    assert (colors - own_colors).abs().max() < 1e-5 and (J - own_J).abs().max() < 1e-4 * J.abs().max()
     own = [Photometric.own_colors(a)[0] for a in at]  # the left photo does not move with the rig
     for k, eps in enumerate([2e-5] * 3 + [2e-5] * 3):
         moved = []
