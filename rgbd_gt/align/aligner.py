@@ -339,6 +339,12 @@ class Aligner:
         candidates = self._search(top, T) if search else [T]
         judge = max(finest, min(1, top))
         runs = [self._descend(c, top, judge, iterations, progress) for c in candidates]
+        if len(runs) > 1:
+            # each run's loss is on the points it saw where the level began; judged on those it
+            # sees at its result, as every other candidate is (docs/lidar-method.md)
+            q = self._q(None)
+            runs = [(T1, float(self.objective.evaluate(judge, [T1], q, jacobian=False).loss[0]), h, info)
+                    for T1, _, h, info in runs]
         T, _, history, level_info = min(runs, key=lambda r: r[1])
         T, _, more_history, more_info = self._descend(T, judge - 1, finest, iterations, progress)
         return T, history + more_history, level_info + more_info
