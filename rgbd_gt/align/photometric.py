@@ -73,7 +73,7 @@ class Terms:
         k = torch.as_tensor(keep, device=self.D.device)
 
         def pick(a, b):
-            if a is None or isinstance(a, tuple):
+            if a is None:
                 return None
             if isinstance(a, np.ndarray):
                 return np.where(keep.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)
