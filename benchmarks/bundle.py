@@ -17,6 +17,7 @@ import numpy as np
 
 WORK = Path("bench_out/bundle")
 AGREEMENT = 0.2  # configs/refine.yaml's bundle_agreement
+SILHOUETTES = 0.1  # a `depth_edge_ratio` for the rig's row with silhouettes left out (off by default: the Notes)
 MODE = "focal+principal+k1k2"
 
 
@@ -42,12 +43,14 @@ class Shot:
     shot: int | None = None
 
 
-def objective(scan, shot: Shot, mode: str, camera=None, agreement: float = 0.0, device: str = "cpu"):
+def objective(scan, shot: Shot, mode: str, camera=None, agreement: float = 0.0, device: str = "cpu",
+              silhouettes: float = 0.0):
     """The photometric objective of the shot's photo against the scan (points, rgb, normals) on
-    device, as refine builds it (`make_aligner`); agreement: the bundle's agreement weight (rigs)."""
+    device, as refine builds it (`make_aligner`); agreement: the bundle's agreement weight (rigs);
+    silhouettes: `RefineConfig.depth_edge_ratio`."""
     from rgbd_gt.align.config import RefineConfig
 
-    cfg = dataclasses.replace(RefineConfig(), refine_intrinsics=mode, bundle_agreement=agreement)
+    cfg = dataclasses.replace(RefineConfig(), refine_intrinsics=mode, bundle_agreement=agreement, depth_edge_ratio=silhouettes)
     return _made(scan, scan.rgb, shot, camera or shot.camera, cfg, device)
 
 
@@ -85,13 +88,14 @@ def singles(scan, shots: list[Shot], mode: str, cameras: list | None = None, nid
 
 
 def joint(scan, shots: list[Shot], mode: str, camera=None, rig: int = 0, photos_out: list | None = None,
-          agreement: float = 0.0, nid: bool = False, device: str = "cpu"):
+          agreement: float = 0.0, nid: bool = False, device: str = "cpu", silhouettes: float = 0.0):
     """The bundle of the shots on device; returns (result, seconds); photos_out gets the bundle's
-    photos. nid: against the scan's intensity alone (`nid_objective`; mode "none")."""
+    photos. nid: against the scan's intensity alone (`nid_objective`; mode "none"); silhouettes:
+    as `objective`."""
     from rgbd_gt.align.bundle import Bundle, BundlePhoto
 
     start = time.perf_counter()
-    photos = [BundlePhoto(nid_objective(scan, s, device) if nid else objective(scan, s, mode, camera, agreement, device), s.T_init,
+    photos = [BundlePhoto(nid_objective(scan, s, device) if nid else objective(scan, s, mode, camera, agreement, device, silhouettes), s.T_init,
                           s.camera_index, s.shot, s.name) for s in shots]
     result = Bundle(photos, max(s.camera_index for s in shots) + 1, rig).solve()
     if photos_out is not None:
@@ -213,7 +217,7 @@ def stereo_rows(seeds: list[int], size: str) -> list[str]:
     (nid): each photo alone and the bundle with its rig."""
     from rgbd_gt.io import read_pose
 
-    acc = {k: [] for k in ("single", "joint", "agree", "nid single", "nid joint")}
+    acc = {k: [] for k in ("single", "joint", "agree", "silhouettes", "nid single", "nid joint")}
     rig = {k: [] for k in acc}
     secs = {k: 0.0 for k in acc}
     for seed in seeds:
@@ -226,8 +230,9 @@ def stereo_rows(seeds: list[int], size: str) -> list[str]:
             acc[key] += [r["err"] for r in rows]
             by = {(sh.shot, sh.camera_index): r["T"] for sh, r in zip(shots, rows)}
             rig[key] += [rig_errors(by[(k, 1)] @ np.linalg.inv(by[(k, 0)]), T_rl) for k in range(4)]
-        for key, weight, nid in (("joint", 0.0, False), ("agree", AGREEMENT, False), ("nid joint", 0.0, True)):
-            result, s = joint(scan, shots, "none", rig=2, agreement=weight, nid=nid)
+        for key, weight, nid, edges in (("joint", 0.0, False, 0.0), ("agree", AGREEMENT, False, 0.0),
+                                        ("silhouettes", AGREEMENT, False, SILHOUETTES), ("nid joint", 0.0, True, 0.0)):
+            result, s = joint(scan, shots, "none", rig=2, agreement=weight, nid=nid, silhouettes=edges)
             secs[key] += s
             acc[key] += [errors(T, sh) for T, sh in zip(result.poses, shots)]
             rig[key].append(rig_errors(result.rig[1], T_rl))
@@ -239,6 +244,7 @@ def stereo_rows(seeds: list[int], size: str) -> list[str]:
 
     names = {"single": "per photo", "joint": "bundle (rig)",
              "agree": f"bundle (rig) with the agreement term, weight {AGREEMENT} (the default)",
+             "silhouettes": f"the same, silhouettes left out (`depth_edge_ratio: {SILHOUETTES}`)",
              "nid single": "intensity only: per photo (nid, its wide search)", "nid joint": "intensity only: bundle (rig, nid)"}
     return [f"| {size} | {names[k]} | {stats(acc[k])} | {rig_text(rig[k])} | {secs[k] / len(seeds):.1f} |" for k in acc]
 
@@ -309,7 +315,9 @@ def main(argv: list[str] | None = None) -> None:
               "rig then taken per shot from its two poses. Bundle: the rig's relative pose shared by the 4 shots, "
               "initialised (no prior) from the shots' own refines as `Bundle._initial` takes them. Small: 640x480 photos of a scan 0.15 deg apart; "
               "default: 1280x960 photos of a scan 0.1 deg apart (`synth`'s default size). Intensity only: the same scan "
-              "with its colors dropped (its synthetic laser intensity), solved with nid (the Notes below).", "",
+              "with its colors dropped (its synthetic laser intensity), solved with nid (the Notes below). Silhouettes left out: "
+              "the points on the photos' foreground silhouettes not compared on the finest level (`depth_edge_ratio`; off by "
+              "default, as it costs ICL-NUIM a third of its accuracy: the Notes).", "",
               "| size | solve | pose error, median | pose error, worst | baseline error, median / worst | relative rotation error, median / worst | aligner s |",
               "|---|---|---|---|---|---|---|"]
     for size in ("small", "default"):

@@ -191,6 +191,7 @@ def test_refine_converges_on_a_synthetic_scene(scene, tmp_path):
     {"color_model": "linear"},
     {"color_model": "quadratic_rgb"},
     {"fit_sharpness": False},
+    {"depth_edge_ratio": 0.1},
 ])
 def test_refine_variants_converge(scene, change):
     inputs = load_inputs(scene / "scan.ply", scene / "photo.png", scene / "camera.yaml", scene / "init_pose.yaml")

@@ -20,7 +20,7 @@ from rgbd_gt.io.image import read_image
 from rgbd_gt.scan import Scan, colors_to_gray
 from rgbd_gt.pose import apply_update, rotation_error_deg, so3_exp, translated, translation_error_m
 from rgbd_gt.render.cells import cell_for_density
-from rgbd_gt.render.zbuffer import depth_edges
+from rgbd_gt.render.zbuffer import depth_edges, silhouettes
 
 
 def test_nid_is_zero_for_dependent_values_and_near_one_for_independent_ones():
@@ -462,6 +462,23 @@ def test_sweep_density_cell_and_depth_edges():
     e = depth_edges(uv, z, (640, 480), 8)
     pole_edge = (z == 4) & ((uv[:, 0] < 304) | (uv[:, 0] >= 336))  # in the cells (8 px) that border the wall's
     assert bool((e[pole_edge] == 1).all()) and float(e[z == 20].max()) == 0 and float(e[(z == 4) & ~pole_edge].max()) == 0
+
+
+def test_silhouettes_are_the_foreground_points_beside_a_farther_surface():
+    # a board 2 m away (u 200..399, v 100..299) before a wall 3 m away, points every 2 px; cells of 8 px
+    u, v = np.meshgrid(np.arange(0, 640, 2.0), np.arange(0, 480, 2.0))
+    uv = torch.as_tensor(np.stack([u.ravel(), v.ravel()], 1))
+    board = (uv[:, 0] >= 200) & (uv[:, 0] < 400) & (uv[:, 1] >= 100) & (uv[:, 1] < 300)
+    z = torch.where(board, torch.tensor(2.0, dtype=torch.float64), torch.tensor(3.0, dtype=torch.float64))
+    s = silhouettes(uv, z, (640, 480), 8, 0.1)
+    # the board's points in the cells bordering the wall's cells, and none other
+    inner = board & (uv[:, 0] >= 208) & (uv[:, 0] < 392) & (uv[:, 1] >= 104) & (uv[:, 1] < 296)
+    assert bool(s[board & ~inner].all()) and not bool(s[inner].any()) and not bool(s[~board].any())
+    # a surface only 5 % farther is no silhouette at 10 %; two poses (groups) keep their own Z-buffers
+    assert not bool(silhouettes(uv, torch.where(board, z, z.new_tensor(2.1)), (640, 480), 8, 0.1).any())
+    both = silhouettes(torch.cat([uv, uv]), torch.cat([z, torch.full_like(z, 3.0)]), (640, 480), 8, 0.1,
+                       group=torch.cat([torch.zeros(len(z), dtype=torch.long), torch.ones(len(z), dtype=torch.long)]))
+    assert torch.equal(both[:len(z)], s) and not bool(both[len(z):].any())
 
 
 def _sky_photo() -> np.ndarray:

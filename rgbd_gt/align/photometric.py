@@ -29,7 +29,7 @@ from rgbd_gt.errors import InputError
 from rgbd_gt.render.normals import facing_camera
 from rgbd_gt.render.project import corrected_jacobian, project_corrected, project_pinhole, projection_jacobian
 from rgbd_gt.render.cells import cell_size_for
-from rgbd_gt.render.zbuffer import check_spread_in_view, estimate_spacing, visible_points
+from rgbd_gt.render.zbuffer import check_spread_in_view, estimate_spacing, silhouettes, visible_points
 
 @dataclass
 class Level:
@@ -368,8 +368,11 @@ class Photometric:
         return uv, z
 
     def _visible(self, lv: Level, Ts: list[np.ndarray], q: torch.Tensor, lost_is_error: bool) -> torch.Tensor:
-        """(B, n) the level's points visible at each pose on usable pixels. lost_is_error: a pose
-        that sees fewer than 10 raises InputError (saying so when the rest face away)."""
+        """(B, n) the level's points visible at each pose on usable pixels; on the finest level,
+        given `RefineConfig.depth_edge_ratio`, not on a silhouette (the coarser levels' targets
+        are blurred as their pixels mix, `blurred_targets`; leaving silhouettes out there too lost
+        a rig's photo, docs/bundle.md). lost_is_error: a pose that sees fewer than 10 raises
+        InputError (saying so when the rest face away)."""
         p, uv, z = self._project(lv, Ts, q)
         B, n = p.shape[:2]
         group = torch.arange(B, device=self.device).repeat_interleave(n) if B > 1 else None
@@ -379,6 +382,8 @@ class Photometric:
             facing = facing_camera(p.reshape(-1, 3), _times_transposed(lv.normals, R).reshape(-1, 3))
         size, tol = lv.photo.camera.size, (self.cfg.zbuffer_rel_tol, self.cfg.zbuffer_abs_tol)
         vis = visible_points(uv, z, size, lv.cell, *tol, group=group, facing=facing)
+        if self.cfg.depth_edge_ratio > 0 and lv is self.levels[0]:
+            vis &= ~silhouettes(uv, z, size, lv.cell, self.cfg.depth_edge_ratio, group)
         if lv.photo.valid is not None:
             vis &= _valid_at(lv.photo.valid, uv)
         vis = vis.reshape(B, n)

@@ -44,13 +44,20 @@ def visible_points(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cel
         facing: (N,) bool, optional (`render.normals.facing_camera`): points whose surface faces
             away are never visible, but they still hide what lies behind them.
     """
+    inside, key, zmin = _cell_minima(uv, z, size, cell, near, group)
+    vis = inside & (z <= zmin.reshape(-1)[key] * (1 + rel_tol) + abs_tol)
+    return vis if facing is None else vis & facing
+
+
+def _cell_minima(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cell: int, near: float = 1e-3,
+                 group: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The Z-buffer: per point (N,) whether it is in the image and in front of the camera, and
+    its flat cell index into the nearest depth per cell (G, ch, cw) (inf where empty; G groups)."""
     w, h = size
     u, v = uv[:, 0], uv[:, 1]
     inside = (z > near) & (u >= 0) & (v >= 0) & (u <= w - 1) & (v <= h - 1)
     cw, ch = (w + cell - 1) // cell, (h + cell - 1) // cell
-    cx = (u.clamp(0, w - 1) / cell).long()
-    cy = (v.clamp(0, h - 1) / cell).long()
-    key = cy * cw + cx
+    key = (v.clamp(0, h - 1) / cell).long() * cw + (u.clamp(0, w - 1) / cell).long()
     groups = 1
     if group is not None:
         groups = int(group.max()) + 1 if group.numel() else 1
@@ -58,8 +65,21 @@ def visible_points(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cel
     zz = torch.where(inside, z, torch.full_like(z, float("inf")))
     zmin = torch.full((groups * ch * cw,), float("inf"), dtype=z.dtype, device=z.device)
     zmin = zmin.scatter_reduce(0, key, zz, reduce="amin", include_self=True)
-    vis = inside & (z <= zmin[key] * (1 + rel_tol) + abs_tol)
-    return vis if facing is None else vis & facing
+    return inside, key, zmin.reshape(groups, ch, cw)
+
+
+def silhouettes(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cell: int, ratio: float,
+                group: torch.Tensor | None = None) -> torch.Tensor:
+    """Per point (N,): whether a surface more than `ratio` farther (relative depth) shows in its
+    Z-buffer cell or the 8 around it: a point on a foreground silhouette, whose pixel the photo
+    mixes with what lies behind (lens blur, pixel area, bilinear sampling), as a scan's color of
+    it, seen from elsewhere, does not. Empty cells (gaps, sky) are no edge. uv (N, 2) pixels,
+    z (N,) metres; group as `visible_points`. (Points beside an occluder, the other side of the
+    edge, were measured to change nothing: docs/bundle.md.)"""
+    inside, key, zmin = _cell_minima(uv, z, size, cell, group=group)
+    grid = zmin[:, None]
+    farthest = torch.nn.functional.max_pool2d(torch.where(torch.isinf(grid), torch.zeros_like(grid), grid), 3, 1, 1)
+    return inside & (farthest.reshape(-1)[key] > z * (1 + ratio))
 
 
 def check_spread_in_view(uv: torch.Tensor, visible: torch.Tensor, need: int) -> None:
@@ -82,16 +102,10 @@ def depth_edges(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cell: 
 
     Only left and right: a ring-structured sweep leaves empty rows between rings, so vertical
     neighbours say nothing; the rings resolve vertical edges (poles, car sides, trunks) best."""
-    w, h = size
-    u, v = uv[:, 0], uv[:, 1]
-    inside = (z > 1e-3) & (u >= 0) & (v >= 0) & (u <= w - 1) & (v <= h - 1)
-    cw, ch = (w + cell - 1) // cell, (h + cell - 1) // cell
-    cx, cy = (u.clamp(0, w - 1) / cell).long(), (v.clamp(0, h - 1) / cell).long()
-    zz = torch.where(inside, z, torch.full_like(z, float("inf")))
-    zmin = torch.full((ch * cw,), float("inf"), dtype=z.dtype, device=z.device)
-    zmin = zmin.scatter_reduce(0, cy * cw + cx, zz, reduce="amin", include_self=True).reshape(ch, cw)
+    inside, key, zmin = _cell_minima(uv, z, size, cell)
+    zmin = zmin[0]
     side = torch.full_like(zmin, 0.0)
     side[:, 1:-1] = torch.maximum(zmin[:, :-2], zmin[:, 2:])
-    far = side[cy, cx]
+    far = side.reshape(-1)[key]
     e = ((far / z.clamp_min(1e-6) - 1) / ratio).clamp(0, 1)
     return torch.where(inside & torch.isfinite(e), e, torch.where(inside & torch.isinf(far), torch.ones_like(e), torch.zeros_like(e)))
