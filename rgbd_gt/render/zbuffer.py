@@ -74,8 +74,8 @@ def silhouettes(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cell: 
     Z-buffer cell or the 8 around it: a point on a foreground silhouette, whose pixel the photo
     mixes with what lies behind (lens blur, pixel area, bilinear sampling), as a scan's color of
     it, seen from elsewhere, does not. Empty cells (gaps, sky) are no edge. uv (N, 2) pixels,
-    z (N,) metres; group as `visible_points`. (Points beside an occluder, the other side of the
-    edge, were measured to change nothing: docs/bundle.md.)"""
+    z (N,) metres; group as `visible_points`. (Leaving out the other side of the edge too, the
+    points beside an occluder, helped a stereo rig no further and cost ICL-NUIM more: docs/bundle.md.)"""
     inside, key, zmin = _cell_minima(uv, z, size, cell, group=group)
     grid = zmin[:, None]
     farthest = torch.nn.functional.max_pool2d(torch.where(torch.isinf(grid), torch.zeros_like(grid), grid), 3, 1, 1)
