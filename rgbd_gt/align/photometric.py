@@ -29,7 +29,7 @@ from rgbd_gt.errors import InputError
 from rgbd_gt.render.normals import facing_camera
 from rgbd_gt.render.project import corrected_jacobian, project_corrected, project_pinhole, projection_jacobian
 from rgbd_gt.render.cells import cell_size_for
-from rgbd_gt.render.zbuffer import check_spread_in_view, estimate_spacing, silhouettes, visible_points
+from rgbd_gt.render.zbuffer import check_spread_in_view, estimate_spacing, visible_points
 
 @dataclass
 class Level:
@@ -381,9 +381,8 @@ class Photometric:
             R, _ = self._pose_tensors(Ts)
             facing = facing_camera(p.reshape(-1, 3), _times_transposed(lv.normals, R).reshape(-1, 3))
         size, tol = lv.photo.camera.size, (self.cfg.zbuffer_rel_tol, self.cfg.zbuffer_abs_tol)
-        vis = visible_points(uv, z, size, lv.cell, *tol, group=group, facing=facing)
-        if self.cfg.depth_edge_ratio > 0 and lv is self.levels[0]:
-            vis &= ~silhouettes(uv, z, size, lv.cell, self.cfg.depth_edge_ratio, group)
+        silhouette = self.cfg.depth_edge_ratio if lv is self.levels[0] else 0.0
+        vis = visible_points(uv, z, size, lv.cell, *tol, group=group, facing=facing, silhouette=silhouette)
         if lv.photo.valid is not None:
             vis &= _valid_at(lv.photo.valid, uv)
         vis = vis.reshape(B, n)

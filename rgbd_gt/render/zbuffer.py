@@ -30,9 +30,10 @@ def estimate_spacing(points: torch.Tensor) -> float:
 
 def visible_points(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cell: int,
                    rel_tol: float = 0.02, abs_tol: float = 0.01, near: float = 1e-3,
-                   group: torch.Tensor | None = None, facing: torch.Tensor | None = None) -> torch.Tensor:
-    """Boolean mask (N,) of points that are in the image, in front of the camera, not occluded
-    and (given `facing`) not seen from behind.
+                   group: torch.Tensor | None = None, facing: torch.Tensor | None = None,
+                   silhouette: float = 0.0) -> torch.Tensor:
+    """Boolean mask (N,) of points that are in the image, in front of the camera, not occluded,
+    (given `facing`) not seen from behind and (given `silhouette` > 0) not on a silhouette.
 
     Args:
         uv: (N, 2) pixel coordinates; z: (N,) depth (metres).
@@ -43,9 +44,12 @@ def visible_points(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cel
             several poses) are in separate Z-buffers.
         facing: (N,) bool, optional (`render.normals.facing_camera`): points whose surface faces
             away are never visible, but they still hide what lies behind them.
+        silhouette: `silhouettes`' ratio, from the same Z-buffer (0: silhouettes are visible).
     """
     inside, key, zmin = _cell_minima(uv, z, size, cell, near, group)
     vis = inside & (z <= zmin.reshape(-1)[key] * (1 + rel_tol) + abs_tol)
+    if silhouette > 0:
+        vis &= ~_on_silhouette(key, zmin, z, silhouette)
     return vis if facing is None else vis & facing
 
 
@@ -77,9 +81,14 @@ def silhouettes(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cell: 
     z (N,) metres; group as `visible_points`. (Leaving out the other side of the edge too, the
     points beside an occluder, helped a stereo rig no further and cost ICL-NUIM more: docs/bundle.md.)"""
     inside, key, zmin = _cell_minima(uv, z, size, cell, group=group)
+    return inside & _on_silhouette(key, zmin, z, ratio)
+
+
+def _on_silhouette(key: torch.Tensor, zmin: torch.Tensor, z: torch.Tensor, ratio: float) -> torch.Tensor:
+    """`silhouettes` on a Z-buffer (`_cell_minima`'s key (N,) and zmin (G, ch, cw))."""
     grid = zmin[:, None]
     farthest = torch.nn.functional.max_pool2d(torch.where(torch.isinf(grid), torch.zeros_like(grid), grid), 3, 1, 1)
-    return inside & (farthest.reshape(-1)[key] > z * (1 + ratio))
+    return farthest.reshape(-1)[key] > z * (1 + ratio)
 
 
 def check_spread_in_view(uv: torch.Tensor, visible: torch.Tensor, need: int) -> None:
