@@ -18,17 +18,20 @@ import numpy as np
 WORK = Path("bench_out/bundle")
 AGREEMENT = 0.2  # configs/refine.yaml's bundle_agreement
 SILHOUETTES = 0.1  # a `depth_edge_ratio` for the rig's row with silhouettes left out (off by default: the Notes)
+SCANNER_BLUR = 0.7  # `synth`'s scanner_color_blur_cells for the rig scenes colored through the scanner's camera
 MODE = "focal+principal+k1k2"
 
 
-def scene(seed: int, photos: int, rig: str | None = None, size: str = "small") -> Path:
-    """The synthetic scene of seed and size with `photos` photos (shots), made once under WORK."""
+def scene(seed: int, photos: int, rig: str | None = None, size: str = "small", blur: float = 0.0) -> Path:
+    """The synthetic scene of seed and size with `photos` photos (shots), made once under WORK;
+    blur: its scan's colors blurred over the scanner's grid (`SynthConfig.scanner_color_blur_cells`)."""
     from rgbd_gt.config import load_config
     from rgbd_gt.synth.generate import SynthConfig, generate
 
-    d = WORK / f"seed{seed}_{photos}{'_' + rig if rig else ''}{'' if size == 'small' else '_' + size}"
+    d = WORK / f"seed{seed}_{photos}{'_' + rig if rig else ''}{'' if size == 'small' else '_' + size}{f'_blur{blur:g}' if blur else ''}"
     if not (d / "scene.json").exists():
-        generate(d, seed, size, load_config(SynthConfig, None, "synth.yaml"), photos=photos, rig=rig)
+        cfg = dataclasses.replace(load_config(SynthConfig, None, "synth.yaml"), scanner_color_blur_cells=blur)
+        generate(d, seed, size, cfg, photos=photos, rig=rig)
     return d
 
 
@@ -217,7 +220,9 @@ def stereo_rows(seeds: list[int], size: str) -> list[str]:
     (nid): each photo alone and the bundle with its rig."""
     from rgbd_gt.io import read_pose
 
-    acc = {k: [] for k in ("single", "joint", "agree", "silhouettes", "nid single", "nid joint")}
+    blurred = size == "small"  # the rows on scans colored through the scanner's camera: small scenes only
+    acc = {k: [] for k in ("single", "joint", "agree", "silhouettes", "nid single", "nid joint")
+           + (("blur agree", "blur silhouettes") if blurred else ())}
     rig = {k: [] for k in acc}
     secs = {k: 0.0 for k in acc}
     for seed in seeds:
@@ -230,9 +235,14 @@ def stereo_rows(seeds: list[int], size: str) -> list[str]:
             acc[key] += [r["err"] for r in rows]
             by = {(sh.shot, sh.camera_index): r["T"] for sh, r in zip(shots, rows)}
             rig[key] += [rig_errors(by[(k, 1)] @ np.linalg.inv(by[(k, 0)]), T_rl) for k in range(4)]
-        for key, weight, nid, edges in (("joint", 0.0, False, 0.0), ("agree", AGREEMENT, False, 0.0),
-                                        ("silhouettes", AGREEMENT, False, SILHOUETTES), ("nid joint", 0.0, True, 0.0)):
-            result, s = joint(scan, shots, "none", rig=2, agreement=weight, nid=nid, silhouettes=edges)
+        solves = [("joint", 0.0, False, 0.0), ("agree", AGREEMENT, False, 0.0), ("silhouettes", AGREEMENT, False, SILHOUETTES),
+                  ("nid joint", 0.0, True, 0.0)]
+        if blurred:
+            solves += [("blur agree", AGREEMENT, False, 0.0), ("blur silhouettes", AGREEMENT, False, SILHOUETTES)]
+            blur_scan = load(scene(seed, 4, "stereo", size, SCANNER_BLUR), rig=True)[0]  # the same photos and truth
+        for key, weight, nid, edges in solves:
+            result, s = joint(blur_scan if key.startswith("blur") else scan, shots, "none", rig=2, agreement=weight,
+                              nid=nid, silhouettes=edges)
             secs[key] += s
             acc[key] += [errors(T, sh) for T, sh in zip(result.poses, shots)]
             rig[key].append(rig_errors(result.rig[1], T_rl))
@@ -245,7 +255,9 @@ def stereo_rows(seeds: list[int], size: str) -> list[str]:
     names = {"single": "per photo", "joint": "bundle (rig)",
              "agree": f"bundle (rig) with the agreement term, weight {AGREEMENT} (the default)",
              "silhouettes": f"the same, silhouettes left out (`depth_edge_ratio: {SILHOUETTES}`)",
-             "nid single": "intensity only: per photo (nid, its wide search)", "nid joint": "intensity only: bundle (rig, nid)"}
+             "nid single": "intensity only: per photo (nid, its wide search)", "nid joint": "intensity only: bundle (rig, nid)",
+             "blur agree": f"scan colored through the scanner's camera ({SCANNER_BLUR} cells): bundle (rig) with the agreement term",
+             "blur silhouettes": f"the same, silhouettes left out (`depth_edge_ratio: {SILHOUETTES}`)"}
     return [f"| {size} | {names[k]} | {stats(acc[k])} | {rig_text(rig[k])} | {secs[k] / len(seeds):.1f} |" for k in acc]
 
 
@@ -317,7 +329,10 @@ def main(argv: list[str] | None = None) -> None:
               "default: 1280x960 photos of a scan 0.1 deg apart (`synth`'s default size). Intensity only: the same scan "
               "with its colors dropped (its synthetic laser intensity), solved with nid (the Notes below). Silhouettes left out: "
               "the points on the photos' foreground silhouettes not compared on the finest level (`depth_edge_ratio`; off by "
-              "default, as it costs ICL-NUIM a third of its accuracy: the Notes).", "",
+              "default, as it costs ICL-NUIM a third of its accuracy: the Notes). Scan colored through the scanner's camera (small "
+              f"scenes): the same scenes, photos and truth, the scan's colors blurred over the scanner's own grid by {SCANNER_BLUR} "
+              "cells across depth edges (`synth`'s `scanner_color_blur_cells`), so that they mix at the scanner's silhouettes as "
+              "a real scanner's camera mixes them.", "",
               "| size | solve | pose error, median | pose error, worst | baseline error, median / worst | relative rotation error, median / worst | aligner s |",
               "|---|---|---|---|---|---|---|"]
     for size in ("small", "default"):

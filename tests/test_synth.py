@@ -146,3 +146,28 @@ def test_wide_synthetic_cameras_keep_a_lens_that_covers_the_photo():
     draws.uniform(55.0, 70.0)  # the field, then k1 and k2
     k1, k2 = draws.uniform(-0.15, -0.03), draws.uniform(-0.02, 0.06)
     assert random_camera(np.random.default_rng(0), preset, [55.0, 70.0]).distortion[:2] == (k1, k2)
+
+
+def test_scanner_colors_mix_at_the_scanners_silhouettes():
+    """`scanner_color_blur_cells`: the scan's colors blurred over the scanner's grid, across depth
+    edges, normalised by the cells that hold a return: a uniform surface keeps its color, holes
+    do not darken it, and a return beside an edge takes on part of the color behind it."""
+    from rgbd_gt.synth.generate import SynthConfig
+    from rgbd_gt.synth.sensors import blur_over_grid
+
+    row, col = (a.ravel() for a in np.mgrid[0:20, 0:20])
+    keep = ~((row == 5) & (col % 2 == 0))  # missing returns (the sky, a black surface)
+    row, col = row[keep], col[keep]
+    values = np.where((col < 10)[:, None], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]).astype(np.float32)
+    out = blur_over_grid(values, row, col, (20, 20), 0.7)
+    assert out.dtype == values.dtype and out.shape == values.shape
+    far = (col <= 6) | (col >= 13)
+    np.testing.assert_allclose(out[far], values[far], atol=1e-6)  # holes at row 5 change nothing
+    beside = (col == 9) & (row == 10)
+    red = float(out[beside][0, 0])
+    assert 0.7 < red < 0.85, red  # 1-D Gaussian of 0.7 cells: the cell behind weighs 0.36 of its own
+    np.testing.assert_allclose(out[beside][0, 0] + out[beside][0, 2], 1.0, atol=1e-6)
+    lone = blur_over_grid(np.array([[0.2, 0.4, 0.6]], np.float32), np.array([3]), np.array([4]), (8, 8), 2.0)
+    np.testing.assert_allclose(lone, [[0.2, 0.4, 0.6]], atol=1e-6)
+    with pytest.raises(ValueError, match="scanner_color_blur_cells"):
+        SynthConfig(scanner_color_blur_cells=-1).check()

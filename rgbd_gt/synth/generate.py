@@ -20,7 +20,8 @@ from rgbd_gt.io.image import write_image
 from rgbd_gt.pose import rigid, transform_points
 from rgbd_gt.synth import color
 from rgbd_gt.synth.scene import Scene, make_layout
-from rgbd_gt.synth.sensors import ScanGrid, build_raycaster, cast, grid_covering, laser_scan, render_photo_radiance
+from rgbd_gt.synth.sensors import (ScanGrid, blur_over_grid, build_raycaster, cast, grid_covering, laser_scan,
+                                   render_photo_radiance)
 from rgbd_gt.synth.textures import make_texture
 
 FILES = ("scan.e57", "scan.ply", "photo.png", "camera.yaml", "gt_pose.yaml", "init_pose.yaml", "board_corners.csv", "scene.json")
@@ -52,6 +53,10 @@ class SynthConfig:
     board_distance_m: list[float] = field(default_factory=lambda: [1.8, 2.6])
     scanner_distance_m: list[float] = field(default_factory=lambda: [1.0, 2.0])
     range_noise_m: float = 0.001
+    # the scan's colors blurred over the scanner's own grid by a Gaussian of this many cells, across
+    # depth edges, as the scanner's camera mixes them at its silhouettes (0: each return the color
+    # of its own surface; docs/bundle.md measures both)
+    scanner_color_blur_cells: float = 0.0
     texel_m: float = 0.0015
     scan_margin_deg: float = 3.0
     init_translation_m: list[float] = field(default_factory=lambda: [0.02, 0.04])
@@ -77,8 +82,9 @@ class SynthConfig:
         if not (2 <= self.board_cols <= 50 and 2 <= self.board_rows <= 50 and 0 < self.square_m <= 0.5
                 and self.texel_m > 0):
             raise ValueError("board_cols and board_rows 2..50, square_m in (0, 0.5], texel_m positive")
-        if self.range_noise_m < 0 or self.scan_margin_deg < 0 or self.max_layout_tries < 1:
-            raise ValueError("range_noise_m and scan_margin_deg 0 or more, max_layout_tries at least 1")
+        if self.range_noise_m < 0 or self.scan_margin_deg < 0 or self.max_layout_tries < 1 or not 0 <= self.scanner_color_blur_cells <= 10:
+            raise ValueError("range_noise_m and scan_margin_deg 0 or more, max_layout_tries at least 1, "
+                             "scanner_color_blur_cells 0..10")
         return self
 
 
@@ -261,7 +267,9 @@ def generate(out_dir: Path, seed: int, size: str, cfg: SynthConfig,
     if preset.scan_fov_deg is not None:
         grid = dome_grid(grid, np.deg2rad(preset.scan_step_deg), np.deg2rad(preset.scan_fov_deg))
     local, _world, srad, cos_inc, row, col = laser_scan(scene, rc, grid, cfg.range_noise_m, rng)
-    rgb = color.scanner_forward(scan_resp, srad)
+    seen_rad = srad if cfg.scanner_color_blur_cells == 0 else blur_over_grid(srad, row, col, (grid.rows, grid.cols),
+                                                                            cfg.scanner_color_blur_cells)
+    rgb = color.scanner_forward(scan_resp, seen_rad)
     reflect = np.clip(srad @ np.array([0.5, 0.3, 0.2]), 0, 1)
     intensity = np.clip(0.08 + 0.85 * reflect**0.8 * (0.5 + 0.5 * cos_inc) + rng.normal(0, 0.01, reflect.size), 0, 1)
     scan_local = Scan(xyz=local, rgb=rgb, intensity=intensity.astype(np.float32), row=row.astype(np.int32), col=col.astype(np.int32))
@@ -320,6 +328,7 @@ def generate(out_dir: Path, seed: int, size: str, cfg: SynthConfig,
             "grid": {"rows": grid.rows, "cols": grid.cols, "azimuth0_rad": grid.az0, "elevation0_rad": grid.el0},
             "points": int(len(local)),
             "range_noise_m": cfg.range_noise_m,
+            "color_blur_cells": cfg.scanner_color_blur_cells,
         },
         "camera": {"T_world_from_camera": cam_pose.tolist(), "distance_to_scanner_m": float(np.linalg.norm(cam_pose[:3, 3] - s)),
                    "distance_to_board_m": float(np.linalg.norm(cam_pose[:3, 3] - corners.mean(0)))},

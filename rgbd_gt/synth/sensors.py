@@ -142,3 +142,23 @@ def laser_scan(scene: Scene, rc, grid: ScanGrid, range_noise: float, rng: np.ran
         noisy = t[ok] + rng.normal(0, range_noise, ok.sum())
         parts.append((noisy[:, None] * dl[ok], world, rad, cos_inc, row[ok], col[ok]))
     return tuple(np.concatenate(p) for p in zip(*parts))
+
+
+def blur_over_grid(values: np.ndarray, row: np.ndarray, col: np.ndarray, shape: tuple[int, int],
+                   sigma_cells: float) -> np.ndarray:
+    """values (N, C) of the returns at grid cells (row, col) (N,), blurred over the grid (rows,
+    cols) by a Gaussian of sigma_cells, across depth edges, as a camera at the scanner sees them:
+    a return beside a silhouette takes on the color of what lies behind it. Cells without a
+    return do not count (the blur is normalised by the cells that hold one). Returns (N, C)."""
+    import cv2
+
+    rows, cols = shape
+    image = np.zeros((rows, cols, values.shape[1]), np.float32)
+    held = np.zeros((rows, cols), np.float32)
+    image[row, col] = values
+    held[row, col] = 1.0
+    k = 2 * int(np.ceil(3 * sigma_cells)) + 1
+    blurred = cv2.GaussianBlur(image, (k, k), sigma_cells, borderType=cv2.BORDER_CONSTANT).reshape(rows, cols, -1)
+    weight = cv2.GaussianBlur(held, (k, k), sigma_cells, borderType=cv2.BORDER_CONSTANT)
+    return (blurred[row, col] / weight[row, col, None]).astype(values.dtype)
+
