@@ -158,7 +158,7 @@ def blur_over_grid(values: np.ndarray, row: np.ndarray, col: np.ndarray, shape: 
     image[row, col] = values
     held[row, col] = 1.0
     k = 2 * int(np.ceil(3 * sigma_cells)) + 1
+    # reshaped: cv2 returns a one-channel image without its channel axis
     blurred = cv2.GaussianBlur(image, (k, k), sigma_cells, borderType=cv2.BORDER_CONSTANT).reshape(rows, cols, -1)
     weight = cv2.GaussianBlur(held, (k, k), sigma_cells, borderType=cv2.BORDER_CONSTANT)
     return (blurred[row, col] / weight[row, col, None]).astype(values.dtype)
-
