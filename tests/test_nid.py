@@ -20,7 +20,7 @@ from rgbd_gt.io.image import read_image
 from rgbd_gt.scan import Scan, colors_to_gray
 from rgbd_gt.pose import apply_update, rotation_error_deg, so3_exp, translated, translation_error_m
 from rgbd_gt.render.cells import cell_for_density
-from rgbd_gt.render.zbuffer import depth_edges, silhouettes
+from rgbd_gt.render.zbuffer import depth_edges, visible_points
 
 
 def test_nid_is_zero_for_dependent_values_and_near_one_for_independent_ones():
@@ -462,6 +462,11 @@ def test_sweep_density_cell_and_depth_edges():
     e = depth_edges(uv, z, (640, 480), 8)
     pole_edge = (z == 4) & ((uv[:, 0] < 304) | (uv[:, 0] >= 336))  # in the cells (8 px) that border the wall's
     assert bool((e[pole_edge] == 1).all()) and float(e[z == 20].max()) == 0 and float(e[(z == 4) & ~pole_edge].max()) == 0
+
+
+def silhouettes(uv, z, size, cell, ratio, group=None):
+    """The points `visible_points` leaves out for `silhouette=ratio` alone."""
+    return visible_points(uv, z, size, cell, group=group) & ~visible_points(uv, z, size, cell, group=group, silhouette=ratio)
 
 
 def test_silhouettes_are_the_foreground_points_beside_a_farther_surface():

@@ -44,7 +44,9 @@ def visible_points(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cel
             several poses) are in separate Z-buffers.
         facing: (N,) bool, optional (`render.normals.facing_camera`): points whose surface faces
             away are never visible, but they still hide what lies behind them.
-        silhouette: `silhouettes`' ratio, from the same Z-buffer (0: silhouettes are visible).
+        silhouette: leave out the points on a foreground silhouette, where a surface more than
+            this much farther (relative depth) shows in their Z-buffer cell or the 8 around it
+            (`_on_silhouette`; 0: silhouettes are visible).
     """
     inside, key, zmin = _cell_minima(uv, z, size, cell, near, group)
     vis = inside & (z <= zmin.reshape(-1)[key] * (1 + rel_tol) + abs_tol)
@@ -72,20 +74,13 @@ def _cell_minima(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cell:
     return inside, key, zmin.reshape(groups, ch, cw)
 
 
-def silhouettes(uv: torch.Tensor, z: torch.Tensor, size: tuple[int, int], cell: int, ratio: float,
-                group: torch.Tensor | None = None) -> torch.Tensor:
-    """Per point (N,): whether a surface more than `ratio` farther (relative depth) shows in its
-    Z-buffer cell or the 8 around it: a point on a foreground silhouette, whose pixel the photo
-    mixes with what lies behind (lens blur, pixel area, bilinear sampling), as a scan's color of
-    it, seen from elsewhere, does not. Empty cells (gaps, sky) are no edge. uv (N, 2) pixels,
-    z (N,) metres; group as `visible_points`. (Leaving out the other side of the edge too, the
-    points beside an occluder, helped a stereo rig no further and cost ICL-NUIM more: docs/bundle.md.)"""
-    inside, key, zmin = _cell_minima(uv, z, size, cell, group=group)
-    return inside & _on_silhouette(key, zmin, z, ratio)
-
-
 def _on_silhouette(key: torch.Tensor, zmin: torch.Tensor, z: torch.Tensor, ratio: float) -> torch.Tensor:
-    """`silhouettes` on a Z-buffer (`_cell_minima`'s key (N,) and zmin (G, ch, cw))."""
+    """Per point (N,), on a Z-buffer (`_cell_minima`'s key (N,) and zmin (G, ch, cw)): whether
+    a surface more than `ratio` farther than its z (N,) shows in its cell or the 8 around it: a
+    point on a foreground silhouette, whose pixel the photo mixes with what lies behind (lens
+    blur, pixel area, bilinear sampling), as a scan's color of it, seen from elsewhere, does not.
+    Empty cells (gaps, sky) are no edge. (Leaving out the other side of the edge too, the points
+    beside an occluder, helped a stereo rig no further and cost ICL-NUIM more: docs/bundle.md.)"""
     grid = zmin[:, None]
     farthest = torch.nn.functional.max_pool2d(torch.where(torch.isinf(grid), torch.zeros_like(grid), grid), 3, 1, 1)
     return farthest.reshape(-1)[key] > z * (1 + ratio)
