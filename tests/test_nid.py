@@ -56,6 +56,18 @@ def test_nid_gradient_matches_finite_differences():
         assert abs(float(b.grad[i]) - fd) <= 1e-4 * max(abs(fd), 1e-3), (i, float(b.grad[i]), fd)
 
 
+def test_nid_gradient_with_a_mask_equals_it_on_the_masked_windows():
+    # the objective masks the samples off the photo on the photo's side; the same numbers to the bit
+    rng = np.random.default_rng(2)
+    a, b = (torch.as_tensor(rng.uniform(0, 1, (2, 3000))) for _ in range(2))
+    use = torch.as_tensor(rng.uniform(size=(2, 3000)) < 0.7).double()
+    wa = parzen_windows(a, 16)
+    masked = nid_with_gradient(wa * use[..., None], b, 16)
+    value, h_ab, d_b = nid_with_gradient(wa, b, 16, use)
+    assert torch.equal(value, masked[0]) and torch.equal(h_ab, masked[1])
+    assert torch.equal(d_b, masked[2] * use) and bool((d_b[use == 0] == 0).all())
+
+
 def test_differentiable_rotation_matches_rodrigues():
     for w in (np.zeros(3), np.array([1e-7, 0, 0]), np.array([0.3, -0.2, 0.9])):
         np.testing.assert_allclose(so3_exp(torch.as_tensor(w)).numpy(), so3_exp(w), atol=1e-12)

@@ -54,7 +54,7 @@ def parzen_windows(x: torch.Tensor, bins: int) -> torch.Tensor:
 def _spread(first: torch.Tensor, w: torch.Tensor, bins: int) -> tuple[torch.Tensor, torch.Tensor]:
     """((..., n, bins) windows, (..., n, 4) their columns) of weights w (..., n, 4) from bins first (..., n) on."""
     cols = first[..., None] + torch.arange(4, device=w.device)
-    return torch.zeros(w.shape[:-1] + (bins,), dtype=w.dtype, device=w.device).scatter(-1, cols, w), cols
+    return torch.zeros(w.shape[:-1] + (bins,), dtype=w.dtype, device=w.device).scatter_(-1, cols, w), cols
 
 
 def joint_histogram(a: torch.Tensor, b: torch.Tensor, bins: int) -> torch.Tensor:
@@ -87,14 +87,17 @@ def _entropy_slope(p: torch.Tensor) -> torch.Tensor:
     return -(torch.log(p.clamp_min(1e-12)) + (p >= 1e-12).to(p.dtype))
 
 
-def nid_with_gradient(wa: torch.Tensor, b: torch.Tensor,
-                      bins: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """`nid_of_windows`(wa, parzen_windows(b, bins)) and d NID / d b (..., n), in closed form: the
-    chain through the entropies, the histogram and the B-spline windows costs a few small
+def nid_with_gradient(wa: torch.Tensor, b: torch.Tensor, bins: int,
+                      use: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """`nid_of_windows`(wa * use, parzen_windows(b, bins)) and d NID / d b (..., n), in closed form:
+    the chain through the entropies, the histogram and the B-spline windows costs a few small
     matrix products, where autograd's backward took a third of the aligner's time. wa (..., n,
-    bins), b (..., n); a sample whose window wa is zero does not count (padding)."""
+    bins), b (..., n); a sample whose window wa is zero does not count (padding), nor one where
+    use (..., n) (0 or 1) is 0. The mask goes on b's 4 weights a sample rather than on wa's bins:
+    the same products, a quarter of the work."""
     first, f = _bin_coordinates(b, bins)
-    wb, cols = _spread(first, _pieces(f), bins)
+    pieces = _pieces(f) if use is None else _pieces(f) * use[..., None]
+    wb, cols = _spread(first, pieces, bins)
     hist = wa.transpose(-1, -2) @ wb
     total = hist.sum((-1, -2), keepdim=True).clamp_min(1e-12)
     p = hist / total
@@ -107,6 +110,8 @@ def nid_with_gradient(wa: torch.Tensor, b: torch.Tensor,
     d_hist = (d_p - (d_p * p).sum((-1, -2), keepdim=True)) / total  # through the normalisation p = hist / total
     d_f = ((wa @ d_hist).gather(-1, cols) * _slopes(f)).sum(-1)
     inside = ((b >= 0) & (b <= 1)).to(d_f.dtype)  # f moves with clamp(b)
+    if use is not None:
+        inside = inside * use
     return 2.0 - h_sum / h_ab_safe[..., 0, 0], h_ab, d_f * inside * (bins - 3)
 
 

@@ -154,15 +154,15 @@ class _Evaluation:
 
 
 def _pose_gradient(d_u: torch.Tensor, d_v: torch.Tensor, p: torch.Tensor, q: torch.Tensor, K: torch.Tensor,
-                   w: torch.Tensor) -> torch.Tensor:
+                   J: torch.Tensor) -> torch.Tensor:
     """(6,) d loss / d delta of each frame's points p = so3_exp(w) q + delta[3:] (F, n, 3, camera
     frame), given d loss / d (u, v) of their pinhole projections through K (F, 4) (F, n) each (0
-    for points that do not count)."""
+    for points that do not count) and J = so3_left_jacobian(w) (3, 3) float64."""
     iz = 1.0 / p[..., 2].clamp_min(1e-9)
     g_x, g_y = d_u * K[:, 0:1] * iz, d_v * K[:, 1:2] * iz
     d_p = torch.stack([g_x, g_y, -(g_x * p[..., 0] + g_y * p[..., 1]) * iz], -1).reshape(-1, 3)
     # dp = (J dw) x q, so d loss / dw = J^T sum(q x d_p)
-    d_w = so3_left_jacobian(w.double()).T @ torch.linalg.cross(q.reshape(-1, 3), d_p).sum(0)
+    d_w = J.T @ torch.linalg.cross(q.reshape(-1, 3), d_p).sum(0)
     return torch.cat([d_w, d_p.sum(0)])
 
 
@@ -391,9 +391,12 @@ class Nid:
         R1, t1 = R @ R0, R @ t0
         F, C = parts.windows.shape[0], parts.windows.shape[2]
         edges = torch.zeros(F, dtype=torch.float64, device=self.device)
-        gradient = None if weights is None else torch.zeros(6, dtype=torch.float64, device=self.device)
+        gradient = J = None
+        if weights is not None:
+            gradient = torch.zeros(6, dtype=torch.float64, device=self.device)
+            J = so3_left_jacobian(delta[:3].double())
         if parts.edge_points is not None:
-            score, g = self._edge_score(parts, R1, t1, delta, weights is not None)
+            score, g = self._edge_score(parts, R1, t1, delta, J)
             edges = self.cfg.edge_weight * score
             if g is not None:
                 gradient -= self.cfg.edge_weight * g
@@ -415,11 +418,11 @@ class Nid:
         sky = parts.sky.any()
         nids, entropies = [], []
         for c in range(C):
-            wa = parts.windows[:, :, c] * use[..., None]  # the points off the photo do not count
-            if weights is None:
-                value, h_ab = nid_of_windows(wa, parzen_windows(sampled[..., c], self.cfg.nid_bins))
+            if weights is None:  # the points off the photo do not count
+                value, h_ab = nid_of_windows(parts.windows[:, :, c] * use[..., None],
+                                             parzen_windows(sampled[..., c], self.cfg.nid_bins))
             else:
-                value, h_ab, d_value = nid_with_gradient(wa, sampled[..., c], self.cfg.nid_bins)
+                value, h_ab, d_value = nid_with_gradient(parts.windows[:, :, c], sampled[..., c], self.cfg.nid_bins, use)
                 d_sampled[..., c] = w[:, c:c + 1] * d_value
             if c == 0 and sky:
                 value = value + self.cfg.sky_weight * parts.sky * (sampled[..., -1] * use).sum(1) / n
@@ -429,17 +432,18 @@ class Nid:
             entropies.append(h_ab)
         if weights is not None:
             gradient += _pose_gradient((d_sampled * s_u).sum(-1), (d_sampled * s_v).sum(-1), p.double(), q.double(),
-                                       parts.K.double(), delta[:3])
+                                       parts.K.double(), J)
         return _Evaluation(torch.stack(nids, 1).reshape(-1), [k for k in counts for _ in range(C)],
                            torch.stack(entropies, 1).reshape(-1).detach().tolist(), edges, gradient)
 
     def _edge_score(self, parts: _Parts, R: torch.Tensor, t: torch.Tensor, delta: torch.Tensor,
-                    with_gradient: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+                    J: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | None]:
         """The ring-edge score of each frame (F,) at apply_update((R, t), delta): sum over its ring
         edges (those on the photo when the parts were made, `_edges_of`) of strength x the photo's
-        edge map there, and the gradient (6,) of their sum with respect to delta when asked (else
-        None). The edges are not Z-buffered: a step's nearer return is the foreground, which the
-        camera sees but for the parallax of the sensor's offset."""
+        edge map there, and the gradient (6,) of their sum with respect to delta when asked by
+        J = so3_left_jacobian(delta[:3]) (else None). The edges are not Z-buffered: a step's
+        nearer return is the foreground, which the camera sees but for the parallax of the
+        sensor's offset."""
         q = parts.edge_points @ R.T + t
         p = q + delta[3:].to(R.dtype)
         uv, z = _project(p, parts.K)
@@ -448,11 +452,11 @@ class Nid:
         inside_u = (uv[..., 0] >= 0) & (uv[..., 0] <= size[:, 0:1] - 1)
         inside_v = (uv[..., 1] >= 0) & (uv[..., 1] <= size[:, 1:2] - 1)
         strength = parts.edge_strength * (z > 0.1)
-        if not with_gradient:
+        if J is None:
             return (strength * parts.edge_maps.sample(uv)[..., 0].double()).sum(1), None
         sampled, s_u, s_v = (x[..., 0].double() for x in parts.edge_maps.sample(uv, gradient=True))
         gradient = _pose_gradient(strength * s_u * inside_u, strength * s_v * inside_v, p.double(), q.double(),
-                                  parts.K.double(), delta[:3])
+                                  parts.K.double(), J)
         return (strength * sampled).sum(1), gradient
 
     def units(self, level: int, T_local: np.ndarray, at: "NidTerms") -> torch.Tensor:

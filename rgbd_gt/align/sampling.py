@@ -44,8 +44,11 @@ def _corners(shape: tuple[int, int], uv: torch.Tensor):
 
 
 def _rows(flat: torch.Tensor, *indices: torch.Tensor) -> tuple[torch.Tensor, ...]:
-    """flat's rows at each of the index tensors: `index_select`, which takes a third of the time
-    of indexing by a tensor (flat[i]) for the same values."""
+    """flat's rows (P, C) at each of the index tensors: `index_select`, which takes a third of the
+    time of indexing by a tensor (flat[i]) for the same values; one channel as a vector, which
+    index_select gathers 4x faster than rows of one."""
+    if flat.shape[1] == 1:
+        return tuple(flat.reshape(-1).index_select(0, i)[:, None] for i in indices)
     return tuple(flat.index_select(0, i) for i in indices)
 
 
