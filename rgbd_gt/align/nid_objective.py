@@ -243,6 +243,8 @@ class Nid:
         self.device = frames[0].pyramid[0].image.device
         self.centre = np.concatenate([f.points for f in frames]).mean(axis=0)
         self.frames = frames
+        # several frames of one rig (a joint solve) stop short of their minimum (`Aligner._searched`)
+        self.second_pass = len(frames) > 1
         self._points = [torch.as_tensor(f.points - self.centre, dtype=torch.float32, device=self.device) for f in frames]
         self._values = [torch.as_tensor(f.values, dtype=torch.float32, device=self.device).reshape(-1) for f in frames]
         self._keys = [torch.as_tensor(point_keys(f.points, cfg.seed), device=self.device) for f in frames]
