@@ -350,8 +350,8 @@ class Aligner:
         if self.objective.second_pass and finest == 0 < judge < top:
             # L-BFGS ends a level where its line search finds nothing lower, on the joint NID of
             # many sparse sweeps often short of the minimum: levels 1-0 once more from the result
-            # (fresh curvature memory, the points seen there) gather the joint results at the
-            # minimum, 0.1-0.4 cm apart instead of up to 1.4 cm (docs/lidar-method.md)
+            # (fresh curvature memory, the points seen there) bring the stragglers in (KITTI's
+            # joint results 0.056-0.074 deg off instead of up to 0.136; docs/lidar-method.md)
             T, _, again_history, again_info = self._descend(T, judge, finest, iterations, progress)
             more_history, more_info = more_history + again_history, more_info + again_info
         return T, history + more_history, level_info + more_info
