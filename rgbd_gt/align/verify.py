@@ -105,6 +105,12 @@ def start_size(T_init: np.ndarray, T: np.ndarray, init_sigma: dict | None, view:
     return max(rot, floor_px / view.camera.fx), max(trans, floor_px * view.median_depth(T) / view.camera.fx)
 
 
+def _coarsest(result: RefineResult) -> int:
+    """The coarsest pyramid level the result's refine ran (its `levels` may list a level twice:
+    a joint nid solve's second pass)."""
+    return max(lv["level"] for lv in result.levels)
+
+
 def repeatability(aligner: Aligner, result: RefineResult, T_init: np.ndarray, view: _View, cfg: VerifyConfig,
                   init_sigma: dict | None, seed: int) -> dict:
     """Refine again from the init and from cfg.repeats starts around it, all at once
@@ -114,7 +120,7 @@ def repeatability(aligner: Aligner, result: RefineResult, T_init: np.ndarray, vi
     the largest distance of the starts' results from the init's: in pixels of the visible points
     and of a grid over the whole photo (`_View.across_photo`), in mm and deg. (The runs may stop
     at a coarser level than the result, so they are compared among themselves, on the same levels.)"""
-    finest = min(cfg.repeat_finest, len(result.levels) - 1)
+    finest = min(cfg.repeat_finest, _coarsest(result))
     rot, trans = start_size(T_init, result.T_cam_from_scan, init_sigma, view, cfg.start_floor_px)
     starts = [T_init] + random_starts(T_init, cfg.repeats, rot, trans, seed)
     if result.objective == "nid" and cfg.repeat_nid_whole:  # the init's run would be refine's again
@@ -149,7 +155,7 @@ def frame_folds(aligner: Aligner, result: RefineResult, view: _View, cfg: Verify
     obj = aligner.objective
     T = result.T_cam_from_scan
     photo = view.across_photo(T)
-    finest = min(cfg.fold_finest, len(result.levels) - 1)
+    finest = min(cfg.fold_finest, _coarsest(result))
     groups = []
     for k in range(cfg.folds):
         keep = list(range(k, len(obj.frames), cfg.folds))
