@@ -243,8 +243,6 @@ class Nid:
         self.device = frames[0].pyramid[0].image.device
         self.centre = np.concatenate([f.points for f in frames]).mean(axis=0)
         self.frames = frames
-        # several frames of one rig (a joint solve) stop short of their minimum (`Aligner._searched`)
-        self.second_pass = len(frames) > 1
         self._points = [torch.as_tensor(f.points - self.centre, dtype=torch.float32, device=self.device) for f in frames]
         self._values = [torch.as_tensor(f.values, dtype=torch.float32, device=self.device).reshape(-1) for f in frames]
         self._keys = [torch.as_tensor(point_keys(f.points, cfg.seed), device=self.device) for f in frames]
@@ -259,6 +257,11 @@ class Nid:
         self._edge_maps: dict[int, _Stack] = {}  # per level, once needed
         self._prepared: list[list[torch.Tensor]] | None = None  # per level, per frame: point indices
         self._sky = [False] * len(frames)
+
+    @property
+    def second_pass(self) -> bool:
+        """Several frames of one rig (a joint solve) stop short of their minimum (`Aligner._searched`)."""
+        return len(self.frames) > 1
 
     def of_frames(self, keep: list[int], cfg: RefineConfig | None = None) -> "Nid":
         """The objective of the frames `keep` (indices) alone (with cfg, default this one's): the
