@@ -4,6 +4,10 @@ import os
 from pathlib import Path
 
 
+# NID and the L-BFGS driver: a pose (or every start of a level) that no longer sees the scan
+LEFT_THE_SCAN = "the pose left the scan: fewer than 50 points in view"
+
+
 class InputError(Exception):
     """Bad user input: a missing, corrupt or inconsistent file, or an impossible request.
 

@@ -84,20 +84,22 @@ def _torch_or_numpy(w):
 
 
 def _hat_and_eye(w):
-    """(3, 3) cross-product matrix of w (3,) and the identity, in w's array module, dtype and device."""
+    """(..., 3, 3) cross-product matrices of w (..., 3) and the identity (3, 3), in w's array
+    module, dtype and device."""
     xp = _torch_or_numpy(w)
-    zero = w[0] * 0
-    K = xp.stack([zero, -w[2], w[1], w[2], zero, -w[0], -w[1], w[0], zero]).reshape(3, 3)
+    x, y, z = w[..., 0], w[..., 1], w[..., 2]
+    zero = x * 0
+    K = xp.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(w.shape[:-1] + (3, 3))
     eye = xp.eye(3, dtype=w.dtype) if xp is np else xp.eye(3, dtype=w.dtype, device=w.device)
     return xp, K, eye
 
 
 def so3_exp(w):
-    """Rotation matrix (3, 3) of the rotation vector w (3,), radians (Rodrigues). numpy float64, or
-    a torch tensor of any float dtype and device (differentiable, also at 0)."""
+    """Rotation matrices (..., 3, 3) of the rotation vectors w (..., 3), radians (Rodrigues). numpy
+    float64, or a torch tensor of any float dtype and device (differentiable, also at 0)."""
     w = w if _torch_or_numpy(w) is not np else np.asarray(w, np.float64)
     xp, K, eye = _hat_and_eye(w)
-    theta2 = (w * w).sum()
+    theta2 = (w * w).sum(-1)[..., None, None]
     small = theta2 < 1e-12
     theta = xp.sqrt(xp.where(small, theta2 * 0 + 1, theta2))
     a = xp.where(small, 1 - theta2 / 6, xp.sin(theta) / theta)
@@ -106,10 +108,11 @@ def so3_exp(w):
 
 
 def so3_left_jacobian(w):
-    """(3, 3) J with so3_exp(w + e) = so3_exp(J e) so3_exp(w) to first order in e (3,); w as `so3_exp`'s."""
+    """(..., 3, 3) J with so3_exp(w + e) = so3_exp(J e) so3_exp(w) to first order in e (3,); w (..., 3)
+    as `so3_exp`'s."""
     w = w if _torch_or_numpy(w) is not np else np.asarray(w, np.float64)
     xp, K, eye = _hat_and_eye(w)
-    theta2 = (w * w).sum()
+    theta2 = (w * w).sum(-1)[..., None, None]
     small = theta2 < 1e-8
     theta = xp.sqrt(xp.where(small, theta2 * 0 + 1, theta2))
     a = xp.where(small, 0.5 - theta2 / 24, (1 - xp.cos(theta)) / theta**2)

@@ -65,10 +65,10 @@ def test_edge_term_gradient_is_autograds():
     assert parts.edge_points is not None and int((parts.edge_strength[0] > 0).sum()) > 300
     weights = torch.ones(1, dtype=torch.float64)
     d = torch.as_tensor(np.r_[np.radians([0.3, -0.4, 0.3]), 0.05, -0.03, 0.05], dtype=torch.float64).requires_grad_(True)
-    at = obj._evaluate(parts, T_local, d, weights)
+    at = obj._evaluate(parts, [T_local], d[None], weights)
     assert float(at.edges.sum().detach()) > 0
-    at.objective(weights).backward()
-    closed, auto = at.gradient.detach().numpy(), d.grad.numpy()
+    at.objective(weights).sum().backward()
+    closed, auto = at.gradient[0].detach().numpy(), d.grad.numpy()
     np.testing.assert_allclose(closed, auto, rtol=1e-5, atol=1e-6 * np.abs(auto).max())  # autograd: float32 geometry
 
 

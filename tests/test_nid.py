@@ -118,6 +118,63 @@ def test_own_lbfgs_takes_torch_optim_lbfgs_steps():
     assert np.abs(x - 1).max() < 1e-5 and n_iter < 200  # converged to the minimum at (1, ..., 1)
 
 
+def test_lockstep_lbfgs_takes_each_starts_own_steps():
+    """`lbfgs.minimize_many` runs several starts in lockstep (their points evaluated in one call):
+    each start's iterates are those it takes alone, and a start whose value turns NaN (a pose
+    that left the scan) drops out without moving the others."""
+    def rosenbrock(x):
+        return float((100 * (x[1:] - x[:-1] ** 2) ** 2 + (1 - x[:-1]) ** 2).sum())
+
+    def gradient(x):
+        g = np.zeros_like(x)
+        g[:-1] = -400 * x[:-1] * (x[1:] - x[:-1] ** 2) - 2 * (1 - x[:-1])
+        g[1:] += 200 * (x[1:] - x[:-1] ** 2)
+        return g
+
+    x0s = np.random.default_rng(0).normal(size=(4, 6))
+    calls = []
+
+    def batched(X, which):
+        calls.append(len(which))
+        values = np.array([rosenbrock(x) for x in X])
+        values[np.array(which) == 2] = np.nan  # start 2 leaves the scan at once
+        return values, np.stack([gradient(x) for x in X])
+
+    together = lbfgs.minimize_many(batched, x0s, 40)
+    assert together[2] is None and max(calls) == 4 and min(calls) < 4  # finished starts leave the batch
+    for i in (0, 1, 3):
+        x, n_iter = lbfgs.minimize(lambda x: (rosenbrock(x), gradient(x)), x0s[i], 40)
+        assert together[i][1] == n_iter and np.array_equal(together[i][0], x)
+
+
+def test_poses_evaluated_together_are_each_alone(intensity_scene):
+    """The starts of a level are evaluated together (`Nid.batch`: their parts joined, one
+    evaluation): three poses, each on the points it sees, give together each one's value and
+    gradient alone; one moved off the scan is NaN and leaves the others as they are."""
+    d = intensity_scene
+    scan, photo, camera = load_scan(d / "intensity.ply"), read_image(d / "photo.png"), read_camera(d / "camera.yaml")
+    T = read_pose(d / "init_pose.yaml")[0]
+    obj = Nid([Frame(scan.xyz, scan.intensity, photo_pyramid(photo, camera, 3, torch.device("cpu")))],
+              RefineConfig(objective="nid", levels=3, nid_edges=True))
+    T_local = translated(T, obj.centre)
+    obj.prepare(T_local)
+    Ts = [apply_update(T_local, np.r_[np.radians(w), v]) for w, v in
+          (([0, 0, 0], [0, 0, 0]), ([1, -0.5, 0.3], [0.05, 0, -0.1]), ([-0.8, 0.2, 0.6], [-0.1, 0.05, 0.1]))]
+    terms = [obj.evaluate(1, [T1]) for T1 in Ts]
+    assert len({int(t.parts.real.sum()) for t in terms}) == 3  # each on its own points: padded when joined
+    delta = torch.as_tensor([[2e-3, -1e-3, 5e-4, 3e-3, -2e-3, 1e-3]] * 3, dtype=torch.float64)
+    values, gradients = obj.value_and_gradient(1, Ts, delta, obj.batch(terms))
+    for g, (T1, at) in enumerate(zip(Ts, terms)):
+        (alone,), grad = obj.value_and_gradient(1, [T1], delta[g:g + 1], obj.batch([at]))
+        np.testing.assert_allclose(values[g], alone, rtol=1e-9)
+        np.testing.assert_allclose(gradients[g].numpy(), grad[0].numpy(), rtol=1e-6, atol=1e-9 * float(grad.abs().max()))
+    away = delta.clone()
+    away[1, 3] = 1e4  # 10 km sideways
+    moved, moved_gradients = obj.value_and_gradient(1, Ts, away, obj.batch(terms))
+    assert np.isnan(moved[1]) and np.array_equal(moved[[0, 2]], values[[0, 2]])
+    assert torch.equal(moved_gradients[[0, 2]], gradients[[0, 2]])
+
+
 def _gradients(aligner, level, T, delta):
     """Of sum(weights * NID) on `level` at apply_update(T, delta) (delta (6,)), unequal weights
     per channel pair: (closed-form gradient, autograd's, functions of delta giving the value and
@@ -125,19 +182,19 @@ def _gradients(aligner, level, T, delta):
     aligner = aligner.objective
     T_local = translated(T, aligner.centre)
     parts = aligner._parts(level, T_local)
-    zero = torch.zeros(6, dtype=torch.float64)
-    weights = torch.linspace(1.0, 2.0, len(aligner._evaluate(parts, T_local, zero).nid), dtype=torch.float64)
+    zero = torch.zeros(1, 6, dtype=torch.float64)
+    weights = torch.linspace(1.0, 2.0, len(aligner._evaluate(parts, [T_local], zero).nid), dtype=torch.float64)
     d = torch.as_tensor(delta, dtype=torch.float64).requires_grad_(True)
-    at = aligner._evaluate(parts, T_local, d, weights)
+    at = aligner._evaluate(parts, [T_local], d[None], weights)
     (at.nid * weights).sum().backward()
 
     def value(x):
-        return float((aligner._evaluate(parts, T_local, torch.as_tensor(x, dtype=torch.float64)).nid * weights).sum())
+        return float((aligner._evaluate(parts, [T_local], torch.as_tensor(x, dtype=torch.float64)[None]).nid * weights).sum())
 
     def gradient(x):
-        return aligner._evaluate(parts, T_local, torch.as_tensor(x, dtype=torch.float64), weights).gradient.numpy()
+        return aligner._evaluate(parts, [T_local], torch.as_tensor(x, dtype=torch.float64)[None], weights).gradient[0].numpy()
 
-    return at.gradient.detach().numpy(), d.grad.numpy(), value, gradient, aligner.units(level, T_local, aligner.evaluate(level, [T_local])).numpy()
+    return at.gradient[0].detach().numpy(), d.grad.numpy(), value, gradient, aligner.units(level, T_local, aligner.evaluate(level, [T_local])).numpy()
 
 
 @pytest.mark.parametrize("edges", [False, True])
@@ -185,7 +242,7 @@ def test_frames_evaluated_together_are_each_alone(intensity_scene):
         T_local = translated(T, obj.centre)
         obj.prepare(T_local)
         parts = obj._parts(1, T_local)
-        results.append(obj._evaluate(parts, T_local, delta, torch.ones(2 * len(obj.frames), dtype=torch.float64)))
+        results.append(obj._evaluate(parts, [T_local], delta[None], torch.ones(2 * len(obj.frames), dtype=torch.float64)))
     together, first, second = results
     assert together.counts == first.counts + second.counts and first.counts[0] > second.counts[0] > 0  # padded
     np.testing.assert_allclose(together.nid.numpy(), np.r_[first.nid.numpy(), second.nid.numpy()], rtol=1e-5)

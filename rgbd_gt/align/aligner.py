@@ -7,8 +7,8 @@ keeps its data in a local frame (`centre`: float32 stays exact for georeferenced
 evaluates a batch of local-frame poses (one pose is a batch of one) with the shared camera
 corrections q (Q_SIZE,) (`render.project.project_corrected`): `prepare` chooses every level's points
 once, `evaluate` gives per pose the loss and, for LM, the Gauss-Newton system, `trial` the loss at
-other poses on the same points and fits; L-BFGS (`method == "lbfgs"`) takes `units` and
-`value_and_gradient` besides.
+other poses on the same points and fits; L-BFGS (`method == "lbfgs"`) takes `units`, `batch`
+and `value_and_gradient` besides (the starts of a level run in lockstep, evaluated together).
 The driver holds no state between calls: every refine starts from the camera file's intrinsics.
 """
 
@@ -24,7 +24,7 @@ import torch
 
 from rgbd_gt.align import lbfgs
 from rgbd_gt.align.objective import Objective
-from rgbd_gt.errors import InputError
+from rgbd_gt.errors import LEFT_THE_SCAN, InputError
 from rgbd_gt.pose import apply_update, random_starts, rotation_error_deg, translated
 from rgbd_gt.camera import Q_SIZE
 
@@ -275,26 +275,52 @@ class Aligner:
             progress(rec)
 
     # -- L-BFGS and the wide search ----------------------------------------------------------------
-    def _lbfgs(self, level: int, T: np.ndarray, iterations: int) -> tuple[np.ndarray, float, int, str]:
-        """L-BFGS on one level from T (local frame), on the points the objective sees at T, in
-        units of one level pixel of image motion. Returns (pose, loss, iterations, why it stopped)."""
+    def _lbfgs(self, level: int, Ts: list[np.ndarray], iterations: int) -> list[tuple | None]:
+        """L-BFGS on one level from each pose of Ts (local frame) in lockstep, each on the points
+        the objective sees at its start, in units of one level pixel of image motion: each round
+        evaluates every unfinished start's next point in one call. Returns per start (pose, loss,
+        iterations, why it stopped), None for a start that lost the scan."""
         obj, q = self.objective, self._q(None)
-        at = obj.evaluate(level, [T], q, jacobian=False)
-        units = obj.units(level, T, at)
+        ats = []
+        for T in Ts:
+            try:
+                ats.append(obj.evaluate(level, [T], q, jacobian=False))
+            except InputError:
+                ats.append(None)
+        live = [i for i, at in enumerate(ats) if at is not None]
+        if not live:
+            return [None] * len(Ts)
+        units = torch.stack([obj.units(level, Ts[i], ats[i]) for i in live])  # (k, 6)
         r, m = math.radians(self.cfg.search_rotation_deg), self.cfg.search_translation_m
         cap = torch.minimum(units * STEP_CAP_PX, torch.tensor([r, r, r, m, m, m], dtype=units.dtype, device=units.device))
+        batches: dict[tuple, object] = {}  # joined once per set of unfinished starts
 
-        def update(x: torch.Tensor) -> torch.Tensor:  # smoothly at most `cap` per parameter
-            return cap * torch.tanh(units * x / cap)
+        def update(x: torch.Tensor, which) -> torch.Tensor:  # smoothly at most `cap` per parameter
+            return cap[which] * torch.tanh(units[which] * x / cap[which])
 
-        def objective(x_np: np.ndarray) -> tuple[float, np.ndarray]:
-            x = torch.tensor(x_np, device=self.device)
-            value, gradient = obj.value_and_gradient(level, T, update(x), at)
-            return value, (gradient * (units * (1 - torch.tanh(units * x / cap) ** 2))).cpu().numpy()
+        def objective(X: np.ndarray, which: list[int]) -> tuple[np.ndarray, np.ndarray]:
+            key = tuple(which)
+            if key not in batches:
+                batches.clear()
+                batches[key] = obj.batch([ats[live[i]] for i in which])
+            x = torch.tensor(X, device=self.device)
+            values, gradients = obj.value_and_gradient(level, [Ts[live[i]] for i in which], update(x, which), batches[key])
+            slope = units[which] * (1 - torch.tanh(units[which] * x / cap[which]) ** 2)
+            return values, (gradients * slope).cpu().numpy()
 
-        x, n_iter = lbfgs.minimize(objective, np.zeros(6), iterations)
-        T = apply_update(T, update(torch.tensor(x, device=self.device)).cpu().numpy())
-        return T, float(obj.trial(level, [T], q, at)[0]), n_iter, "iteration cap" if n_iter >= iterations else "converged"
+        out: list[tuple | None] = [None] * len(Ts)
+        for k, found in enumerate(lbfgs.minimize_many(objective, np.zeros((len(live), 6)), iterations)):
+            if found is None:
+                continue
+            x, n_iter = found
+            i = live[k]
+            T = apply_update(Ts[i], update(torch.tensor(x[None], device=self.device), [k])[0].cpu().numpy())
+            try:
+                loss = float(obj.trial(level, [T], q, ats[i])[0])
+            except InputError:
+                continue
+            out[i] = (T, loss, n_iter, "iteration cap" if n_iter >= iterations else "converged")
+        return out
 
     def _search(self, level: int, T: np.ndarray) -> list[np.ndarray]:
         """The coarsest level from T and from cfg.search_starts random starts around it: the
@@ -302,32 +328,41 @@ class Aligner:
         cfg = self.cfg
         starts = [T] + random_starts(T, cfg.search_starts, math.radians(cfg.search_rotation_deg),
                                      cfg.search_translation_m, cfg.seed + 1)
-        found = []
-        for T0 in starts:
-            try:
-                T1, loss, _, _ = self._lbfgs(level, T0, cfg.search_iterations)
-            except InputError:
-                continue
-            found.append((loss, T1))
+        found = [(run[1], run[0]) for run in self._lbfgs(level, starts, cfg.search_iterations) if run is not None]
         found.sort(key=lambda c: c[0])
         return [T1 for _, T1 in found[: cfg.search_keep]] or [T]
 
-    def _descend(self, T: np.ndarray, top: int, bottom: int, iterations: int,
-                 progress: Callable[[dict], None] | None = None) -> tuple[np.ndarray, float, list[dict], list[dict]]:
-        """L-BFGS level by level from top down to bottom (inclusive). Returns (pose, loss of the
-        last level, history records, per-level iterations and stop reasons)."""
-        loss, history, level_info = math.inf, [], []
+    def _descend(self, Ts: list[np.ndarray], top: int, bottom: int, iterations: int,
+                 progress: Callable[[dict], None] | None = None) -> list[tuple | None]:
+        """L-BFGS level by level from top down to bottom (inclusive), from each pose of Ts in
+        lockstep. Returns per start (pose, loss of the last level, history records, per-level
+        iterations and stop reasons), None for a start that lost the scan."""
+        runs: list = [(T, math.inf, [], []) for T in Ts]
         for level in range(top, bottom - 1, -1):
-            T_before = T
-            T, loss, n_it, stop = self._lbfgs(level, T, iterations)
-            level_info.append({"level": level, "iterations": n_it, "stop": stop})
-            step = T @ np.linalg.inv(T_before)
-            rec = {"level": level, "iteration": n_it, "loss": loss, "rotation_update_deg": rotation_error_deg(T, T_before),
-                   "translation_update_m": float(np.linalg.norm(step[:3, 3])), "accepted": True}
-            history.append(rec)
-            if progress is not None:
-                progress(rec)
-        return T, loss, history, level_info
+            live = [i for i, run in enumerate(runs) if run is not None]
+            for i, found in zip(live, self._lbfgs(level, [runs[i][0] for i in live], iterations)):
+                if found is None:
+                    runs[i] = None
+                    continue
+                T_before, _, history, level_info = runs[i]
+                T, loss, n_it, stop = found
+                level_info.append({"level": level, "iterations": n_it, "stop": stop})
+                step = T @ np.linalg.inv(T_before)
+                rec = {"level": level, "iteration": n_it, "loss": loss, "rotation_update_deg": rotation_error_deg(T, T_before),
+                       "translation_update_m": float(np.linalg.norm(step[:3, 3])), "accepted": True}
+                history.append(rec)
+                if progress is not None:
+                    progress(rec)
+                runs[i] = (T, loss, history, level_info)
+        return runs
+
+    def _descend_one(self, T: np.ndarray, top: int, bottom: int, iterations: int,
+                     progress: Callable[[dict], None] | None) -> tuple[np.ndarray, float, list[dict], list[dict]]:
+        """`_descend` from T alone; InputError where it loses the scan."""
+        (run,) = self._descend([T], top, bottom, iterations, progress)
+        if run is None:
+            raise InputError(LEFT_THE_SCAN)
+        return run
 
     def _searched(self, T: np.ndarray, top: int, finest: int, iterations: int,
                   progress: Callable[[dict], None] | None) -> tuple[np.ndarray, list[dict], list[dict]]:
@@ -338,7 +373,9 @@ class Aligner:
         search = self.objective.wide_search and self.cfg.search_starts > 0
         candidates = self._search(top, T) if search else [T]
         judge = max(finest, min(1, top))
-        runs = [self._descend(c, top, judge, iterations, progress) for c in candidates]
+        runs = [run for run in self._descend(candidates, top, judge, iterations, progress) if run is not None]
+        if not runs:
+            raise InputError(LEFT_THE_SCAN)
         if len(runs) > 1:
             # a run's own loss is on the points it saw where the level began, which a candidate
             # that moved far no longer sees so: KITTI's joint draw 7 from 3 deg picked one 5.9 deg off
@@ -346,12 +383,12 @@ class Aligner:
             runs = [(T1, float(self.objective.evaluate(judge, [T1], q, jacobian=False).loss[0]), h, info)
                     for T1, _, h, info in runs]
         T, _, history, level_info = min(runs, key=lambda r: r[1])
-        T, _, more_history, more_info = self._descend(T, judge - 1, finest, iterations, progress)
+        T, _, more_history, more_info = self._descend_one(T, judge - 1, finest, iterations, progress)
         if self.objective.second_pass and finest == 0 < judge < top:
             # L-BFGS ends a level where its line search finds nothing lower, on the joint NID of
             # many sparse sweeps often short of the minimum: levels 1-0 once more from the result
             # (fresh curvature memory, the points seen there) bring the stragglers in (KITTI's
             # joint results 0.056-0.074 deg off instead of up to 0.136; docs/lidar-method.md)
-            T, _, again_history, again_info = self._descend(T, judge, finest, iterations, progress)
+            T, _, again_history, again_info = self._descend_one(T, judge, finest, iterations, progress)
             more_history, more_info = more_history + again_history, more_info + again_info
         return T, history + more_history, level_info + more_info

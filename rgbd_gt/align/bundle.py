@@ -44,7 +44,7 @@ import torch
 from rgbd_gt.align import lbfgs
 from rgbd_gt.align.aligner import STEP_CAP_PX, Aligner, damped
 from rgbd_gt.align.photometric import scaled_inverse
-from rgbd_gt.errors import InputError
+from rgbd_gt.errors import LEFT_THE_SCAN, InputError
 from rgbd_gt.pose import (apply_update, invert, rotation_error_deg, translated, translation_error_m, update_of,
                           update_through)
 from rgbd_gt.camera import Q_SIZE
@@ -464,6 +464,7 @@ class Bundle:
         Ts = [translated(self.pose(i, bodies, rig), p.objective.centre) for i, p in enumerate(self.photos)]
         at = self._evaluate(level, bodies, rig, q)
         maps = [self._maps(i, rig) for i in range(n)]
+        batches = [p.objective.batch([at[i]]) for i, p in enumerate(self.photos)]
         units = np.zeros(6 * nb + self.shared)
         for i, p in enumerate(self.photos):  # each unknown measured on the first photo it moves
             u = p.objective.units(level, Ts[i], at[i]).cpu().numpy()
@@ -482,11 +483,10 @@ class Bundle:
             for i, p in enumerate(self.photos):
                 (Jb, Js), b = maps[i], self.body_of[i]
                 d = Jb @ x[6 * b:6 * b + 6] + Js @ x[6 * nb:]
-                try:
-                    v, g = p.objective.value_and_gradient(level, Ts[i], torch.as_tensor(d, device=self.device), at[i])
-                except InputError as exc:
-                    raise InputError(f"{p.name or f'photo {i + 1}'}: {exc}") from None
-                g = g.cpu().numpy()
+                (v,), g = p.objective.value_and_gradient(level, [Ts[i]], torch.as_tensor(d, device=self.device)[None], batches[i])
+                if not np.isfinite(v):
+                    raise InputError(f"{p.name or f'photo {i + 1}'}: {LEFT_THE_SCAN}")
+                g = g[0].cpu().numpy()
                 value += v
                 grad[6 * b:6 * b + 6] += Jb.T @ g
                 grad[6 * nb:] += Js.T @ g

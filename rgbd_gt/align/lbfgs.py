@@ -6,14 +6,23 @@ optimiser imports torch._dynamo and sympy the first time in a process (its metho
 `torch._disable_dynamo`), 0.9 s on a 2-core CPU, a third of a LiDAR frame's time budget, to
 optimise 6 numbers (docs/lidar-method.md, "Speed, and how far round-off moves the table").
 tests/test_nid.py checks that the iterates equal torch's.
+
+The minimiser is a generator (`_minimizer`: it yields the points it needs evaluated and is sent
+their values) so that `minimize_many` can run several starts in lockstep, their pending points
+evaluated together: a NID evaluation on a coarse level is mostly per-call overhead, which one
+batched call pays once for all starts.
 """
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, Generator
 
 import numpy as np
 
 Objective = Callable[[np.ndarray], tuple[float, np.ndarray]]  # x (n,) -> (value, gradient (n,))
+# X (k, n), which (k,) the starts they belong to -> (values (k,), gradients (k, n))
+Objectives = Callable[[np.ndarray, list[int]], tuple[np.ndarray, np.ndarray]]
+# yields a point x (n,) to evaluate, is sent (value, gradient (n,)), returns its result
+Steps = Generator[np.ndarray, tuple[float, np.ndarray], tuple]
 
 
 def _cubic_min(x1: float, f1: float, g1: float, x2: float, f2: float, g2: float,
@@ -33,13 +42,14 @@ def _cubic_min(x1: float, f1: float, g1: float, x2: float, f2: float, g2: float,
     return float(min(max(x, lo), hi))
 
 
-def _strong_wolfe(fun: Objective, x: np.ndarray, t: float, d: np.ndarray, f: float, g: np.ndarray,
+def _strong_wolfe(x: np.ndarray, t: float, d: np.ndarray, f: float, g: np.ndarray,
                   gtd: float, max_ls: int, tolerance_change: float, c1: float = 1e-4,
-                  c2: float = 0.9) -> tuple[float, np.ndarray, float, int]:
+                  c2: float = 0.9) -> Steps:
     """Step length t along d from x satisfying the strong Wolfe conditions: bracket, then zoom
-    with cubic interpolation. Returns (value, gradient, t, evaluations)."""
+    with cubic interpolation. Yields the points to evaluate (`Steps`); returns (value, gradient,
+    t, evaluations)."""
     d_norm = float(np.abs(d).max())
-    f_new, g_new = fun(x + t * d)
+    f_new, g_new = yield x + t * d
     evals, ls_iter = 1, 0
     gtd_new = float(g_new @ d)
     t_prev, f_prev, g_prev, gtd_prev = 0.0, f, g, gtd
@@ -58,7 +68,7 @@ def _strong_wolfe(fun: Objective, x: np.ndarray, t: float, d: np.ndarray, f: flo
         t_next = _cubic_min(t_prev, f_prev, gtd_prev, t, f_new, gtd_new, bounds=(t + 0.01 * (t - t_prev), t * 10))
         t_prev, f_prev, g_prev, gtd_prev = t, f_new, g_new, gtd_new
         t = t_next
-        f_new, g_new = fun(x + t * d)
+        f_new, g_new = yield x + t * d
         evals += 1
         gtd_new = float(g_new @ d)
         ls_iter += 1
@@ -82,7 +92,7 @@ def _strong_wolfe(fun: Objective, x: np.ndarray, t: float, d: np.ndarray, f: flo
                 insufficient = True
         else:
             insufficient = False
-        f_new, g_new = fun(x + t * d)
+        f_new, g_new = yield x + t * d
         evals += 1
         gtd_new = float(g_new @ d)
         ls_iter += 1
@@ -98,13 +108,46 @@ def _strong_wolfe(fun: Objective, x: np.ndarray, t: float, d: np.ndarray, f: flo
     return bf[low], bg[low], bracket[low], evals
 
 
-def minimize(fun: Objective, x0: np.ndarray, max_iter: int, tolerance_grad: float = 1e-9,
-             tolerance_change: float = 1e-9, history_size: int = 100) -> tuple[np.ndarray, int]:
+def minimize(fun: Objective, x0: np.ndarray, max_iter: int) -> tuple[np.ndarray, int]:
     """Minimise fun from x0 (n,) with at most max_iter iterations and max_iter * 5 // 4
     evaluations. Returns (x, iterations)."""
+    steps = _minimizer(x0, max_iter)
+    x = next(steps)
+    try:
+        while True:
+            x = steps.send(fun(x))
+    except StopIteration as done:
+        return done.value
+
+
+def minimize_many(fun: Objectives, x0s: np.ndarray, max_iter: int) -> list[tuple[np.ndarray, int] | None]:
+    """`minimize` from each start of x0s (B, n) in lockstep: each round, fun evaluates every
+    unfinished start's pending point in one call (`Objectives`). A start whose value is not finite
+    drops out. Returns per start (x, iterations), or None for one that dropped out; each start's
+    iterates are those `minimize` takes from it alone, given the same values."""
+    runs = [_minimizer(x0, max_iter) for x0 in x0s]
+    pending = {i: next(run) for i, run in enumerate(runs)}
+    out: list[tuple[np.ndarray, int] | None] = [None] * len(runs)
+    while pending:
+        which = list(pending)
+        values, gradients = fun(np.stack([pending[i] for i in which]), which)
+        for i, f, g in zip(which, values, gradients):
+            del pending[i]
+            if not np.isfinite(f):
+                continue
+            try:
+                pending[i] = runs[i].send((float(f), g))
+            except StopIteration as done:
+                out[i] = done.value
+    return out
+
+
+def _minimizer(x0: np.ndarray, max_iter: int, tolerance_grad: float = 1e-9, tolerance_change: float = 1e-9,
+               history_size: int = 100) -> Steps:
+    """`minimize`'s algorithm as a generator (`Steps`); returns (x, iterations)."""
     max_eval = max_iter * 5 // 4
     x = np.array(x0, dtype=np.float64)
-    f, g = fun(x)
+    f, g = yield x
     evals = 1
     if np.abs(g).max() <= tolerance_grad:
         return x, 0
@@ -137,7 +180,7 @@ def minimize(fun: Objective, x0: np.ndarray, max_iter: int, tolerance_grad: floa
         gtd = float(g @ d)
         if gtd > -tolerance_change:
             break
-        f, g, t, ls_evals = _strong_wolfe(fun, x, t, d, f, g, gtd, max_eval - evals, tolerance_change)
+        f, g, t, ls_evals = yield from _strong_wolfe(x, t, d, f, g, gtd, max_eval - evals, tolerance_change)
         x = x + t * d
         evals += ls_evals
         if (n_iter == max_iter or evals >= max_eval or np.abs(g).max() <= tolerance_grad

@@ -27,7 +27,7 @@ from rgbd_gt.align.nid import nid_of_windows, nid_with_gradient, parzen_windows
 from rgbd_gt.align.pyramid import PhotoLevel
 from rgbd_gt.align.sampling import bilinear, bilinear_stacked, central_gradients
 from rgbd_gt.align.subset import near_view, point_keys
-from rgbd_gt.errors import InputError
+from rgbd_gt.errors import LEFT_THE_SCAN, InputError
 from rgbd_gt.pose import so3_exp, so3_left_jacobian
 from rgbd_gt.render.project import project_pinhole, projection_jacobian
 from rgbd_gt.render.normals import facing_camera
@@ -95,6 +95,16 @@ def _padded(rows: list[torch.Tensor]) -> torch.Tensor:
     return out
 
 
+def _moved(points: torch.Tensor, R: torch.Tensor, t: torch.Tensor, delta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Points (G x F, n, 3) in G groups of F rows, group g moved by (R[g], t[g]) ((G, 3, 3), (G,
+    3)): q; and p = q + delta[g, 3:] (delta (G, 6)). Each group is one product, as one pose's F
+    frames were before there were groups."""
+    G = R.shape[0]
+    q = points.reshape(G, -1, 3) @ R.transpose(1, 2) + t[:, None]
+    p = q + delta[:, None, 3:].to(R.dtype)
+    return q.reshape(points.shape), p.reshape(points.shape)
+
+
 def _project(p: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """`project_pinhole` of each frame's camera-frame points p (F, n, 3) through its K (F, 4:
     fx, fy, cx, cy): pixels (F, n, 2), depths (F, n)."""
@@ -108,7 +118,9 @@ class _Parts:
     """The F frames on one level, batch-first, each padded to the n points of the largest (the
     padding never counts: its windows and strengths are zero): their points (local frame), their
     values and the photos' images, as pairs of channels compared by NID: (scan value, gray) and,
-    with cfg.nid_edges, (how far the point stands in front of its sides, gray gradient magnitude)."""
+    with cfg.nid_edges, (how far the point stands in front of its sides, gray gradient magnitude).
+    Several poses' parts evaluated together are G groups of F rows (`_joined`); the shapes below
+    are for one."""
 
     points: torch.Tensor  # (F, n, 3) float32
     real: torch.Tensor  # (F, n) bool: not padding
@@ -121,26 +133,57 @@ class _Parts:
     edge_maps: _Stack | None = None  # (H, W, 1) per frame: the photo's edges spread (`edge_distance_map`)
 
 
+def _joined(parts: list[_Parts]) -> _Parts:
+    """The parts of G poses (each F rows, one level) as one, group after group, every row padded
+    to the largest n: one evaluation serves them all (`Nid._evaluate`)."""
+    if len(parts) == 1:
+        return parts[0]
+    G = len(parts)
+
+    def rows(name: str) -> torch.Tensor:
+        return _padded([row for part in parts for row in getattr(part, name)])
+
+    def repeated(stack: _Stack) -> _Stack:
+        return _Stack(stack.flat, stack.base.repeat(G, 1), stack.size.repeat(G, 1), stack.valid)
+
+    first = parts[0]
+    joined = _Parts(rows("points"), rows("real"), rows("windows"), repeated(first.images), first.K.repeat(G, 1),
+                    first.sky.repeat(G))
+    if first.edge_points is not None:  # the same level and frames: all parts have them or none
+        joined.edge_points, joined.edge_strength = rows("edge_points"), rows("edge_strength")
+        joined.edge_maps = repeated(first.edge_maps)
+    return joined
+
+
 @dataclass
 class _Evaluation:
-    nid: torch.Tensor  # (F x C,) NID per frame and channel pair (the first plus the sky charge), float64
+    """NID at G poses, each over the F frames (rows of `_Parts`, group after group)."""
+
+    nid: torch.Tensor  # (G x F x C,) NID per frame and channel pair (the first plus the sky charge), float64
     counts: list[int]  # per frame and channel pair, the points that entered its histogram
     entropies: list[float]  # ... and its joint entropy H(A, B) (nats)
-    edges: torch.Tensor  # (F,) float64: per frame cfg.edge_weight x its ring edges' score (0 without)
-    gradient: torch.Tensor | None = None  # (6,) float64 d objective / d delta, when asked
+    edges: torch.Tensor  # (G x F,) float64: per frame cfg.edge_weight x its ring edges' score (0 without)
+    gradient: torch.Tensor | None = None  # (G, 6) float64 d objective / d delta per pose, when asked
+    groups: int = 1  # G
+
+    @property
+    def lost(self) -> np.ndarray:
+        """(G,) bool: the pose left the scan (fewer than 50 points land on some frame's photo)."""
+        return np.array(self.counts).reshape(self.groups, -1).min(1) < 50
 
     @property
     def loss(self) -> torch.Tensor:
         """Mean NID less the edge score per unit of the frames' weights: the objective minimised
-        (`objective`) over the sum of the weights, up to how the weights differ between frames."""
+        (`objective`) over the sum of the weights, up to how the weights differ between frames
+        (one pose)."""
         return self.nid.mean() - self.edges.sum() / self.weights().sum()
 
     def objective(self, weights: torch.Tensor) -> torch.Tensor:
-        """What L-BFGS minimises: sum(weights * NID) - the edge score."""
-        return self.per_frame(weights).sum()
+        """(G,) what L-BFGS minimises at each pose: sum(weights * NID) - the edge score."""
+        return self.per_frame(weights).reshape(self.groups, -1).sum(1)
 
     def per_frame(self, weights: torch.Tensor) -> torch.Tensor:
-        """(F,) each frame's share of `objective`: the objective is a sum over the frames."""
+        """(G x F,) each frame's share of `objective`: the objective is a sum over the frames."""
         return (self.nid * weights).reshape(len(self.edges), -1).sum(1) - self.edges
 
     def weights(self) -> torch.Tensor:
@@ -155,15 +198,17 @@ class _Evaluation:
 
 def _pose_gradient(d_u: torch.Tensor, d_v: torch.Tensor, p: torch.Tensor, q: torch.Tensor, K: torch.Tensor,
                    J: torch.Tensor) -> torch.Tensor:
-    """(6,) d loss / d delta of each frame's points p = so3_exp(w) q + delta[3:] (F, n, 3, camera
-    frame), given d loss / d (u, v) of their pinhole projections through K (F, 4) (F, n) each (0
-    for points that do not count) and J = so3_left_jacobian(w) (3, 3) float64."""
+    """(G, 6) d loss / d delta[g] of the points p = so3_exp(w[g]) q + delta[g, 3:] (G x F, n, 3,
+    camera frame, in G groups of F rows), given d loss / d (u, v) of their pinhole projections
+    through K (G x F, 4) (G x F, n) each (0 for points that do not count) and J =
+    so3_left_jacobian(w) (G, 3, 3) float64."""
+    G = J.shape[0]
     iz = 1.0 / p[..., 2].clamp_min(1e-9)
     g_x, g_y = d_u * K[:, 0:1] * iz, d_v * K[:, 1:2] * iz
-    d_p = torch.stack([g_x, g_y, -(g_x * p[..., 0] + g_y * p[..., 1]) * iz], -1).reshape(-1, 3)
+    d_p = torch.stack([g_x, g_y, -(g_x * p[..., 0] + g_y * p[..., 1]) * iz], -1).reshape(G, -1, 3)
     # dp = (J dw) x q, so d loss / dw = J^T sum(q x d_p)
-    d_w = J.T @ torch.linalg.cross(q.reshape(-1, 3), d_p).sum(0)
-    return torch.cat([d_w, d_p.sum(0)])
+    d_w = (J.transpose(1, 2) @ torch.linalg.cross(q.reshape(G, -1, 3), d_p).sum(1)[..., None])[..., 0]
+    return torch.cat([d_w, d_p.sum(1)], 1)
 
 
 def _channels(image: torch.Tensor, edges: bool) -> torch.Tensor:
@@ -205,6 +250,14 @@ def _on_photo(photo: PhotoLevel, uv: torch.Tensor, z: torch.Tensor, near: float)
     if photo.valid is not None:
         ok &= photo.valid[uv[:, 1].detach().clamp(0, h - 1).long(), uv[:, 0].detach().clamp(0, w - 1).long()]
     return ok
+
+
+@dataclass
+class NidBatch:
+    """The terms of G poses on one level joined for one evaluation (`Nid.batch`)."""
+
+    parts: _Parts  # G groups of F rows
+    weights: torch.Tensor  # (G x F x C,) float64: each pose's frames' weights (`NidTerms.weights`)
 
 
 @dataclass
@@ -383,43 +436,41 @@ class Nid:
         return self._edge_maps[level]
 
     # -- NID at a pose ------------------------------------------------------------------------------
-    def _evaluate(self, parts: _Parts, T_local: np.ndarray, delta: torch.Tensor,
+    def _evaluate(self, parts: _Parts, Ts: list[np.ndarray], delta: torch.Tensor,
                   weights: torch.Tensor | None = None) -> _Evaluation:
-        """NID per frame and channel pair at apply_update(T_local, delta) (delta (6,) float64), on
-        the points that land on usable pixels. With weights (F x C,), also the gradient of
-        sum(weights * NID) with respect to delta, in closed form (`nid_with_gradient` and the
-        derivative of the bilinear interpolant, as strategy A); delta may also be differentiated
-        by autograd (tests compare the two). All frames at once: a rig's 19 frames cost a few
-        operations each, not 19."""
-        R0, t0 = self._pose(T_local)
-        R = so3_exp(delta[:3]).to(R0.dtype)
-        R1, t1 = R @ R0, R @ t0
-        F, C = parts.windows.shape[0], parts.windows.shape[2]
-        edges = torch.zeros(F, dtype=torch.float64, device=self.device)
+        """NID per frame and channel pair at apply_update(Ts[g], delta[g]) for each of G poses
+        (delta (G, 6) float64; parts: G groups of F rows, `_joined`, or F rows for one pose), on
+        the points that land on usable pixels. With weights (G x F x C,), also each pose's gradient
+        of sum(weights * NID) with respect to its delta, in closed form (`nid_with_gradient` and
+        the derivative of the bilinear interpolant, as strategy A); delta may also be
+        differentiated by autograd (tests compare the two). All frames and poses at once: a rig's
+        19 frames, or the wide search's 17 starts, cost a few operations each, not 19 or 17."""
+        T = torch.as_tensor(np.stack(Ts)[:, :3], dtype=torch.float32, device=self.device)  # (G, 3, 4)
+        R = so3_exp(delta[:, :3]).to(T.dtype)
+        R1, t1 = R @ T[:, :, :3], (R @ T[:, :, 3:])[..., 0]
+        rows, C = parts.windows.shape[0], parts.windows.shape[2]
+        edges = torch.zeros(rows, dtype=torch.float64, device=self.device)
         gradient = J = None
         if weights is not None:
-            gradient = torch.zeros(6, dtype=torch.float64, device=self.device)
-            J = so3_left_jacobian(delta[:3].double())
+            J = so3_left_jacobian(delta[:, :3].double())
+            gradient = torch.zeros(len(Ts), 6, dtype=torch.float64, device=self.device)
         if parts.edge_points is not None:
             score, g = self._edge_score(parts, R1, t1, delta, J)
             edges = self.cfg.edge_weight * score
             if g is not None:
                 gradient -= self.cfg.edge_weight * g
-        q = parts.points @ R1.T + t1
-        p = q + delta[3:].to(R0.dtype)
+        q, p = _moved(parts.points, R1, t1, delta)
         uv, z = _project(p, parts.K)
         ok = parts.images.on_photo(uv, z, 0.1) & parts.real
         n = ok.sum(1)
         counts = n.tolist()
-        if min(counts) < 50:
-            raise InputError("the pose left the scan: fewer than 50 points in view")
         use = ok.to(torch.float64)
         if weights is None:
             sampled = parts.images.sample(uv).double()
         else:
             sampled, s_u, s_v = (x.double() for x in parts.images.sample(uv, gradient=True))
             d_sampled = torch.zeros_like(sampled)  # d loss / d sampled channel
-            w = weights.reshape(F, C)
+            w = weights.reshape(rows, C)
         sky = parts.sky.any()
         nids, entropies = [], []
         for c in range(C):
@@ -439,18 +490,28 @@ class Nid:
             gradient += _pose_gradient((d_sampled * s_u).sum(-1), (d_sampled * s_v).sum(-1), p.double(), q.double(),
                                        parts.K.double(), J)
         return _Evaluation(torch.stack(nids, 1).reshape(-1), [k for k in counts for _ in range(C)],
-                           torch.stack(entropies, 1).reshape(-1).detach().tolist(), edges, gradient)
+                           torch.stack(entropies, 1).reshape(-1).detach().tolist(), edges, gradient, len(Ts))
+
+    def _at(self, parts: _Parts, T_local: np.ndarray, delta: torch.Tensor | None = None) -> _Evaluation:
+        """`_evaluate` at one pose apply_update(T_local, delta) (delta (6,), default 0), without
+        the gradient; InputError where it left the scan."""
+        if delta is None:
+            delta = torch.zeros(6, dtype=torch.float64, device=self.device)
+        with torch.no_grad():
+            e = self._evaluate(parts, [T_local], delta[None])
+        if e.lost[0]:
+            raise InputError(LEFT_THE_SCAN)
+        return e
 
     def _edge_score(self, parts: _Parts, R: torch.Tensor, t: torch.Tensor, delta: torch.Tensor,
                     J: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """The ring-edge score of each frame (F,) at apply_update((R, t), delta): sum over its ring
-        edges (those on the photo when the parts were made, `_edges_of`) of strength x the photo's
-        edge map there, and the gradient (6,) of their sum with respect to delta when asked by
-        J = so3_left_jacobian(delta[:3]) (else None). The edges are not Z-buffered: a step's
-        nearer return is the foreground, which the camera sees but for the parallax of the
-        sensor's offset."""
-        q = parts.edge_points @ R.T + t
-        p = q + delta[3:].to(R.dtype)
+        """The ring-edge score of each frame (G x F,) at apply_update((R[g], t[g]), delta[g]) (R (G,
+        3, 3), t (G, 3), delta (G, 6)): sum over its ring edges (those on the photo when the parts
+        were made, `_edges_of`) of strength x the photo's edge map there, and per pose the gradient
+        (G, 6) of their sum with respect to delta when asked by J = so3_left_jacobian(delta[:, :3])
+        (G, 3, 3) (else None). The edges are not Z-buffered: a step's nearer return is the
+        foreground, which the camera sees but for the parallax of the sensor's offset."""
+        q, p = _moved(parts.edge_points, R, t, delta)
         uv, z = _project(p, parts.K)
         size = parts.edge_maps.size
         # an edge that leaves the photo keeps the border's value (the samplers clamp to it): the score is continuous
@@ -484,24 +545,28 @@ class Nid:
         no Gauss-Newton terms.)"""
         (T,) = Ts
         parts = self._parts(level, T)
-        with torch.no_grad():
-            at = self._evaluate(parts, T, torch.zeros(6, dtype=torch.float64, device=self.device))
+        at = self._at(parts, T)
         return NidTerms(level, parts, at, at.weights())
 
     def trial(self, level: int, Ts: list[np.ndarray], q, at: "NidTerms") -> np.ndarray:
         """(B,) mean NID at each local-frame pose of Ts on the points of `at`."""
-        zero = torch.zeros(6, dtype=torch.float64, device=self.device)
-        with torch.no_grad():
-            return np.array([float(self._evaluate(at.parts, T, zero).loss) for T in Ts])
+        return np.array([float(self._at(at.parts, T).loss) for T in Ts])
 
-    def value_and_gradient(self, level: int, T_local: np.ndarray, delta: torch.Tensor,
-                           at: "NidTerms") -> tuple[float, torch.Tensor]:
-        """sum(weights * NID) at apply_update(T_local, delta) (delta (6,) float64) on the points of
-        `at`, with `at`'s weights (`_Evaluation.weights`: the frames count by their evidence), and
-        its gradient (6,) with respect to delta."""
+    def batch(self, terms: list["NidTerms"]) -> "NidBatch":
+        """The terms of G poses on one level, for `value_and_gradient` to evaluate together."""
+        return NidBatch(_joined([t.parts for t in terms]), torch.cat([t.weights for t in terms]))
+
+    def value_and_gradient(self, level: int, Ts: list[np.ndarray], delta: torch.Tensor,
+                           batch: "NidBatch") -> tuple[np.ndarray, torch.Tensor]:
+        """Per pose g of Ts: sum(weights * NID) at apply_update(Ts[g], delta[g]) (delta (G, 6)
+        float64) on the points of its terms in `batch` (`batch`), with their weights
+        (`_Evaluation.weights`: the frames count by their evidence): (G,) float64, NaN for a pose
+        that left the scan (`LEFT_THE_SCAN`); and the gradients (G, 6) with respect to delta."""
         with torch.no_grad():
-            e = self._evaluate(at.parts, T_local, delta, at.weights)
-        return float(e.objective(at.weights)), e.gradient
+            e = self._evaluate(batch.parts, Ts, delta, batch.weights)
+        values = e.objective(batch.weights).cpu().numpy()
+        values[e.lost] = np.nan
+        return values, e.gradient
 
     def summary(self, terms: "NidTerms") -> dict:
         """`RefineResult`'s objective-specific fields at the terms' pose."""
@@ -532,9 +597,7 @@ class Nid:
         weights = at.weights()
 
         def f(x: np.ndarray) -> np.ndarray:
-            with torch.no_grad():
-                e = self._evaluate(parts, T_local, torch.as_tensor(x, device=self.device) * units)
-                return e.per_frame(weights).cpu().numpy()
+            return self._at(parts, T_local, torch.as_tensor(x, device=self.device) * units).per_frame(weights).cpu().numpy()
 
         E = np.eye(6)
         f0 = at.per_frame(weights).cpu().numpy()
