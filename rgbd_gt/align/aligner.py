@@ -68,6 +68,29 @@ def damped(H: np.ndarray, lam: float) -> np.ndarray:
     return H + lam * np.diag(np.diag(H) + 1e-12)
 
 
+# the starts of one lockstep (`Aligner._lbfgs`) see at most this many points together (unless one
+# sees more alone): the joined arrays cost about 0.6 kB a point, and past a few hundred thousand
+# points an evaluation is memory traffic, not overhead (a KITTI 19-frame solve's 17 search starts
+# together took 1.8 GB where one after another took 1.3, and no less time)
+LOCKSTEP_POINTS = 300_000
+
+
+def lockstep(sizes: list[int | None], most: int = LOCKSTEP_POINTS) -> list[list[int]]:
+    """Indices of the starts with sizes (points seen; None: none, left out) dealt in order into
+    groups of at most `most` points together (a start larger alone is a group of its own)."""
+    groups: list[list[int]] = []
+    total = most + 1
+    for i, n in enumerate(sizes):
+        if n is None:
+            continue
+        if total + n > most:
+            groups.append([])
+            total = 0
+        groups[-1].append(i)
+        total += n
+    return groups
+
+
 def refine_each(aligner, starts: list[np.ndarray], **refine_args) -> list[np.ndarray | None]:
     """`aligner.refine(T0, **refine_args)`'s pose from each start in turn; None for a start that
     lost the scan."""
@@ -123,7 +146,10 @@ class Aligner:
         q = self._q(intrinsics)
         start_res = obj.residuals(0, obj.evaluate(0, [T], q, jacobian=False)) if keep_residuals else None
         if obj.method == "lbfgs":
-            T, history, level_info = self._searched(T, top, finest, iterations or self.cfg.iterations, progress)
+            (run,) = self._searched([T], top, finest, iterations or self.cfg.iterations, progress)
+            if run is None:
+                raise InputError(LEFT_THE_SCAN)
+            T, history, level_info = run
         else:
             history, level_info = [], []
             for level in range(top, finest - 1, -1):
@@ -152,18 +178,22 @@ class Aligner:
     def refine_many(self, starts: list[np.ndarray], finest: int = 0, coarsest: int | None = None,
                     iterations: int | None = None, intrinsics: np.ndarray | None = None) -> list[np.ndarray | None]:
         """`refine` from each of several starts (4x4 T_cam_from_scan) on the prepared points, with
-        the camera corrections `intrinsics` (Q_SIZE,) held (a result's). With Levenberg-Marquardt all at
-        once, in one set of tensor operations (each keeps its own damping, acceptance and stop);
-        otherwise one after another (L-BFGS with its wide search: a repeat that skips it answers
-        another question). Returns the poses, None for a start that lost the scan."""
+        the camera corrections `intrinsics` (Q_SIZE,) held (a result's). All at once: with
+        Levenberg-Marquardt in one set of tensor operations (each keeps its own damping, acceptance
+        and stop), with L-BFGS in lockstep, wide search included (a repeat that skipped it would
+        answer another question); with Adam one after another. Returns the poses, None for a start
+        that lost the scan."""
         obj = self.objective
-        if obj.method != "lm":
+        if obj.method == "adam":
             return refine_each(self, starts, finest=finest, coarsest=coarsest, iterations=iterations)
         Ts = [self._local(T) for T in starts]
         n_levels = obj.prepare(Ts[0])  # prepared by an earlier refine, else around the first start
+        top = n_levels - 1 if coarsest is None else min(coarsest, n_levels - 1)
+        if obj.method == "lbfgs":
+            runs = self._searched(Ts, top, finest, iterations or self.cfg.iterations, None)
+            return [None if run is None else self._scan(run[0]) for run in runs]
         q = self._q(intrinsics)
         lost = np.zeros(len(Ts), bool)
-        top = n_levels - 1 if coarsest is None else min(coarsest, n_levels - 1)
         for level in range(top, finest - 1, -1):
             Ts, _, _, _, lost = self._lm(level, Ts, q, iterations or self.cfg.iterations, lost=lost)
         return [None if gone else self._scan(T) for T, gone in zip(Ts, lost)]
@@ -278,8 +308,8 @@ class Aligner:
     def _lbfgs(self, level: int, Ts: list[np.ndarray], iterations: int) -> list[tuple | None]:
         """L-BFGS on one level from each pose of Ts (local frame) in lockstep, each on the points
         the objective sees at its start, in units of one level pixel of image motion: each round
-        evaluates every unfinished start's next point in one call. Returns per start (pose, loss,
-        iterations, why it stopped), None for a start that lost the scan."""
+        evaluates every unfinished start's next point in one call (`lockstep`). Returns per start
+        (pose, loss, iterations, why it stopped), None for a start that lost the scan."""
         obj, q = self.objective, self._q(None)
         ats = []
         for T in Ts:
@@ -287,10 +317,25 @@ class Aligner:
                 ats.append(obj.evaluate(level, [T], q, jacobian=False))
             except InputError:
                 ats.append(None)
-        live = [i for i, at in enumerate(ats) if at is not None]
-        if not live:
-            return [None] * len(Ts)
-        units = torch.stack([obj.units(level, Ts[i], ats[i]) for i in live])  # (k, 6)
+        out: list[tuple | None] = [None] * len(Ts)
+        for group in lockstep([int(at.visible[0]) if at is not None else None for at in ats]):
+            xs = self._lbfgs_lockstep(level, [Ts[i] for i in group], [ats[i] for i in group], iterations)
+            for i, x in zip(group, xs):
+                if x is None:
+                    continue
+                T, n_iter = x
+                try:
+                    out[i] = (T, float(obj.trial(level, [T], q, ats[i])[0]), n_iter,
+                              "iteration cap" if n_iter >= iterations else "converged")
+                except InputError:
+                    pass
+        return out
+
+    def _lbfgs_lockstep(self, level: int, Ts: list[np.ndarray], ats: list, iterations: int) -> list[tuple | None]:
+        """`_lbfgs`'s minimisation from the poses Ts with their terms ats, all at once: per start
+        (pose, iterations), None for one that lost the scan on the way."""
+        obj = self.objective
+        units = torch.stack([obj.units(level, T, at) for T, at in zip(Ts, ats)])  # (k, 6)
         r, m = math.radians(self.cfg.search_rotation_deg), self.cfg.search_translation_m
         cap = torch.minimum(units * STEP_CAP_PX, torch.tensor([r, r, r, m, m, m], dtype=units.dtype, device=units.device))
         batches: dict[tuple, object] = {}  # joined once per set of unfinished starts
@@ -302,42 +347,39 @@ class Aligner:
             key = tuple(which)
             if key not in batches:
                 batches.clear()
-                batches[key] = obj.batch([ats[live[i]] for i in which])
+                batches[key] = obj.batch([ats[i] for i in which])
             x = torch.tensor(X, device=self.device)
-            values, gradients = obj.value_and_gradient(level, [Ts[live[i]] for i in which], update(x, which), batches[key])
+            values, gradients = obj.value_and_gradient(level, [Ts[i] for i in which], update(x, which), batches[key])
             slope = units[which] * (1 - torch.tanh(units[which] * x / cap[which]) ** 2)
             return values, (gradients * slope).cpu().numpy()
 
-        out: list[tuple | None] = [None] * len(Ts)
-        for k, found in enumerate(lbfgs.minimize_many(objective, np.zeros((len(live), 6)), iterations)):
-            if found is None:
-                continue
-            x, n_iter = found
-            i = live[k]
-            T = apply_update(Ts[i], update(torch.tensor(x[None], device=self.device), [k])[0].cpu().numpy())
-            try:
-                loss = float(obj.trial(level, [T], q, ats[i])[0])
-            except InputError:
-                continue
-            out[i] = (T, loss, n_iter, "iteration cap" if n_iter >= iterations else "converged")
-        return out
+        found = lbfgs.minimize_many(objective, np.zeros((len(Ts), 6)), iterations)
+        return [None if f is None else
+                (apply_update(Ts[k], update(torch.tensor(f[0][None], device=self.device), [k])[0].cpu().numpy()), f[1])
+                for k, f in enumerate(found)]
 
-    def _search(self, level: int, T: np.ndarray) -> list[np.ndarray]:
-        """The coarsest level from T and from cfg.search_starts random starts around it: the
-        cfg.search_keep results of lowest loss, lowest first (a start that loses the scan drops out)."""
+    def _search(self, level: int, Ts: list[np.ndarray]) -> list[list[np.ndarray]]:
+        """The coarsest level from each pose of Ts and from cfg.search_starts random starts around
+        it, all in lockstep: per pose of Ts the cfg.search_keep results of lowest loss, lowest first
+        (a start that loses the scan drops out)."""
         cfg = self.cfg
-        starts = [T] + random_starts(T, cfg.search_starts, math.radians(cfg.search_rotation_deg),
-                                     cfg.search_translation_m, cfg.seed + 1)
-        found = [(run[1], run[0]) for run in self._lbfgs(level, starts, cfg.search_iterations) if run is not None]
-        found.sort(key=lambda c: c[0])
-        return [T1 for _, T1 in found[: cfg.search_keep]] or [T]
+        starts = [[T] + random_starts(T, cfg.search_starts, math.radians(cfg.search_rotation_deg),
+                                      cfg.search_translation_m, cfg.seed + 1) for T in Ts]
+        runs = iter(self._lbfgs(level, [S for group in starts for S in group], cfg.search_iterations))
+        kept = []
+        for T, group in zip(Ts, starts):
+            found = [(run[1], run[0]) for run in (next(runs) for _ in group) if run is not None]
+            found.sort(key=lambda c: c[0])
+            kept.append([T1 for _, T1 in found[: cfg.search_keep]] or [T])
+        return kept
 
-    def _descend(self, Ts: list[np.ndarray], top: int, bottom: int, iterations: int,
+    def _descend(self, runs: list[tuple | None], top: int, bottom: int, iterations: int,
                  progress: Callable[[dict], None] | None = None) -> list[tuple | None]:
-        """L-BFGS level by level from top down to bottom (inclusive), from each pose of Ts in
-        lockstep. Returns per start (pose, loss of the last level, history records, per-level
-        iterations and stop reasons), None for a start that lost the scan."""
-        runs: list = [(T, math.inf, [], []) for T in Ts]
+        """L-BFGS level by level from top down to bottom (inclusive), each run in lockstep from
+        where it stands: a run is (pose, loss of its last level, history records, per-level
+        iterations and stop reasons), or None (it lost the scan: it stays None). Returns the runs
+        gone on, None for one that lost the scan."""
+        runs = list(runs)
         for level in range(top, bottom - 1, -1):
             live = [i for i, run in enumerate(runs) if run is not None]
             for i, found in zip(live, self._lbfgs(level, [runs[i][0] for i in live], iterations)):
@@ -346,49 +388,48 @@ class Aligner:
                     continue
                 T_before, _, history, level_info = runs[i]
                 T, loss, n_it, stop = found
-                level_info.append({"level": level, "iterations": n_it, "stop": stop})
+                level_info = level_info + [{"level": level, "iterations": n_it, "stop": stop}]
                 step = T @ np.linalg.inv(T_before)
                 rec = {"level": level, "iteration": n_it, "loss": loss, "rotation_update_deg": rotation_error_deg(T, T_before),
                        "translation_update_m": float(np.linalg.norm(step[:3, 3])), "accepted": True}
-                history.append(rec)
                 if progress is not None:
                     progress(rec)
-                runs[i] = (T, loss, history, level_info)
+                runs[i] = (T, loss, history + [rec], level_info)
         return runs
 
-    def _descend_one(self, T: np.ndarray, top: int, bottom: int, iterations: int,
-                     progress: Callable[[dict], None] | None) -> tuple[np.ndarray, float, list[dict], list[dict]]:
-        """`_descend` from T alone; InputError where it loses the scan."""
-        (run,) = self._descend([T], top, bottom, iterations, progress)
-        if run is None:
-            raise InputError(LEFT_THE_SCAN)
-        return run
-
-    def _searched(self, T: np.ndarray, top: int, finest: int, iterations: int,
-                  progress: Callable[[dict], None] | None) -> tuple[np.ndarray, list[dict], list[dict]]:
+    def _searched(self, Ts: list[np.ndarray], top: int, finest: int, iterations: int,
+                  progress: Callable[[dict], None] | None) -> list[tuple | None]:
         """L-BFGS coarse to fine after the wide search (cfg.search_starts, for objectives with
-        `wide_search`). The coarsest level's loss ranks the search's results poorly (at 1/16
-        scale a wrong basin can score lower): each of the best few goes on to level 1 and the
-        lowest loss at its result there wins (docs/lidar-method.md, "Which search result goes on")."""
+        `wide_search`), from each pose of Ts in lockstep. The coarsest level's loss ranks the
+        search's results poorly (at 1/16 scale a wrong basin can score lower): each of the best
+        few goes on to level 1 and the lowest loss at its result there wins (docs/lidar-method.md,
+        "Which search result goes on"). Returns per pose of Ts (pose, history records, per-level
+        iterations and stop reasons), None where every run lost the scan."""
         search = self.objective.wide_search and self.cfg.search_starts > 0
-        candidates = self._search(top, T) if search else [T]
+        candidates = self._search(top, Ts) if search else [[T] for T in Ts]
         judge = max(finest, min(1, top))
-        runs = [run for run in self._descend(candidates, top, judge, iterations, progress) if run is not None]
-        if not runs:
-            raise InputError(LEFT_THE_SCAN)
-        if len(runs) > 1:
-            # a run's own loss is on the points it saw where the level began, which a candidate
-            # that moved far no longer sees so: KITTI's joint draw 7 from 3 deg picked one 5.9 deg off
-            q = self._q(None)
-            runs = [(T1, float(self.objective.evaluate(judge, [T1], q, jacobian=False).loss[0]), h, info)
-                    for T1, _, h, info in runs]
-        T, _, history, level_info = min(runs, key=lambda r: r[1])
-        T, _, more_history, more_info = self._descend_one(T, judge - 1, finest, iterations, progress)
+        runs = iter(self._descend([(c, math.inf, [], []) for group in candidates for c in group], top, judge,
+                                  iterations, progress))
+        chosen = []
+        for group in candidates:
+            mine = [run for run in (next(runs) for _ in group) if run is not None]
+            if len(mine) > 1:
+                # a run's own loss is on the points it saw where the level began, which a candidate
+                # that moved far no longer sees so: KITTI's joint draw 7 from 3 deg picked one 5.9 deg off
+                mine = [(T1, self._loss_at(judge, T1), h, info) for T1, _, h, info in mine]
+            chosen.append(min(mine, key=lambda r: r[1]) if mine else None)
+        chosen = self._descend(chosen, judge - 1, finest, iterations, progress)
         if self.objective.second_pass and finest == 0 < judge < top:
             # L-BFGS ends a level where its line search finds nothing lower, on the joint NID of
             # many sparse sweeps often short of the minimum: levels 1-0 once more from the result
             # (fresh curvature memory, the points seen there) bring the stragglers in (KITTI's
             # joint results 0.056-0.074 deg off instead of up to 0.136; docs/lidar-method.md)
-            T, _, again_history, again_info = self._descend_one(T, judge, finest, iterations, progress)
-            more_history, more_info = more_history + again_history, more_info + again_info
-        return T, history + more_history, level_info + more_info
+            chosen = self._descend(chosen, judge, finest, iterations, progress)
+        return [None if run is None else (run[0], run[2], run[3]) for run in chosen]
+
+    def _loss_at(self, level: int, T: np.ndarray) -> float:
+        """The loss at T on a level's points seen there; inf where it sees too few."""
+        try:
+            return float(self.objective.evaluate(level, [T], self._q(None), jacobian=False).loss[0])
+        except InputError:
+            return math.inf
