@@ -559,7 +559,7 @@ class Nid:
     def value_and_gradient(self, level: int, Ts: list[np.ndarray], delta: torch.Tensor,
                            batch: "NidBatch") -> tuple[np.ndarray, torch.Tensor]:
         """Per pose g of Ts: sum(weights * NID) at apply_update(Ts[g], delta[g]) (delta (G, 6)
-        float64) on the points of its terms in `batch` (`batch`), with their weights
+        float64) on the points of its terms in `batch` (`Nid.batch`), with their weights
         (`_Evaluation.weights`: the frames count by their evidence): (G,) float64, NaN for a pose
         that left the scan (`LEFT_THE_SCAN`); and the gradients (G, 6) with respect to delta."""
         with torch.no_grad():
