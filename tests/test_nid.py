@@ -10,7 +10,7 @@ import yaml
 from conftest import DATA, assert_one_line_error, run_cli
 from rgbd_gt.align import lbfgs
 from rgbd_gt.align.config import RefineConfig
-from rgbd_gt.align.nid import joint_histogram, nid, nid_with_gradient, parzen_windows
+from rgbd_gt.align.nid import joint_histogram, nid, nid_of_windows, nid_with_gradient, parzen_windows
 from rgbd_gt.align.aligner import Aligner
 from rgbd_gt.align.nid_objective import Frame, Nid
 from rgbd_gt.align.pyramid import photo_pyramid
@@ -66,6 +66,9 @@ def test_nid_gradient_with_a_mask_equals_it_on_the_masked_windows():
     value, h_ab, d_b = nid_with_gradient(wa, b, 16, use)
     assert torch.equal(value, masked[0]) and torch.equal(h_ab, masked[1])
     assert torch.equal(d_b, masked[2] * use) and bool((d_b[use == 0] == 0).all())
+    # ... and without the gradient (`parzen_windows` with use), as they are
+    plain = nid_of_windows(wa * use[..., None], parzen_windows(b, 16))
+    assert all(torch.equal(x, y) for x, y in zip(nid_of_windows(wa, parzen_windows(b, 16, use)), plain))
 
 
 def test_differentiable_rotation_matches_rodrigues():
@@ -151,7 +154,7 @@ def test_lockstep_groups_hold_at_most_their_points():
     """The starts of a level are dealt into lockstep groups of bounded size (the joined arrays of a
     19-frame solve's 17 search starts took 1.8 GB): in order, a start larger than the bound
     alone, a start that lost the scan (None) in none."""
-    from rgbd_gt.align.aligner import lockstep
+    from rgbd_gt.align.objective import lockstep
 
     assert lockstep([10, None, 5, 300, 400, 1, 2], most=300) == [[0, 2], [3], [4], [5, 6]]
     assert lockstep([100] * 5, most=300) == [[0, 1, 2], [3, 4]]
@@ -230,22 +233,27 @@ def test_pose_gradient_matches_autograd_and_finite_differences(intensity_scene, 
     assert np.linalg.norm(fd - mean) < 0.06 * np.linalg.norm(closed * units), (fd, mean, closed * units)
 
 
-def test_frames_evaluated_together_are_each_alone(intensity_scene):
-    """A rig's frames are evaluated stacked (`_Parts`, one gather for all): two frames with photos
-    of different sizes and different point counts give together each one's NID, counts and
-    joint entropy alone, and the sum of their gradients (what each adds to the objective)."""
+def _two_frames(d) -> tuple[list[Frame], np.ndarray]:
+    """Two frames of the intensity scene: its photo with the sweep, and the photo at 3/4 size with
+    a third of the points; and the init pose."""
     import cv2
 
     from rgbd_gt.camera import rescale
 
-    d = intensity_scene
     scan, photo, camera = load_scan(d / "intensity.ply"), read_image(d / "photo.png"), read_camera(d / "camera.yaml")
-    T = read_pose(d / "init_pose.yaml")[0]
     w, h = camera.size
     small = cv2.resize(photo, (w * 3 // 4, h * 3 // 4), interpolation=cv2.INTER_AREA)
     cpu = torch.device("cpu")
-    frames = [Frame(scan.xyz, scan.intensity, photo_pyramid(photo, camera, 3, cpu)),
-              Frame(scan.xyz[::3], scan.intensity[::3], photo_pyramid(small, rescale(camera, *small.shape[1::-1]), 3, cpu))]
+    return ([Frame(scan.xyz, scan.intensity, photo_pyramid(photo, camera, 3, cpu)),
+             Frame(scan.xyz[::3], scan.intensity[::3], photo_pyramid(small, rescale(camera, *small.shape[1::-1]), 3, cpu))],
+            read_pose(d / "init_pose.yaml")[0])
+
+
+def test_frames_evaluated_together_are_each_alone(intensity_scene):
+    """A rig's frames are evaluated stacked (`_Parts`, one gather for all): two frames with photos
+    of different sizes and different point counts give together each one's NID, counts and
+    joint entropy alone, and the sum of their gradients (what each adds to the objective)."""
+    frames, T = _two_frames(intensity_scene)
     cfg = RefineConfig(objective="nid", levels=3, nid_edges=True)
     delta = torch.as_tensor([2e-3, -1e-3, 5e-4, 3e-3, -2e-3, 1e-3], dtype=torch.float64)
     results = []
@@ -260,6 +268,32 @@ def test_frames_evaluated_together_are_each_alone(intensity_scene):
     np.testing.assert_allclose(together.entropies, first.entropies + second.entropies, rtol=1e-5)
     np.testing.assert_allclose(together.gradient.numpy(), (first.gradient + second.gradient).numpy(), rtol=1e-3,
                                atol=1e-4 * float(together.gradient.abs().max()))
+
+
+def test_frame_quadratics_are_central_differences_of_each_frames_share(intensity_scene):
+    """The covariance's 72 steps are evaluated together (`Nid._per_frame_at`): each frame's
+    gradient and Hessian are the central differences over one pixel of its share of the
+    objective, taken one step at a time."""
+    frames, T = _two_frames(intensity_scene)
+    obj = Nid(frames, RefineConfig(objective="nid", levels=3))
+    T_local = translated(T, obj.centre)
+    obj.prepare(T_local)
+    terms = obj.evaluate(0, [T_local])
+    g, H, units = obj.frame_quadratics(0, T_local, terms)
+    weights = terms.evaluation.weights()
+
+    def f(x: np.ndarray) -> np.ndarray:
+        return obj._at(terms.parts, T_local, torch.as_tensor(x * units)).per_frame(weights).numpy()
+
+    E, f0 = np.eye(6), f(np.zeros(6))
+    tol = 1e-9 * np.abs(f0).max()
+    assert g.shape == (2, 6) and H.shape == (2, 6, 6) and np.array_equal(H, H.transpose(0, 2, 1))
+    for i in range(6):
+        np.testing.assert_allclose(g[:, i], (f(E[i]) - f(-E[i])) / 2, rtol=0, atol=tol)
+        np.testing.assert_allclose(H[:, i, i], f(E[i]) - 2 * f0 + f(-E[i]), rtol=0, atol=tol)
+    for i, j in ((0, 1), (2, 5), (3, 4)):
+        a, b = E[i], E[j]
+        np.testing.assert_allclose(H[:, i, j], (f(a + b) - f(a - b) - f(b - a) + f(-a - b)) / 4, rtol=0, atol=tol)
 
 
 def test_closed_form_pose_gradient_on_real_sweeps_with_their_sky():

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from rgbd_gt.align import lbfgs
-from rgbd_gt.align.objective import Objective
+from rgbd_gt.align.objective import Objective, lockstep
 from rgbd_gt.errors import LEFT_THE_SCAN, InputError
 from rgbd_gt.pose import apply_update, random_starts, rotation_error_deg, translated
 from rgbd_gt.camera import Q_SIZE
@@ -66,29 +66,6 @@ def damped(H: np.ndarray, lam: float) -> np.ndarray:
     """Levenberg-Marquardt's matrix: H (P, P) with lam times its diagonal added (Marquardt's
     scaling: each parameter damped in its own units)."""
     return H + lam * np.diag(np.diag(H) + 1e-12)
-
-
-# the starts of one lockstep (`Aligner._lbfgs`) see at most this many points together (unless one
-# sees more alone): the joined arrays cost about 0.6 kB a point, and past a few hundred thousand
-# points an evaluation is memory traffic, not overhead (a KITTI 19-frame solve's 17 search starts
-# together took 1.8 GB where one after another took 1.3, and no less time)
-LOCKSTEP_POINTS = 300_000
-
-
-def lockstep(sizes: list[int | None], most: int = LOCKSTEP_POINTS) -> list[list[int]]:
-    """Indices of the starts with sizes (points seen; None: none, left out) dealt in order into
-    groups of at most `most` points together (a start larger alone is a group of its own)."""
-    groups: list[list[int]] = []
-    total = most + 1
-    for i, n in enumerate(sizes):
-        if n is None:
-            continue
-        if total + n > most:
-            groups.append([])
-            total = 0
-        groups[-1].append(i)
-        total += n
-    return groups
 
 
 def refine_each(aligner, starts: list[np.ndarray], **refine_args) -> list[np.ndarray | None]:

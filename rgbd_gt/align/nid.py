@@ -46,9 +46,12 @@ def _slopes(f: torch.Tensor) -> torch.Tensor:
     return torch.stack([-0.5 * (1 - f) ** 2, 1.5 * f2 - 2 * f, 0.5 + f - 1.5 * f2, 0.5 * f2], dim=-1)
 
 
-def parzen_windows(x: torch.Tensor, bins: int) -> torch.Tensor:
-    """(..., n, bins): each value of x (..., n) in [0, 1] spread over its 4 bins (`bspline3_weights`)."""
-    return _spread(*bspline3_weights(x, bins), bins)[0]
+def parzen_windows(x: torch.Tensor, bins: int, use: torch.Tensor | None = None) -> torch.Tensor:
+    """(..., n, bins): each value of x (..., n) in [0, 1] spread over its 4 bins (`bspline3_weights`);
+    none where use (..., n) (0 or 1) is 0: paired with another set's windows, that sample does not
+    count (masked on its 4 weights, not on the other's bins: the same products, a quarter of the work)."""
+    first, w = bspline3_weights(x, bins)
+    return _spread(first, w if use is None else w * use[..., None], bins)[0]
 
 
 def _spread(first: torch.Tensor, w: torch.Tensor, bins: int) -> tuple[torch.Tensor, torch.Tensor]:

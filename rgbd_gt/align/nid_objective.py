@@ -24,6 +24,7 @@ import torch
 
 from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.align.nid import nid_of_windows, nid_with_gradient, parzen_windows
+from rgbd_gt.align.objective import lockstep
 from rgbd_gt.align.pyramid import PhotoLevel
 from rgbd_gt.align.sampling import bilinear, bilinear_stacked, central_gradients
 from rgbd_gt.align.subset import near_view, point_keys
@@ -475,8 +476,7 @@ class Nid:
         nids, entropies = [], []
         for c in range(C):
             if weights is None:  # the points off the photo do not count
-                value, h_ab = nid_of_windows(parts.windows[:, :, c] * use[..., None],
-                                             parzen_windows(sampled[..., c], self.cfg.nid_bins))
+                value, h_ab = nid_of_windows(parts.windows[:, :, c], parzen_windows(sampled[..., c], self.cfg.nid_bins, use))
             else:
                 value, h_ab, d_value = nid_with_gradient(parts.windows[:, :, c], sampled[..., c], self.cfg.nid_bins, use)
                 d_sampled[..., c] = w[:, c:c + 1] * d_value
@@ -502,6 +502,23 @@ class Nid:
         if e.lost[0]:
             raise InputError(LEFT_THE_SCAN)
         return e
+
+    def _per_frame_at(self, parts: _Parts, T_local: np.ndarray, deltas: torch.Tensor,
+                      weights: torch.Tensor) -> np.ndarray:
+        """(D, F) each frame's share of the objective (`_Evaluation.per_frame` with weights (F x
+        C,)) at apply_update(T_local, deltas[d]) (deltas (D, 6) float64), the deltas evaluated
+        together in groups of at most LOCKSTEP_POINTS points (on a single frame's finest level an
+        evaluation is mostly per-call overhead); InputError where one left the scan."""
+        seen = int(parts.real.sum())
+        groups = lockstep([seen] * len(deltas))
+        out = []
+        with torch.no_grad():
+            for group in groups:
+                e = self._evaluate(_joined([parts] * len(group)), [T_local] * len(group), deltas[group])
+                if e.lost.any():
+                    raise InputError(LEFT_THE_SCAN)
+                out.append(e.per_frame(weights.repeat(len(group))).reshape(len(group), -1))
+        return torch.cat(out).cpu().numpy()
 
     def _edge_score(self, parts: _Parts, R: torch.Tensor, t: torch.Tensor, delta: torch.Tensor,
                     J: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -595,20 +612,18 @@ class Nid:
         parts, at = terms.parts, terms.evaluation
         units = self.units(level, T_local, terms)
         weights = at.weights()
-
-        def f(x: np.ndarray) -> np.ndarray:
-            return self._at(parts, T_local, torch.as_tensor(x, device=self.device) * units).per_frame(weights).cpu().numpy()
-
         E = np.eye(6)
+        pairs = list(zip(*np.triu_indices(6, 1)))
+        steps = np.concatenate([E, -E] + [[E[i] + E[j], E[i] - E[j], E[j] - E[i], -E[i] - E[j]] for i, j in pairs])
+        f = self._per_frame_at(parts, T_local, torch.as_tensor(steps, device=self.device) * units, weights)
+        plus, minus, corners = f[:6], f[6:12], f[12:].reshape(len(pairs), 4, -1)
         f0 = at.per_frame(weights).cpu().numpy()
-        plus, minus = [f(e) for e in E], [f(-e) for e in E]
         H = np.zeros((len(f0), 6, 6))
         for i in range(6):
             H[:, i, i] = plus[i] - 2 * f0 + minus[i]
-        for i, j in zip(*np.triu_indices(6, 1)):
-            a, b = E[i], E[j]
-            H[:, i, j] = H[:, j, i] = (f(a + b) - f(a - b) - f(b - a) + f(-a - b)) / 4
-        g = (np.stack(plus, 1) - np.stack(minus, 1)) / 2
+        for (i, j), c in zip(pairs, corners):
+            H[:, i, j] = H[:, j, i] = (c[0] - c[1] - c[2] + c[3]) / 4
+        g = (plus - minus).T / 2
         return g, H, units.cpu().numpy()
 
     def covariance(self, level: int, T_local: np.ndarray, q, terms: "NidTerms") -> np.ndarray:
