@@ -285,7 +285,8 @@ class NidTerms:
 class Nid:
     """The NID objective of one pose against one or more frames (`Frame`). The frames are
     evaluated together (`_Parts`: a 19-frame KITTI joint solve took 55 s frame after frame, 39 s
-    so); a batch of poses one pose after another."""
+    so), and several poses' parts joined into one evaluation (`batch`, `_per_frame_at`): the
+    starts of a level, the uncertainty's steps."""
 
     name = "nid"
     method = "lbfgs"
