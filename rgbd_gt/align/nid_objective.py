@@ -510,12 +510,13 @@ class Nid:
         C,)) at apply_update(T_local, deltas[d]) (deltas (D, 6) float64), the deltas evaluated
         together in groups of at most LOCKSTEP_POINTS points (on a single frame's finest level an
         evaluation is mostly per-call overhead); InputError where one left the scan."""
-        seen = int(parts.real.sum())
-        groups = lockstep([seen] * len(deltas))
+        joined: dict[int, _Parts] = {}  # per group size: the groups but the last are the same size
         out = []
         with torch.no_grad():
-            for group in groups:
-                e = self._evaluate(_joined([parts] * len(group)), [T_local] * len(group), deltas[group])
+            for group in lockstep([int(parts.real.sum())] * len(deltas)):
+                if len(group) not in joined:
+                    joined[len(group)] = _joined([parts] * len(group))
+                e = self._evaluate(joined[len(group)], [T_local] * len(group), deltas[group])
                 if e.lost.any():
                     raise InputError(LEFT_THE_SCAN)
                 out.append(e.per_frame(weights.repeat(len(group))).reshape(len(group), -1))

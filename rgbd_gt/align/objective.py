@@ -62,15 +62,16 @@ class Objective(Protocol):
 
 
 # the poses evaluated together (`Aligner._lbfgs`'s starts, `Nid.frame_quadratics`' steps) see at
-# most this many points together (unless one sees more alone): the joined arrays cost about 0.6 kB a point, and past a few hundred thousand
-# points an evaluation is memory traffic, not overhead (a KITTI 19-frame solve's 17 search starts
-# together took 1.8 GB where one after another took 1.3, and no less time)
+# most this many points together (unless one sees more alone): the joined arrays cost about 0.6 kB
+# a point, and past a few hundred thousand points an evaluation is memory traffic, not overhead (a
+# KITTI 19-frame solve's 17 search starts together took 1.8 GB where one after another took 1.3,
+# and no less time)
 LOCKSTEP_POINTS = 300_000
 
 
 def lockstep(sizes: list[int | None], most: int = LOCKSTEP_POINTS) -> list[list[int]]:
-    """Indices of the starts with sizes (points seen; None: none, left out) dealt in order into
-    groups of at most `most` points together (a start larger alone is a group of its own)."""
+    """Indices of the poses with sizes (points seen; None: none, left out) dealt in order into
+    groups of at most `most` points together (a pose larger alone is a group of its own)."""
     groups: list[list[int]] = []
     total = most + 1
     for i, n in enumerate(sizes):
