@@ -506,7 +506,14 @@ def refine(
          if ev["edges"]["structural_edge_pixels"] else "not usable: no structural edges in view"),
     ]
     if "ring_edges" in ev:
-        rows.append(("ring edges vs chance", f"{ev['ring_edges']['ratio']:.2f} over {ev['ring_edges']['ring_edges']:,} depth steps (1.0 = chance)"))
+        rings = ev["ring_edges"]
+        rows.append(("ring edges vs chance", f"{rings['ratio']:.2f} over {rings['ring_edges']:,} depth steps (1.0 = chance)"))
+        from rgbd_gt.align.verify import frame_verdict
+
+        for k in range(len(rings.get("frames") or [])):  # each frame of --pairs judged on its own edges too
+            mine, why = frame_verdict("ok", [], rings, k, cfg.verify)
+            if mine != "ok":
+                rows.append((f"frame {k + 1}", f"{mine}: {why[0]}"))
     if "repeatability" in ev:
         rows.append(("repeat runs", f"{ev['repeatability']['starts']} starts, spread {ev['repeatability']['spread_px']:.3f} px"))
     if "frames" in ev:
@@ -948,7 +955,7 @@ def run_workflow(
     columns = {"scan": lambda r: r.scan, "photo": lambda r: r.photo,
                "status": lambda r: r.status,
                "verdict": lambda r: _verdict_text(r.verdict), "init rms px": lambda r: f(r.init_rms_px, ".3f"),
-               "edges / chance": lambda r: f(r.edge_ratio, ".2f"),
+               "edges / chance": lambda r: f(r.ring_edge_ratio if r.edge_ratio is None else r.edge_ratio, ".2f"),
                "Canny px before -> after": lambda r: f"{f(r.edge_before_px, '.2f')} -> {f(r.edge_after_px, '.2f')}",
                "within 1 px": lambda r: f"{f(r.within_1px_before, '.0%')} -> {f(r.within_1px_after, '.0%')}",
                "roll deg": lambda r: f(r.verticals_roll_after_deg, "+.2f"),

@@ -137,6 +137,7 @@ class PhotoResult:
     refine_loss: float | None = None
     inlier_fraction: float | None = None
     edge_ratio: float | None = None  # structural edges against chance (1.0 = chance)
+    ring_edge_ratio: float | None = None  # a sweep's depth steps on the photo's edges against chance (a rig's frame: its own)
     edge_before_px: float | None = None
     edge_after_px: float | None = None
     within_1px_before: float | None = None
@@ -297,6 +298,8 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     res.verdict, res.reasons = meta.get("verdict"), "; ".join(meta.get("reasons") or [])
     edges = (meta.get("evidence") or {}).get("edges", {})
     res.edge_ratio = edges.get("edge_ratio") if edges.get("edge_check_usable", True) else None  # a sweep's says nothing
+    rings = meta["frame_ring_edges"] if "frame_ring_edges" in meta else (meta.get("evidence") or {}).get("ring_edges")
+    res.ring_edge_ratio = (rings or {}).get("ratio")
 
     progress("export-depth")
     if files["depth"].exists():
@@ -461,6 +464,7 @@ def solve_rig(jobs: list[ScanJob], prepared: list, camera, cfg: RunConfig, out: 
     `refine --pairs`, judged by its frames refined apart and the sweeps' depth edges. Written to
     out/rig.yaml (with `frames`) and to each frame's pose.yaml (with `rig`: that file), so that
     its steps take it. Reused while rig.yaml names the same frames. Returns the pose and its meta."""
+    from rgbd_gt.align.verify import frame_verdict
     from rgbd_gt.io import read_pose, write_pose
     from rgbd_gt.steps import refine_step
 
@@ -494,10 +498,16 @@ def solve_rig(jobs: list[ScanJob], prepared: list, camera, cfg: RunConfig, out: 
         refined = refine_step(inputs[0], cfg.refine, first, cfg.device, jobs[0].camera, levels, more=inputs[1:])
         T, meta = refined.T, {**refined.meta, "frames": names, **made}
         write_pose(path, T, **meta)
-    for job in jobs:
+    rings = (meta.get("evidence") or {}).get("ring_edges")
+    frames = (rings or {}).get("frames") or []
+    for k, job in enumerate(jobs):
         d = job.out / job.photos[0].stem
         if not (d / "pose.yaml").exists():
-            write_pose(d / "pose.yaml", T, **{k: v for k, v in meta.items() if k != "frames" and k not in made}, rig=os.path.relpath(path, d))
+            # each frame judged on its own depth edges too: the rig's pose can be right and one frame's photo not of its sweep
+            verdict, reasons = frame_verdict(meta["verdict"], meta.get("reasons") or [], rings, k, cfg.refine.verify)
+            mine = {key: v for key, v in meta.items() if key != "frames" and key not in made} | {"verdict": verdict, "reasons": reasons}
+            write_pose(d / "pose.yaml", T, **mine, frame_ring_edges=frames[k] if k < len(frames) else None,
+                       rig=os.path.relpath(path, d))
     return T, meta
 
 
@@ -608,7 +618,7 @@ def write_summary(path: Path, results: list[PhotoResult]) -> None:
 
     cols = ["photo", "status", "verdict", "init_rms_px", "refine_loss", "inlier_fraction", "edge_ratio", "edge_before_px",
             "edge_after_px", "within_1px_before", "within_1px_after", "seen_from_behind", "seconds", "skipped", "reasons", "error",
-            "scan", "view_points", "steps", "verticals_roll_before_deg", "verticals_roll_after_deg"]
+            "scan", "view_points", "steps", "verticals_roll_before_deg", "verticals_roll_after_deg", "ring_edge_ratio"]
     with atomic_output(path) as tmp, open(tmp, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(cols)

@@ -90,6 +90,51 @@ def test_ring_edge_check_tells_the_reference_from_a_wrong_pose():
     assert wrong["ratio"] < right["ratio"] - 0.1, (right, wrong)
 
 
+def test_a_frame_whose_photo_is_not_of_its_sweep_fails_on_its_own_edges():
+    """Four KITTI frames at the reference: each frame's own depth edges fit its photo (the check's
+    `frames`), so each frame keeps the rig's verdict. One frame's sweep turned 0.5 deg about the
+    camera's vertical (as if its photo were taken elsewhere): its own ratio falls below
+    ring_edge_ratio_failed and it alone is failed; the other frames' ratios stay as they were. A
+    frame with too few edges in view has no say, and a failed rig stays failed."""
+    from dataclasses import replace
+
+    from benchmarks.lidar import refine_inputs
+    from rgbd_gt.align.refine import make_aligner
+    from rgbd_gt.align.verify import frame_verdict
+
+    scenes = _drive("kitti_00", [0, 5, 10, 15])
+    T = scenes[0].T_ref
+    cfg = RefineConfig().verify
+    inputs = [refine_inputs(s, T) for s in scenes]
+
+    def check(inputs):
+        al = make_aligner(inputs[0], RefineConfig(objective="nid"), "cpu", inputs[1:])
+        al.prepare(T)
+        return al.ring_edge_check(T, cfg.edge_shift_px)
+
+    right = check(inputs)
+    assert [f["ratio"] >= cfg.ring_edge_frame_ok for f in right["frames"]] == [True] * 4, right["frames"]
+    assert sum(f["ring_edges"] for f in right["frames"]) == right["ring_edges"]
+    assert [frame_verdict("ok", [], right, k, cfg) for k in range(4)] == [("ok", [])] * 4
+    M = np.linalg.inv(T) @ apply_update(T, np.r_[0.0, np.radians(0.5), 0, 0, 0, 0])  # the turn, in the sweep's frame
+    bad = [*inputs[:2], replace(inputs[2], points=inputs[2].points @ M[:3, :3].T + M[:3, 3]), inputs[3]]
+    wrong = check(bad)
+    assert wrong["frames"][2]["ratio"] < cfg.ring_edge_ratio_failed, wrong["frames"]
+    for k in (0, 1, 3):  # the same but for round-off: the points' centre, which the frames share, moved
+        assert wrong["frames"][k]["ring_edges"] == right["frames"][k]["ring_edges"]
+        assert wrong["frames"][k]["ratio"] == pytest.approx(right["frames"][k]["ratio"], rel=1e-5)
+    verdict, reasons = frame_verdict("ok", [], wrong, 2, cfg)
+    assert verdict == "failed" and "no better than chance at the rig's pose" in reasons[0]
+    assert [frame_verdict("ok", [], wrong, k, cfg)[0] for k in (0, 1, 3)] == ["ok"] * 3
+    # between the two bars: suspect; too few edges: no say; a failed rig stays failed with its reasons
+    weak = {"frames": [{"ring_edges": 1000, "ratio": (cfg.ring_edge_ratio_failed + cfg.ring_edge_frame_ok) / 2}]}
+    assert frame_verdict("ok", [], weak, 0, cfg)[0] == "suspect"
+    assert frame_verdict("failed", ["x"], weak, 0, cfg) == ("failed", ["x", frame_verdict("ok", [], weak, 0, cfg)[1][0]])
+    few = {"frames": [{"ring_edges": cfg.min_edge_pixels - 1, "ratio": 0.9}]}
+    assert frame_verdict("ok", [], few, 0, cfg) == ("ok", [])
+    assert frame_verdict("suspect", ["y"], None, 0, cfg) == ("suspect", ["y"])
+
+
 def test_a_sweep_is_judged_by_its_ring_edges_and_its_frames_agreement():
     """decide(): where the rendered sweep is too sparse for the structural edge check, the ring
     edges stand in for it; the frames refined apart in groups fail a result they end far from and
@@ -186,6 +231,7 @@ def test_joint_solve_of_kitti_frames_is_judged_by_its_frames_apart(tmp_path):
     assert [g["frames"] for g in ev["frames"]["groups"]] == [[0, 2], [1, 3]]
     assert all(np.isfinite(g["px"]) for g in ev["frames"]["groups"])
     assert ev["ring_edges"]["ring_edges"] > 2000 and ev["ring_edges"]["ratio"] > 1.0
+    assert len(ev["ring_edges"]["frames"]) == 4 and sum(f["ring_edges"] for f in ev["ring_edges"]["frames"]) == ev["ring_edges"]["ring_edges"]
     assert set(ev["seconds"]) >= {"frames", "ring_edges", "leave_one_frame_out"}
     # each frame left out: the others alone fix the pose here, and none holds the result alone
     loo = ev["frames"]["leave_one_out"]
@@ -255,6 +301,25 @@ def test_run_solves_a_drives_frames_as_one_rig(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert (tmp_path / "out" / "rig.yaml").stat().st_mtime_ns == stamp
     assert all("refine" not in r["skipped"] and "depth" in r["skipped"] for r in list(csv.DictReader(open(tmp_path / "out" / "summary.csv")))[:-1])
+    # each frame is judged on its own depth edges too (`verify.frame_verdict`): a frame whose photo is
+    # not of its sweep fails alone, and gets no depth map (its ratio set here as a turned sweep gives it:
+    # tests/test_drives.py's own-edges test makes one)
+    rig = yaml.safe_load((tmp_path / "out" / "rig.yaml").read_text())
+    assert [float(r["ring_edge_ratio"]) for r in rows] == pytest.approx([f["ratio"] for f in rig["evidence"]["ring_edges"]["frames"]], rel=1e-5)
+    rig["evidence"]["ring_edges"]["frames"][2]["ratio"] = 0.99
+    (tmp_path / "out" / "rig.yaml").write_text(yaml.safe_dump(rig, sort_keys=False))
+    stamp = (tmp_path / "out" / "rig.yaml").stat().st_mtime_ns
+    bad = tmp_path / "out" / names[2] / names[2]
+    for f in ("pose.yaml", "depth.exr", "depth.png"):
+        (bad / f).unlink()
+    proc = run_cli("run", tmp_path / "run.yaml")
+    assert proc.returncode == 0, proc.stderr
+    frame_meta = read_pose(bad / "pose.yaml")[1]
+    assert frame_meta["verdict"] == "failed" and "this frame's depth edges fit its photo no better than chance" in frame_meta["reasons"][0]
+    assert frame_meta["frame_ring_edges"]["ratio"] == 0.99 and not (bad / "depth.exr").exists()
+    rows = list(csv.DictReader(open(tmp_path / "out" / "summary.csv")))[:-1]
+    assert [r["verdict"] for r in rows] == [meta["verdict"]] * 2 + ["failed", meta["verdict"]]
+    assert "depth (failed)" in rows[2]["skipped"]
     # the rig's init calibrated again: rig.yaml is not resumed from the old one
     write_pose(tmp_path / "init.yaml", apply_update(T_ref, np.r_[np.radians([0.2, -0.2, 0.1]), 0.03, -0.03, 0.04]))
     proc = run_cli("run", tmp_path / "run.yaml")

@@ -645,8 +645,10 @@ class Nid:
     def ring_edge_check(self, T_local: np.ndarray, shift_px: float) -> dict | None:
         """The image check of a sweep (whose rendering is too sparse for `qa.edges.structural_qa`):
         at T_local on the finest level, the photos' `edge_strength` at the frames' ring edges of
-        CHECK_MIN_STEP_M and more (weighted by their strengths) against the same with the edges shifted shift_px in 8
-        directions (chance), over all frames. None without ring edges."""
+        CHECK_MIN_STEP_M and more (weighted by their strengths) against the same with the edges
+        shifted shift_px in 8 directions (chance), over all frames; with several frames, also each
+        frame's own (`frames`: its ring edges and ratio, None for a frame without ring edges). None
+        without ring edges."""
         from rgbd_gt.align.edge_map import edge_strength
 
         if all(r is None for r in self._ring_edges):
@@ -656,8 +658,10 @@ class Nid:
                                          dtype=torch.float32, device=self.device)
         score = chance = weight = 0.0
         count = 0
+        frames: list[dict | None] = []
         for k, edges in enumerate(self._ring_edges):
             if edges is None:
+                frames.append(None)
                 continue
             idx, strength = edges
             strong = strength >= CHECK_MIN_STEP_M**0.5
@@ -667,11 +671,15 @@ class Nid:
             ok = _on_photo(photo, uv, z, EDGE_NEAR_M)
             s, uv = strength[ok], uv[ok]
             image = torch.as_tensor(edge_strength(photo.image)[:, :, None], device=self.device)
-            score += float((s * bilinear(image, uv)[:, 0]).sum())
+            mine = float((s * bilinear(image, uv)[:, 0]).sum())
             # a shift past the border samples the border (`bilinear` clamps)
-            chance += float(np.mean([float((s * bilinear(image, uv + d)[:, 0]).sum()) for d in shifts]))
+            mine_chance = float(np.mean([float((s * bilinear(image, uv + d)[:, 0]).sum()) for d in shifts]))
+            frames.append({"ring_edges": int(ok.sum()), "ratio": mine / mine_chance if mine_chance > 0 else float("nan")})
+            score += mine
+            chance += mine_chance
             weight += float(s.sum())
             count += int(ok.sum())
-        return {"ring_edges": count, "score": score / max(weight, 1e-12), "chance": chance / max(weight, 1e-12),
-                "ratio": score / chance if chance > 0 else float("nan"), "shift_px": shift_px}
+        out = {"ring_edges": count, "score": score / max(weight, 1e-12), "chance": chance / max(weight, 1e-12),
+               "ratio": score / chance if chance > 0 else float("nan"), "shift_px": shift_px}
+        return out | ({"frames": frames} if len(frames) > 1 else {})
 

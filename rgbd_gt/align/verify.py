@@ -356,6 +356,27 @@ def decide(ev: dict, cfg: VerifyConfig) -> tuple[str, list[str]]:
     return ("suspect", suspect) if suspect else ("ok", [])
 
 
+def frame_verdict(verdict: str, reasons: list[str], rings: dict | None, k: int, cfg: VerifyConfig) -> tuple[str, list[str]]:
+    """Frame k's verdict in a joint solve (one rig over several frames): the solve's verdict and
+    reasons, made worse where the frame's own depth edges fit its photo poorly at the result
+    (rings: the evidence's `ring_edges`, whose `frames` `Nid.ring_edge_check` gives): failed below
+    cfg.ring_edge_ratio_failed, suspect below cfg.ring_edge_frame_ok. The joint NID outweighs one
+    frame whose sweep and photo disagree (a time offset, a camera moved between frames), so the
+    result can be right for the rig and wrong for that frame. A frame with fewer than
+    cfg.min_edge_pixels ring edges in view has no say: the rig's pose is checked on the others."""
+    frames = (rings or {}).get("frames") or []
+    frame = frames[k] if k < len(frames) else None
+    if frame is None or frame["ring_edges"] < cfg.min_edge_pixels:
+        return verdict, list(reasons)
+    ratio, own = frame["ratio"], "this frame's depth edges fit its photo"
+    if not ratio >= cfg.ring_edge_ratio_failed:
+        return "failed", [f"{own} no better than chance at the rig's pose (ratio {ratio:.2f}): its sweep and photo "
+                          "disagree (taken at other times? the camera moved?)"] + list(reasons)
+    if ratio < cfg.ring_edge_frame_ok:
+        return ("failed" if verdict == "failed" else "suspect"), list(reasons) + [f"{own} weakly at the rig's pose (ratio {ratio:.2f})"]
+    return verdict, list(reasons)
+
+
 def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: Camera, photo: np.ndarray,
            renders, cfg: VerifyConfig, seed: int = 0, init_meta: dict | None = None,
            check: tuple[np.ndarray, np.ndarray] | None = None, shared_camera: bool = False) -> Verification:
