@@ -664,7 +664,10 @@ def qa_edges(
     unusable (null in --json). The verticals check measures geometry alone, sweeps included: how
     far the pose is rolled about the optical axis off the scan's vertical: the photo's vertical
     lines (poles, building and door edges, within 12 deg of the image's vertical) against the
-    scan's own (its pole-like columns, with z roughly up); null where either has too few."""
+    scan's own (its pole-like columns, with z roughly up); null where either has too few. For a
+    sweep, the ring-edge check the verdict takes for each frame: the photo's edge strength at the
+    sweep's depth steps of 1 m and more along its rings against the same shifted by 6 px
+    (ring_edge_ratio; 1.0 = chance)."""
     from rgbd_gt.io import read_pose
     from rgbd_gt.io.image import IMAGE_SUFFIXES, write_image
     from rgbd_gt.io.outputs import Outputs

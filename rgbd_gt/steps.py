@@ -10,7 +10,7 @@ file (when given) for what makes its output meaningless (no scan in view).
     load_inputs   what refine works on: the photo, the init and the scan in view of it
     refine_step   the aligner, the verdict and the verticals check -> the pose file's keys
     depth_step    the depth map (surfaces or points), and write_depth for its files
-    qa_step       structural, Canny and verticals scores (and a before pose) -> qa.png, qa.json
+    qa_step       structural, Canny, verticals (and a sweep's ring-edge) scores, and a before pose -> qa.png, qa.json
     overlay_step  checkerboard, blend and points pictures
 """
 
@@ -294,10 +294,11 @@ def qa_step(view, photo: np.ndarray, camera: Camera, T: np.ndarray, around: np.n
             T_before: np.ndarray | None = None, pose_path: PathLike | None = None,
             before_path: PathLike | None = None) -> QA:
     """How well the view (`renders_of`, with the scan's colors) rendered at T lines up with the
-    photo: the structural edges against chance, the Canny distances (`qa.edges`) and the
-    verticals check (`qa.verticals`, on `around`: (n, 3) scan points around the camera); the same
-    for T_before with keys prefixed before_. A pose that sees no scan edge is an error naming it."""
-    from rgbd_gt.qa.edges import qa, side_by_side, structural_qa, working_view
+    photo: the structural edges against chance, the Canny distances (`qa.edges`), the verticals
+    check (`qa.verticals`, on `around`: (n, 3) scan points around the camera) and, for a sweep,
+    its depth steps along the rings against chance (`qa.edges.ring_edge_check`); the same for
+    T_before with keys prefixed before_. A pose that sees no scan edge is an error naming it."""
+    from rgbd_gt.qa.edges import qa, ring_edge_check, side_by_side, structural_qa, working_view
     from rgbd_gt.qa.verticals import verticals_qa
 
     renders = renders_of(view)
@@ -312,8 +313,13 @@ def qa_step(view, photo: np.ndarray, camera: Camera, T: np.ndarray, around: np.n
         img, structural = structural_qa(view)
         images.append(img)
         scores |= structural.as_dict(prefix) | canny.as_dict(prefix) | upright.as_dict(prefix)
+        rings = ring_edge_check(renders.scan, photo, camera, pose)  # a sweep's: its rendering is too sparse for the others
+        if rings is not None:
+            scores |= {prefix + key: value for key, value in rings.items()}
+        ring_text = "" if rings is None else (f"; ring edges {rings['ring_edge_ratio']:.2f} x chance over "
+                                              f"{rings['ring_edges']:,} depth steps")
         rows.append((prefix.rstrip("_") or ("after" if T_before is not None else "score"),
-                     f"{structural.summary()}; Canny {canny.summary()}; verticals {upright.summary()}"))
+                     f"{structural.summary()}; Canny {canny.summary()}; verticals {upright.summary()}{ring_text}"))
     if T_before is not None:
         return QA(side_by_side(images[1], images[0]), scores, rows[::-1])
     return QA(images[0], scores, rows)

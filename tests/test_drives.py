@@ -135,6 +135,28 @@ def test_a_frame_whose_photo_is_not_of_its_sweep_fails_on_its_own_edges():
     assert frame_verdict("suspect", ["y"], None, 0, cfg) == ("suspect", ["y"])
 
 
+def test_qa_scores_a_sweeps_ring_edges_as_the_verdict_does():
+    """qa-edges' check of a sweep (`qa.edges.ring_edge_check`, on the photo as shipped) is the
+    verdict's (`Nid.ring_edge_check`, on the aligner's finest level) for one KITTI frame: the
+    same depth steps scored, the same ratio but for round-off; turned 1 deg about the photo's
+    vertical, the ratio falls to chance."""
+    from benchmarks.lidar import refine_inputs
+    from rgbd_gt.align.refine import make_aligner
+    from rgbd_gt.qa.edges import ring_edge_check
+
+    (s,) = _drive("kitti_00", [7])
+    inputs = refine_inputs(s, s.T_ref)
+    al = make_aligner(inputs, RefineConfig(objective="nid"), "cpu")
+    al.prepare(s.T_ref)
+    verdicts = al.ring_edge_check(s.T_ref, 6)
+    mine = ring_edge_check(inputs.scan, s.photo, s.camera, s.T_ref)
+    assert "frames" not in verdicts and mine["ring_edges"] == verdicts["ring_edges"] > 500
+    assert mine["ring_edge_ratio"] == pytest.approx(verdicts["ratio"], rel=1e-4)
+    assert mine["ring_edge_ratio"] > RefineConfig().verify.ring_edge_frame_ok
+    turned = ring_edge_check(inputs.scan, s.photo, s.camera, apply_update(s.T_ref, np.r_[0.0, np.radians(1.0), 0, 0, 0, 0]))
+    assert turned["ring_edge_ratio"] < RefineConfig().verify.ring_edge_ratio_failed
+
+
 def test_a_sweep_is_judged_by_its_ring_edges_and_its_frames_agreement():
     """decide(): where the rendered sweep is too sparse for the structural edge check, the ring
     edges stand in for it; the frames refined apart in groups fail a result they end far from and

@@ -13,6 +13,10 @@ import torch
 
 from rgbd_gt.scan import LUMA
 
+# the ring-edge check (the verdict's and qa's image check of a sweep): returns whose step along
+# the ring is this large (on KITTI and Waymo their ratio is the clearest) ...
+CHECK_MIN_STEP_M = 1.0
+EDGE_NEAR_M = 1.0  # ... and this far in front of the camera (the edge term's too)
 DECAY = 0.8  # per level pixel of chessboard distance from an edge (Levinson and Thrun's gamma) ...
 REACH_PX = 8  # ... out to this far
 OWN_SHARE = 1 / 3  # the edge's own strength in the map, the rest its spread (their alpha)
@@ -43,3 +47,17 @@ def edge_distance_map(image: torch.Tensor) -> torch.Tensor:
         spread = np.maximum(e, DECAY * cv2.dilate(spread, box))
     out = OWN_SHARE * e + (1 - OWN_SHARE) * spread
     return torch.as_tensor(out[:, :, None], device=image.device, dtype=image.dtype)
+
+
+def against_chance(edges: torch.Tensor, uv: torch.Tensor, weights: torch.Tensor, shift_px: float) -> tuple[float, float]:
+    """The ring-edge check's score of points at uv (n, 2) pixels with weights (n,) on an edge
+    image (H, W, 1) (`edge_strength`): the weighted sum of the edges there, and the mean of the
+    same with the points shifted shift_px in the 8 directions (chance; a shift past the border
+    samples the border: `bilinear` clamps)."""
+    from rgbd_gt.align.sampling import bilinear
+
+    shifts = shift_px * torch.tensor([[a, b] for a in (-1, 0, 1) for b in (-1, 0, 1) if a or b],
+                                     dtype=torch.float32, device=uv.device)
+    score = float((weights * bilinear(edges, uv)[:, 0]).sum())
+    chance = float(np.mean([float((weights * bilinear(edges, uv + d)[:, 0]).sum()) for d in shifts]))
+    return score, chance

@@ -23,10 +23,11 @@ import numpy as np
 import torch
 
 from rgbd_gt.align.config import RefineConfig
+from rgbd_gt.align.edge_map import CHECK_MIN_STEP_M, EDGE_NEAR_M
 from rgbd_gt.align.nid import nid_of_windows, nid_with_gradient, parzen_windows
 from rgbd_gt.align.objective import lockstep
 from rgbd_gt.align.pyramid import PhotoLevel
-from rgbd_gt.align.sampling import bilinear, bilinear_stacked, central_gradients
+from rgbd_gt.align.sampling import bilinear_stacked, central_gradients
 from rgbd_gt.align.subset import near_view, point_keys
 from rgbd_gt.errors import LEFT_THE_SCAN, InputError
 from rgbd_gt.pose import so3_exp, so3_left_jacobian
@@ -225,10 +226,9 @@ def _channels(image: torch.Tensor, edges: bool) -> torch.Tensor:
 
 
 # ring edges: returns at least this much nearer than their ring neighbour (the check's steps: with
-# steps of 10 cm, kerbs and the like, a KITTI solve from the reference ended 1 cm further off) ...
+# steps of 10 cm, kerbs and the like, a KITTI solve from the reference ended 1 cm further off), and
+# EDGE_NEAR_M in front of the camera
 EDGE_MIN_STEP_M = 1.0
-EDGE_NEAR_M = 1.0  # ... and this far in front of the camera
-CHECK_MIN_STEP_M = 1.0  # the ring-edge check: steps this large (on KITTI and Waymo their ratio is the clearest)
 # levels "auto" for nid: its search, sky charge and edge term were tuned on 5 levels; the photometric
 # rule's 6 for Waymo's photos took a joint solve from 0.06 to 1.4 deg (docs/lidar-method.md)
 NID_LEVELS = 5
@@ -649,13 +649,11 @@ class Nid:
         shifted shift_px in 8 directions (chance), over all frames; with several frames, also each
         frame's own (`frames`: its ring edges and ratio, None for a frame without ring edges). None
         without ring edges."""
-        from rgbd_gt.align.edge_map import edge_strength
+        from rgbd_gt.align.edge_map import against_chance, edge_strength
 
         if all(r is None for r in self._ring_edges):
             return None
         R, t = self._pose(T_local)
-        shifts = shift_px * torch.tensor([[a, b] for a in (-1, 0, 1) for b in (-1, 0, 1) if a or b],
-                                         dtype=torch.float32, device=self.device)
         score = chance = weight = 0.0
         count = 0
         frames: list[dict | None] = []
@@ -671,9 +669,7 @@ class Nid:
             ok = _on_photo(photo, uv, z, EDGE_NEAR_M)
             s, uv = strength[ok], uv[ok]
             image = torch.as_tensor(edge_strength(photo.image)[:, :, None], device=self.device)
-            mine = float((s * bilinear(image, uv)[:, 0]).sum())
-            # a shift past the border samples the border (`bilinear` clamps)
-            mine_chance = float(np.mean([float((s * bilinear(image, uv + d)[:, 0]).sum()) for d in shifts]))
+            mine, mine_chance = against_chance(image, uv, s, shift_px)
             frames.append({"ring_edges": int(ok.sum()), "ratio": mine / mine_chance if mine_chance > 0 else float("nan")})
             score += mine
             chance += mine_chance
