@@ -17,7 +17,7 @@ import numpy as np
 
 from rgbd_gt.camera import Camera, rescale
 from rgbd_gt.render.renders import Renders
-from rgbd_gt.scan import colors_to_gray
+from rgbd_gt.scan import Scan, colors_to_gray
 
 
 WORKING_SIDE = 1280  # the longer side (pixels) of the picture the scores are taken on
@@ -232,7 +232,7 @@ def structural_qa(view: WorkingView, shift_px: int = SHIFT_PX) -> tuple[np.ndarr
     return overlay(small, strong, edges), score
 
 
-def ring_edge_check(scan, photo: np.ndarray, camera: Camera, T: np.ndarray, shift_px: float = SHIFT_PX) -> dict | None:
+def ring_edge_check(scan: Scan, photo: np.ndarray, camera: Camera, T: np.ndarray, shift_px: float = SHIFT_PX) -> dict | None:
     """A sweep's image check of one photo at pose T, as the verdict takes it for each frame
     (`Nid.ring_edge_check`): the photo's (H, W, 3 uint8, with its camera's lens) edge strength
     at the sweep's depth steps along its rings of CHECK_MIN_STEP_M and more (weights
@@ -253,5 +253,6 @@ def ring_edge_check(scan, photo: np.ndarray, camera: Camera, T: np.ndarray, shif
     with np.errstate(invalid="ignore"):
         ok = (z > EDGE_NEAR_M) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)
     edges = torch.as_tensor(edge_strength(torch.as_tensor(photo / 255.0))[:, :, None])
-    score, chance = against_chance(edges, torch.as_tensor(uv[ok]), torch.as_tensor(np.sqrt(scan.edge[idx][ok].astype(np.float64))), shift_px)
+    steps = scan.edge[idx][ok].astype(np.float64)
+    score, chance = against_chance(edges, torch.as_tensor(uv[ok]), torch.as_tensor(np.sqrt(steps)), shift_px)
     return {"ring_edge_ratio": score / chance if chance > 0 else float("nan"), "ring_edges": int(ok.sum())}
