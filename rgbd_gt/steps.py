@@ -304,8 +304,10 @@ def qa_step(view, photo: np.ndarray, camera: Camera, T: np.ndarray, around: np.n
     renders = renders_of(view)
     poses = [(T, pose_path, "")] + ([(T_before, before_path, "before_")] if T_before is not None else [])
     uprights = verticals_qa(around, photo, camera, [p[0] for p in poses])
+    # a sweep's: its rendering is too sparse for the other scores
+    ring_scores = ring_edge_check(renders.scan, photo, camera, [p[0] for p in poses]) or [None] * len(poses)
     images, scores, rows = [], {}, []
-    for (pose, path, prefix), upright in zip(poses, uprights):
+    for (pose, path, prefix), upright, rings in zip(poses, uprights, ring_scores):
         view = working_view(renders, photo, camera, pose)
         _, canny = qa(view, camera)
         if canny.scan_edge_pixels == 0:
@@ -313,7 +315,6 @@ def qa_step(view, photo: np.ndarray, camera: Camera, T: np.ndarray, around: np.n
         img, structural = structural_qa(view)
         images.append(img)
         scores |= structural.as_dict(prefix) | canny.as_dict(prefix) | upright.as_dict(prefix)
-        rings = ring_edge_check(renders.scan, photo, camera, pose)  # a sweep's: its rendering is too sparse for the others
         if rings is not None:
             scores |= {prefix + key: value for key, value in rings.items()}
         ring_text = "" if rings is None else (f"; ring edges {rings['ring_edge_ratio']:.2f} x chance over "

@@ -149,11 +149,11 @@ def test_qa_scores_a_sweeps_ring_edges_as_the_verdict_does():
     al = make_aligner(inputs, RefineConfig(objective="nid"), "cpu")
     al.prepare(s.T_ref)
     verdicts = al.ring_edge_check(s.T_ref, 6)
-    mine = ring_edge_check(inputs.scan, s.photo, s.camera, s.T_ref)
+    turn = apply_update(s.T_ref, np.r_[0.0, np.radians(1.0), 0, 0, 0, 0])
+    mine, turned = ring_edge_check(inputs.scan, s.photo, s.camera, [s.T_ref, turn])
     assert "frames" not in verdicts and mine["ring_edges"] == verdicts["ring_edges"] > 500
     assert mine["ring_edge_ratio"] == pytest.approx(verdicts["ratio"], rel=1e-4)
     assert mine["ring_edge_ratio"] > RefineConfig().verify.ring_edge_frame_ok
-    turned = ring_edge_check(inputs.scan, s.photo, s.camera, apply_update(s.T_ref, np.r_[0.0, np.radians(1.0), 0, 0, 0, 0]))
     assert turned["ring_edge_ratio"] < RefineConfig().verify.ring_edge_ratio_failed
 
 

@@ -232,13 +232,14 @@ def structural_qa(view: WorkingView, shift_px: int = SHIFT_PX) -> tuple[np.ndarr
     return overlay(small, strong, edges), score
 
 
-def ring_edge_check(scan: Scan, photo: np.ndarray, camera: Camera, T: np.ndarray, shift_px: float = SHIFT_PX) -> dict | None:
-    """A sweep's image check of one photo at pose T, as the verdict takes it for each frame
-    (`Nid.ring_edge_check`): the photo's (H, W, 3 uint8, with its camera's lens) edge strength
-    at the sweep's depth steps along its rings of CHECK_MIN_STEP_M and more (weights
-    sqrt(step / m)) against the same shifted shift_px photo pixels in 8 directions. Returns
+def ring_edge_check(scan: Scan, photo: np.ndarray, camera: Camera, poses: list[np.ndarray],
+                    shift_px: float = SHIFT_PX) -> list[dict] | None:
+    """A sweep's image check of one photo at each of poses (4, 4), as the verdict takes it for
+    each frame (`Nid.ring_edge_check`): the photo's (H, W, 3 uint8, with its camera's lens) edge
+    strength at the sweep's depth steps along its rings of CHECK_MIN_STEP_M and more (weights
+    sqrt(step / m)) against the same shifted shift_px photo pixels in 8 directions. Per pose
     `ring_edge_ratio` (1.0 = chance) and `ring_edges` (how many landed on the photo, at least
-    EDGE_NEAR_M in front), or None for a scan without ring steps (`Scan.edge`)."""
+    EDGE_NEAR_M in front); None for a scan without ring steps (`Scan.edge`)."""
     import torch
 
     from rgbd_gt.align.edge_map import CHECK_MIN_STEP_M, EDGE_NEAR_M, against_chance, edge_strength
@@ -248,11 +249,14 @@ def ring_edge_check(scan: Scan, photo: np.ndarray, camera: Camera, T: np.ndarray
     if scan.edge is None:
         return None
     idx = np.flatnonzero(scan.edge >= CHECK_MIN_STEP_M)
-    uv, z = project(camera, transform_points(T, scan.xyz[idx]))
+    weights = np.sqrt(scan.edge[idx].astype(np.float64))
+    edges = torch.as_tensor(edge_strength(torch.as_tensor(photo / 255.0))[:, :, None])  # once for all poses
     w, h = camera.size
-    with np.errstate(invalid="ignore"):
-        ok = (z > EDGE_NEAR_M) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)
-    edges = torch.as_tensor(edge_strength(torch.as_tensor(photo / 255.0))[:, :, None])
-    steps = scan.edge[idx][ok].astype(np.float64)
-    score, chance = against_chance(edges, torch.as_tensor(uv[ok]), torch.as_tensor(np.sqrt(steps)), shift_px)
-    return {"ring_edge_ratio": score / chance if chance > 0 else float("nan"), "ring_edges": int(ok.sum())}
+    out = []
+    for T in poses:
+        uv, z = project(camera, transform_points(T, scan.xyz[idx]))
+        with np.errstate(invalid="ignore"):
+            ok = (z > EDGE_NEAR_M) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)
+        score, chance = against_chance(edges, torch.as_tensor(uv[ok]), torch.as_tensor(weights[ok]), shift_px)
+        out.append({"ring_edge_ratio": score / chance if chance > 0 else float("nan"), "ring_edges": int(ok.sum())})
+    return out
