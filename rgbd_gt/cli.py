@@ -102,6 +102,11 @@ def _verdict_text(verdict: str | None) -> str:
     return f"[{VERDICT_STYLE[verdict]}]{verdict}[/]" if verdict in VERDICT_STYLE else "-"
 
 
+def _sigma_text(sigma: dict) -> str:
+    """An evidence `uncertainty` (`verify.uncertainty`) as one line."""
+    return f"{sigma['translation_mm']:.3f} mm, {sigma['rotation_deg']:.4f} deg, {sigma['image_px']:.3f} px"
+
+
 def _fmt_bounds(b: np.ndarray) -> str:
     if not np.isfinite(b).all():
         return "-"
@@ -499,8 +504,7 @@ def refine(
         ("verdict", _verdict_text(verification.verdict)),
         *[("", reason) for reason in verification.reasons],
         ("moved from init", f"{moved_mm:.2f} mm, {moved_deg:.4f} deg"),
-        ("uncertainty (1 sigma)", f"{ev['uncertainty']['translation_mm']:.3f} mm, {ev['uncertainty']['rotation_deg']:.4f} deg, "
-                                  f"{ev['uncertainty']['image_px']:.3f} px"),
+        ("uncertainty (1 sigma)", _sigma_text(ev["uncertainty"])),
         ("edges vs chance", f"not usable: the scan is drawn with {ev['edges']['splat_radius_px']} px splats"
          if not ev["edges"]["edge_check_usable"] else f"{ev['edges']['edge_ratio']:.2f} (1.0 = chance)"
          if ev["edges"]["structural_edge_pixels"] else "not usable: no structural edges in view"),
@@ -519,6 +523,8 @@ def refine(
     if "frames" in ev:
         rows.append(("frames apart", f"{ev['frames']['folds']} groups end up to {ev['frames']['spread_px']:.2f} px "
                                      f"({ev['frames']['spread_mm']:.0f} mm, {ev['frames']['spread_deg']:.3f} deg) from the result"))
+        if "uncertainty" in ev["frames"]:  # what the pose file's covariance states
+            rows.append(("uncertainty, frames as samples", _sigma_text(ev["frames"]["uncertainty"])))
         loo = ev["frames"].get("leave_one_out")
         if loo is not None:
             rows.append(("each frame left out", f"the result moves up to {loo['worst_left_out_px']:.2f} px (frame "

@@ -9,7 +9,7 @@ import torch
 
 from conftest import DATA
 from rgbd_gt.align.config import RefineConfig
-from rgbd_gt.pose import apply_update, translated
+from rgbd_gt.pose import apply_update, translated, worst_sigmas
 from rgbd_gt.render.rings import ring_steps
 
 DRIVES = DATA / "lidar_camera"
@@ -221,6 +221,39 @@ def test_leave_one_out_steps_are_the_minima_without_each_frame():
     assert np.isfinite(own[0]).all() and np.isnan(own[1:]).all()
 
 
+def test_frames_covariance_is_the_sandwich_where_wider_than_the_aligners():
+    """Frames whose gradients at the result scatter far more than their curvature says (each frame
+    a sample of a sweep's and photo's own errors): the covariance with the frames as samples is
+    H^-1 B H^-1 (B: F / (F - 1) times their gradients' scatter), in units of the update; where the
+    frames agree better than the aligner's own (Laplace) covariance it keeps that one. A single
+    frame has none."""
+    from rgbd_gt.align.aligner import RefineResult
+    from rgbd_gt.align.verify import frames_covariance
+
+    rng = np.random.default_rng(5)
+    F, units = 8, np.array([1e-3, 1e-3, 1e-3, 1e-2, 1e-2, 1e-2])
+    H = np.stack([np.eye(6) * (2.0 + f) for f in range(F)])
+    Hs = H.sum(0)
+    laplace = np.linalg.inv(Hs) * units[:, None] * units[None, :]
+
+    def result(g):
+        return RefineResult(np.eye(4), np.zeros((1, 1)), 0, 0.0, 1.0, 1000, 0.0, covariance=laplace, objective="nid",
+                            frame_quadratics=(g, H[:len(g)], units))
+
+    g = rng.normal(size=(F, 6)) * 300  # scatter far beyond the curvature's sqrt(H_f) in every direction
+    gc = g - g.mean(0)
+    sandwich = F / (F - 1) * np.linalg.inv(Hs) @ (gc.T @ gc) @ np.linalg.inv(Hs) * units[:, None] * units[None, :]
+    np.testing.assert_allclose(frames_covariance(result(g)), sandwich, rtol=1e-9, atol=1e-18)
+    # agreeing frames (no scatter but along the first axis): the Laplace covariance elsewhere
+    g = np.zeros((F, 6))
+    g[:, 0] = np.linspace(-40, 40, F)
+    wide = frames_covariance(result(g))
+    assert wide[0, 0] > 100 * laplace[0, 0]
+    np.testing.assert_allclose(wide[1:, 1:], laplace[1:, 1:], rtol=1e-9)
+    np.testing.assert_allclose(frames_covariance(result(np.zeros((F, 6)))), laplace, rtol=1e-9)
+    assert frames_covariance(result(g[:1])) is None
+
+
 def test_joint_solve_of_kitti_frames_is_judged_by_its_frames_apart(tmp_path):
     """`refine --pairs` over 4 KITTI frames (3 levels, no wide search, to keep it short) from
     0.3 deg and 5 cm off: the verdict refines the frames in 2 groups apart from the result instead
@@ -259,6 +292,12 @@ def test_joint_solve_of_kitti_frames_is_judged_by_its_frames_apart(tmp_path):
     loo = ev["frames"]["leave_one_out"]
     assert len(loo["left_out_px"]) == 4 and 0 < loo["worst_left_out_px"] < 3.0
     assert "each frame left out" in proc.stdout
+    # the pose file's covariance takes the frames as the samples: never narrower than the aligner's
+    assert ev["frames"]["uncertainty"]["translation_mm"] >= ev["uncertainty"]["translation_mm"]
+    assert ev["frames"]["uncertainty"]["rotation_deg"] >= ev["uncertainty"]["rotation_deg"]
+    cov = np.array(meta["covariance"])
+    assert worst_sigmas(cov)["translation_mm"] == pytest.approx(ev["frames"]["uncertainty"]["translation_mm"])
+    assert "uncertainty, frames as samples" in proc.stdout
 
 
 def test_one_sweep_alone_is_warned_about(tmp_path):

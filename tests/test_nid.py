@@ -339,7 +339,7 @@ def test_repeat_runs_are_refine_itself_and_the_covariance_is_a_minimum(intensity
     from rgbd_gt.camera import without_distortion
 
     view = _View(al.visible_scan_points(result.T_cam_from_scan), without_distortion(camera))
-    sigma = uncertainty(result, view.motion_metric(result.T_cam_from_scan))
+    sigma = uncertainty(result.covariance, view.motion_metric(result.T_cam_from_scan))
     assert 0 < sigma["image_px"] < 1.0, sigma
 
 

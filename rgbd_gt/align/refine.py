@@ -128,10 +128,12 @@ def refine_meta(result: RefineResult, cfg: RefineConfig, T_init: np.ndarray, ini
         change_from_init={"translation_mm": translation_error_m(result.T_cam_from_scan, T_init) * 1e3,
                           "rotation_deg": rotation_error_deg(result.T_cam_from_scan, T_init)},
     )
-    if result.covariance is not None and np.isfinite(result.covariance).all():
+    cov = result.covariance if verification is None else verification.covariance
+    if cov is not None and np.isfinite(cov).all():
         # what export's per-pixel depth 1-sigma propagates: of the update (rotation vector rad,
-        # translation m) in the camera frame, T' = exp(update) T (`pose.apply_update`)
-        meta["covariance"] = result.covariance.tolist()
+        # translation m) in the camera frame, T' = exp(update) T (`pose.apply_update`); a joint
+        # solve's widened by its frames' scatter (`verify.frames_covariance`)
+        meta["covariance"] = cov.tolist()
     if result.intrinsics is not None and camera is not None:
         meta["intrinsics"] = intrinsics_meta(camera, result)
     if verification is not None:

@@ -36,6 +36,9 @@ class Verification:
     reasons: list[str]  # short sentences, empty when ok
     evidence: dict  # the numbers (docs/trust.md says what each means)
     seconds: float = 0.0
+    # (6, 6) of the pose update, as `RefineResult.covariance`, that the pose file states: the
+    # aligner's, or for a joint solve its frames' where that is wider (`frames_covariance`)
+    covariance: np.ndarray | None = None
 
 
 @dataclass
@@ -78,12 +81,12 @@ class _View:
         return _View(transform_points(np.linalg.inv(T), cam), self.camera)
 
 
-def uncertainty(result: RefineResult, M: np.ndarray) -> dict:
-    """The worst-determined direction's 1-sigma of the result's covariance (the aligner's; a lower
-    bound, compared against thresholds measured on cases with known truth) for rotation (deg),
-    camera position (mm) and image motion (px; M: `_View.motion_metric` at the result), and the
-    condition number of the covariance with its parameters scaled to unit diagonal."""
-    cov = result.covariance
+def uncertainty(cov: np.ndarray | None, M: np.ndarray) -> dict:
+    """The worst-determined direction's 1-sigma of a result's covariance cov (6, 6) (the aligner's,
+    `RefineResult.covariance`: a lower bound, compared against thresholds measured on cases with
+    known truth) for rotation (deg), camera position (mm) and image motion (px; M:
+    `_View.motion_metric` at the result), and the condition number of the covariance with its
+    parameters scaled to unit diagonal."""
     if cov is None or not np.isfinite(cov).all():
         return {"rotation_deg": float("inf"), "translation_mm": float("inf"), "image_px": float("inf"), "condition": float("inf")}
     s = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
@@ -172,6 +175,32 @@ def frame_folds(aligner: Aligner, result: RefineResult, view: _View, cfg: Verify
     worst = {key: max(g[key] for g in groups) for key in ("px", "photo_px", "mm", "deg")}
     return {"folds": cfg.folds, "spread_px": worst["px"], "spread_photo_px": worst["photo_px"],
             "spread_mm": worst["mm"], "spread_deg": worst["deg"], "groups": groups}
+
+
+def frames_covariance(result: RefineResult) -> np.ndarray | None:
+    """(6, 6) the covariance of a joint solve's pose update (as `RefineResult.covariance`) with its
+    frames taken as the independent samples: the sandwich H^-1 B H^-1 of the frames' shares of the
+    objective (`RefineResult.frame_quadratics`: H their summed Hessian, B F / (F - 1) times the
+    scatter of their gradients), in every direction where it is wider than the aligner's own. The
+    aligner's (Laplace) covariance takes every point as an independent sample, but neighbouring
+    points share pixels and each sweep and photo has errors of its own (timing, its own
+    distortion): on KITTI's and Waymo's drives the frames' is 2-13 times wider in the worst
+    direction (docs/lidar-method.md). None for a single frame or without both."""
+    cov = result.covariance
+    if result.frame_quadratics is None or len(result.frame_quadratics[0]) < 2 or cov is None or not np.isfinite(cov).all():
+        return None
+    g, H, units = result.frame_quadratics
+    Hs = H.sum(0)
+    if np.linalg.eigvalsh(Hs)[0] <= 0:
+        return None
+    gc = g - g.mean(0)
+    A = np.linalg.solve(Hs, gc.T) * units[:, None]  # (6, F) each frame's pull on the minimum
+    sandwich = len(g) / (len(g) - 1) * A @ A.T
+    # the wider of the two along each axis of the Laplace one whitened: max(1, eigenvalue)
+    L = np.linalg.cholesky(cov)
+    Li = np.linalg.inv(L)
+    lam, V = np.linalg.eigh(Li @ sandwich @ Li.T)
+    return L @ (V * np.maximum(lam, 1.0)) @ V.T @ L.T
 
 
 def leave_one_out_steps(g: np.ndarray, H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -392,6 +421,7 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
 
     start = time.perf_counter()
     seconds: dict[str, float] = {}
+    covariance = result.covariance
 
     def timed(name, fn, *args):
         t = time.perf_counter()
@@ -402,7 +432,7 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
     T = result.T_cam_from_scan
     view = _View(aligner.visible_scan_points(T, result.intrinsics), without_distortion(camera))
     M = view.motion_metric(T)
-    ev: dict = {"objective": result.objective, "uncertainty": timed("uncertainty", uncertainty, result, M)}
+    ev: dict = {"objective": result.objective, "uncertainty": timed("uncertainty", uncertainty, result.covariance, M)}
     ev["convergence"] = {"levels": result.levels,
                          "damping_ran_away": any(lv["stop"] == "damping ran away" for lv in result.levels)}
     init_sigma = (init_meta or {}).get("uncertainty")
@@ -412,6 +442,10 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
         loo = timed("leave_one_frame_out", leave_one_frame_out, result, view)
         if loo is not None:
             ev["frames"]["leave_one_out"] = loo
+        wider = frames_covariance(result)
+        if wider is not None:
+            covariance = wider
+            ev["frames"]["uncertainty"] = uncertainty(wider, M)
     elif cfg.repeats > 0:
         ev["repeatability"] = timed("repeatability", repeatability, aligner, result, T_init, view, cfg, init_sigma, seed)
     if result.objective != "nid":  # NID's values rise by 1e-5..1e-3: its uncertainty, from their Hessian, stands for it
@@ -441,7 +475,7 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
                                           moved_deg / max(float(init_sigma["rotation_deg"]), 1e-9))
     ev["seconds"] = seconds
     verdict, reasons = decide(ev, cfg)
-    return Verification(verdict, reasons, ev, time.perf_counter() - start)
+    return Verification(verdict, reasons, ev, time.perf_counter() - start, covariance)
 
 
 def bundle_reasons(ev: dict, cfg: VerifyConfig) -> list[str]:

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from rgbd_gt.export.source import stated_uncertainty
+
 THUMB = 480  # pixels, the longer side of the page's pictures
 SPARSE = 0.2  # a depth map with depth on fewer of its pixels is a sweep's points
 
@@ -142,7 +144,7 @@ def _photo_section(name: str, s, scan: str | None, assets: Path, folder: Path | 
         scale = (f'<p>depth: <span data-key="depth_min_m">{lo:.3f}</span> m <span class="scale"></span> '
                  f'<span data-key="depth_max_m">{hi:.3f}</span> m (1st to 99th percentile; black: no depth'
                  + ("; the sparse map's points drawn larger" if (z > 0).mean() < SPARSE else "") + ")</p>")
-    u = s.evidence.get("uncertainty") or {}
+    u = stated_uncertainty(s.evidence)
     cam = ", ".join(f"{k} {v:.3g}" for k, v in s.camera_sigma.items()) or "as its file (not refined)"
     exported = ""
     if "valid" in figures:
@@ -182,7 +184,7 @@ def _table(photos: list, missing: list) -> str:
     head = ["photo", "verdict", "rotation 1-sigma (deg)", "translation 1-sigma (mm)", "image 1-sigma (px)", "reasons"]
     rows = []
     for n, s, _ in photos:
-        u = s.evidence.get("uncertainty") or {}
+        u = stated_uncertainty(s.evidence)
         rows.append(f'<tr><td data-sort="{html.escape(n)}"><a href="#{html.escape(n)}">{html.escape(n)}</a></td>'
                     f'<td data-sort="{VERDICT_ORDER.get(s.verdict, 3)}" class="{s.verdict}">{s.verdict}</td>'
                     + "".join(f'<td data-sort="{u.get(k, "nan")}">{_num(u.get(k))}</td>'

@@ -141,13 +141,20 @@ def _shot(name: str, image: Path, camera: Camera, camera_name: str, pose_file: P
                 list(keys.get("reasons") or []), pose_file, sigma, evidence=keys.get("evidence") or {})
 
 
+def stated_uncertainty(evidence: dict) -> dict:
+    """The worst-direction 1-sigmas (`align.verify.uncertainty`) of the covariance a pose file
+    states: with the frames as the samples for a joint solve (`frames.uncertainty`), else the
+    aligner's (`uncertainty`); {} when there are none."""
+    return (evidence.get("frames") or {}).get("uncertainty") or evidence.get("uncertainty") or {}
+
+
 def pose_covariance(keys: dict) -> np.ndarray:
     """(6, 6) the pose file's `covariance`; from a file without one, the worst-direction 1-sigmas
     of its evidence (`uncertainty`) on every axis (larger than the covariance says; inf where the
     pose is undetermined)."""
     if "covariance" in keys:
         return np.asarray(keys["covariance"], np.float64).reshape(6, 6)
-    u = (keys.get("evidence") or {}).get("uncertainty") or {}
+    u = stated_uncertainty(keys.get("evidence") or {})
     rot, trans = np.radians(float(u.get("rotation_deg", 0.0))), float(u.get("translation_mm", 0.0)) / 1e3
     return np.diag([rot ** 2] * 3 + [trans ** 2] * 3)
 
