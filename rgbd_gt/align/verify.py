@@ -184,7 +184,7 @@ def frames_covariance(result: RefineResult) -> np.ndarray | None:
     scatter of their gradients), in every direction where it is wider than the aligner's own. The
     aligner's (Laplace) covariance takes every point as an independent sample, but neighbouring
     points share pixels and each sweep and photo has errors of its own (timing, its own
-    distortion): on KITTI's and Waymo's drives the frames' is 2-13 times wider in the worst
+    distortion): on KITTI's and Waymo's drives the frames' is 3-13 times wider in the worst
     direction (docs/lidar-method.md). None for a single frame or without both."""
     cov = result.covariance
     if result.frame_quadratics is None or len(result.frame_quadratics[0]) < 2 or cov is None or not np.isfinite(cov).all():
