@@ -505,6 +505,7 @@ def refine(
         *[("", reason) for reason in verification.reasons],
         ("moved from init", f"{moved_mm:.2f} mm, {moved_deg:.4f} deg"),
         ("uncertainty (1 sigma)", _sigma_text(ev["uncertainty"])),
+        *([("uncertainty, photo tiles as samples", _sigma_text(ev["tiles"]["uncertainty"]))] if "tiles" in ev else []),
         ("edges vs chance", f"not usable: the scan is drawn with {ev['edges']['splat_radius_px']} px splats"
          if not ev["edges"]["edge_check_usable"] else f"{ev['edges']['edge_ratio']:.2f} (1.0 = chance)"
          if ev["edges"]["structural_edge_pixels"] else "not usable: no structural edges in view"),

@@ -25,3 +25,12 @@ def test_the_entry_point_lists_every_benchmark_and_refuses_unknown_ones():
 def test_each_benchmark_runs_on_its_own(module):
     proc = run(f"benchmarks.{module}", "--help")
     assert proc.returncode == 0 and proc.stdout.startswith("usage:"), proc.stderr[-1000:]
+
+
+@pytest.mark.parametrize("doc", ["trust", "lidar"])
+def test_a_generated_document_ends_with_its_method_text_as_written(doc):
+    """docs/trust.md and docs/lidar.md are made by their benchmarks, which append
+    docs/<doc>-method.md: what is said about the method is edited there, or the next `make bench`
+    drops it."""
+    generated, method = (ROOT / "docs" / f"{doc}.md").read_text(), (ROOT / "docs" / f"{doc}-method.md").read_text()
+    assert generated.rstrip().endswith(method.rstrip())

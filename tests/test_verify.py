@@ -10,7 +10,7 @@ from conftest import run_cli
 from rgbd_gt.camera import Camera
 from rgbd_gt.init.pnp import pnp, pose_uncertainty
 from rgbd_gt.io import read_pose
-from rgbd_gt.pose import apply_update, rigid
+from rgbd_gt.pose import apply_update, rigid, worst_sigmas
 from rgbd_gt.qa.edges import chance_relative, photo_strength, structural_edges
 
 
@@ -43,6 +43,12 @@ def test_right_result_is_ok_and_the_pose_file_carries_the_evidence(scene, tmp_pa
     assert ev["sharpness"]["min_rise"] > 0  # a minimum in every direction
     assert ev["repeatability"]["starts"] == 4 and ev["repeatability"]["spread_px"] < 0.5
     assert 0 < ev["uncertainty"]["translation_mm"] < 5 and ev["uncertainty"]["condition"] >= 1
+    # the covariance the file states has the photo's tiles as the samples, never narrower than the aligner's
+    assert 2 <= ev["tiles"]["count"] <= 64
+    for key in ("translation_mm", "rotation_deg", "image_px"):
+        assert ev["tiles"]["uncertainty"][key] >= ev["uncertainty"][key]
+    assert worst_sigmas(np.array(doc["covariance"]))["translation_mm"] == pytest.approx(ev["tiles"]["uncertainty"]["translation_mm"])
+    assert "uncertainty, photo tiles as samples" in proc.stdout
     assert ev["convergence"]["levels"][-1]["level"] == 0
     # the camera file is right: freed, the focal length stays (0.02% at most on the synthetic scenes)
     assert abs(ev["camera"]["focal_change"]) < 0.001, ev["camera"]

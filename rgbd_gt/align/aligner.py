@@ -60,6 +60,9 @@ class RefineResult:
     # a joint solve (nid, several frames): each frame's share of the objective as a quadratic at
     # the result, (g (F, 6), H (F, 6, 6), units (6,)) (`Nid.frame_quadratics`)
     frame_quadratics: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    # a single photo (photometric): the pose's gradient summed per tile of the photo (K, 6) and its
+    # Gauss-Newton matrix (6, 6) at the result (`Photometric.tile_scores`)
+    tile_scores: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def damped(H: np.ndarray, lam: float) -> np.ndarray:
@@ -149,6 +152,7 @@ class Aligner:
             intrinsics=q.double().cpu().numpy() if obj.free else None, intrinsics_sigma=sigma,
             start_residuals=start_res, end_residuals=obj.residuals(0, final) if keep_residuals else None,
             frame_quadratics=getattr(final, "quadratics", None) if cov is not None else None,
+            tile_scores=getattr(final, "tiles", None) if cov is not None else None,
             **obj.summary(final),
         )
 

@@ -65,6 +65,9 @@ class Terms:
     # one pose, with its system: the unclipped predictions (c, m) at its visible points and their
     # derivatives' factors dr/du, dr/dv (c, m) and du, dv (c, P) (`own_colors`)
     seen: tuple | None = None
+    pulls: tuple | None = None  # ... and each visible point's pull (`_normal_equations`): two (c,)
+    # the photo's tiles as the samples (`Photometric.tile_scores`), once the covariance made them
+    tiles: tuple[np.ndarray, np.ndarray] | None = None
 
     def where(self, keep: np.ndarray, other: "Terms") -> "Terms":
         """Per pose: these terms where keep (B,) is True, else other's."""
@@ -161,19 +164,20 @@ def high_pass(image: torch.Tensor, sigma: float) -> torch.Tensor:
 
 
 def _normal_equations(du: torch.Tensor, dv: torch.Tensor, a: torch.Tensor, b: torch.Tensor, r: torch.Tensor,
-                      w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                      w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
     """The Gauss-Newton system J^T W J (B, 6, 6) and J^T W r (B, 6), float64, of B poses' residuals
     r (B, n, m) with weights w (B, n, m) (0 for points not used), where the residual's Jacobian
     is J_nm = a_nm du_n + b_nm dv_n: a, b (B, n, m) its derivatives along the image axes, du, dv
     (B, n, 6) the pixel motion per pose parameter. Summed over the channels first, which needs
-    only 2x2 sums per point."""
+    only 2x2 sums per point. Also each point's pull (sum_m w a r, sum_m w b r), two (B, n): its
+    share of J^T W r is du_n times the first plus dv_n times the second."""
     saa, sab, sbb = ((w * a * a).sum(2).double(), (w * a * b).sum(2).double(), (w * b * b).sum(2).double())
     sar, sbr = (w * a * r).sum(2).double(), (w * b * r).sum(2).double()
     du, dv = du.double(), dv.double()
     duT, dvT = du.transpose(1, 2), dv.transpose(1, 2)
     cross = duT @ (sab[..., None] * dv)
     H = duT @ (saa[..., None] * du) + cross + cross.transpose(1, 2) + dvT @ (sbb[..., None] * dv)
-    return H, (duT @ sar[..., None] + dvT @ sbr[..., None])[..., 0]
+    return H, (duT @ sar[..., None] + dvT @ sbr[..., None])[..., 0], (sar, sbr)
 
 
 def scaled_inverse(H: np.ndarray) -> np.ndarray:
@@ -216,6 +220,11 @@ def _valid_at(valid: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
 
 
 POOL = 16  # x max_points: the most scan points an aligner keeps (drawn at random)
+# the photo in this many x this many tiles, each a sample of the pose's covariance (`tile_scores`):
+# residuals of neighbouring points are not independent (they share pixels, and the scan's colors
+# and the photo differ in patches); on ICL-NUIM and synthetic scenes 4 x 4 to 16 x 16 gave about
+# the same widening (docs/trust.md, "The covariance a single photo states")
+TILES = 8
 
 
 class Photometric:
@@ -470,12 +479,13 @@ class Photometric:
         b = _times_transposed(self._kernel_derivative(I, Iv).reshape(B, c, k), D)
         du, dv = self._jacobian(p.reshape(-1, 3), lv.photo.K, q, free)
         ws = w if B == 1 else w * seen[..., None]  # one pose sees all of cols
-        H, g = _normal_equations(du.reshape(B, c, -1), dv.reshape(B, c, -1), a, b, r, ws)
+        H, g, pulls = _normal_equations(du.reshape(B, c, -1), dv.reshape(B, c, -1), a, b, r, ws)
         terms.H, terms.g = H.cpu().numpy(), g.cpu().numpy()
         terms.wrr = (ws * r * r).sum((1, 2)).double().cpu().numpy()
         terms.count = visible * m
         if B == 1:
             terms.seen = (pred[0], a[0], b[0], du, dv)
+            terms.pulls = (pulls[0][0], pulls[1][0])
         return terms
 
     def _jacobian(self, p: torch.Tensor, K: torch.Tensor, q: torch.Tensor, free: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -535,8 +545,30 @@ class Photometric:
         return (self.levels[level].photo.to_photo_pixels(at.uv[0][seen]).cpu().numpy(), at.err[0][seen].cpu().numpy())
 
     def covariance(self, level: int, T: np.ndarray, q: torch.Tensor, at: Terms) -> np.ndarray | None:
-        """(P, P) the parameters' covariance at the first pose of `at` (evaluated with its Jacobian)."""
-        return None if at.H is None else covariance(at.H[0], float(at.wrr[0]), int(at.count[0]))
+        """(P, P) the parameters' covariance at the first pose of `at` (evaluated with its Jacobian).
+        Its pose's share of the objective per tile of the photo stays in at.tiles (`tile_scores`)."""
+        if at.H is None:
+            return None
+        if at.pulls is not None:
+            at.tiles = self.tile_scores(level, at)
+        return covariance(at.H[0], float(at.wrr[0]), int(at.count[0]))
+
+    def tile_scores(self, level: int, at: Terms, tiles: int = TILES) -> tuple[np.ndarray, np.ndarray]:
+        """The pose's gradient of the objective (J^T W r) summed over the visible points in each of
+        tiles x tiles tiles of the photo, (K, 6) for the K tiles with points, and the pose's J^T W J
+        (6, 6), at the first pose of `at` (evaluated alone with its Jacobian), for the covariance
+        with the tiles as the samples (`verify.tiles_covariance`)."""
+        _, _, _, du, dv = at.seen
+        sar, sbr = at.pulls
+        pull = (du[:, :6].double() * sar[:, None] + dv[:, :6].double() * sbr[:, None])  # (c, 6)
+        uv = at.uv[0][at.mask[0]]
+        h, w = self.levels[level].photo.image.shape[:2]
+        col = (uv[:, 0] * (tiles / w)).long().clamp(0, tiles - 1)
+        row = (uv[:, 1] * (tiles / h)).long().clamp(0, tiles - 1)
+        sums = torch.zeros(tiles * tiles, 6, dtype=pull.dtype, device=pull.device).index_add_(0, row * tiles + col, pull)
+        held = torch.zeros(tiles * tiles, dtype=torch.bool, device=pull.device)
+        held[row * tiles + col] = True
+        return sums[held].cpu().numpy(), at.H[0][:6, :6]
 
     def summary(self, at: Terms) -> dict:
         """`RefineResult`'s objective-specific fields of the first pose of at."""

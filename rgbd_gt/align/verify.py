@@ -177,30 +177,47 @@ def frame_folds(aligner: Aligner, result: RefineResult, view: _View, cfg: Verify
             "spread_mm": worst["mm"], "spread_deg": worst["deg"], "groups": groups}
 
 
-def frames_covariance(result: RefineResult) -> np.ndarray | None:
-    """(6, 6) the covariance of a joint solve's pose update (as `RefineResult.covariance`) with its
-    frames taken as the independent samples: the sandwich H^-1 B H^-1 of the frames' shares of the
-    objective (`RefineResult.frame_quadratics`: H their summed Hessian, B F / (F - 1) times the
-    scatter of their gradients), in every direction where it is wider than the aligner's own. The
-    aligner's (Laplace) covariance takes every point as an independent sample, but neighbouring
-    points share pixels and each sweep and photo has errors of its own (timing, its own
-    distortion): on KITTI's and Waymo's drives the frames' is 3-13 times wider in the worst
-    direction (docs/lidar-method.md). None for a single frame or without both."""
-    cov = result.covariance
-    if result.frame_quadratics is None or len(result.frame_quadratics[0]) < 2 or cov is None or not np.isfinite(cov).all():
-        return None
-    g, H, units = result.frame_quadratics
-    Hs = H.sum(0)
-    if np.linalg.eigvalsh(Hs)[0] <= 0:
+def sandwich_covariance(cov: np.ndarray | None, g: np.ndarray, H: np.ndarray, units: np.ndarray | None = None) -> np.ndarray | None:
+    """(6, 6) the covariance `cov` (of the pose update, as `RefineResult.covariance`) widened in
+    every direction where the sandwich H^-1 B H^-1 of K samples is wider: g (K, 6) the samples'
+    shares of the objective's gradient at the result, H (6, 6) the objective's Hessian there, B
+    K / (K - 1) times the scatter of g; both in parameters scaled by units (6,) (default 1).
+    The aligner's (Laplace) covariance takes every point as an independent sample, but
+    neighbouring points share pixels and each photo and scan has errors of its own. None for
+    fewer than 2 samples, or where cov or H says nothing."""
+    if len(g) < 2 or cov is None or not np.isfinite(cov).all() or np.linalg.eigvalsh(H)[0] <= 0:
         return None
     gc = g - g.mean(0)
-    A = np.linalg.solve(Hs, gc.T) * units[:, None]  # (6, F) each frame's pull on the minimum
+    A = np.linalg.solve(H, gc.T) * (1.0 if units is None else units[:, None])  # (6, K) each sample's pull on the minimum
     sandwich = len(g) / (len(g) - 1) * A @ A.T
     # the wider of the two along each axis of the Laplace one whitened: max(1, eigenvalue)
     L = np.linalg.cholesky(cov)
     Li = np.linalg.inv(L)
     lam, V = np.linalg.eigh(Li @ sandwich @ Li.T)
     return L @ (V * np.maximum(lam, 1.0)) @ V.T @ L.T
+
+
+def frames_covariance(result: RefineResult) -> np.ndarray | None:
+    """A joint solve's covariance with its frames as the independent samples
+    (`sandwich_covariance` of the frames' shares, `RefineResult.frame_quadratics`): on KITTI's and
+    Waymo's drives 3-13 times wider than the aligner's in the worst direction
+    (docs/lidar-method.md). None for a single frame."""
+    if result.frame_quadratics is None:
+        return None
+    g, H, units = result.frame_quadratics
+    return sandwich_covariance(result.covariance, g, H.sum(0), units)
+
+
+def tiles_covariance(result: RefineResult) -> np.ndarray | None:
+    """A single photo's covariance with the tiles of the photo as the independent samples
+    (`sandwich_covariance` of `RefineResult.tile_scores`): a photo's residuals are correlated
+    over patches (the scan's colors and the photo's differ by more than noise: sampling, blur,
+    view-dependent shading), which the aligner's covariance, built on independent points, cannot
+    see. None without them (nid, a bundle)."""
+    if result.tile_scores is None:
+        return None
+    g, H = result.tile_scores
+    return sandwich_covariance(result.covariance, g, H)
 
 
 def leave_one_out_steps(g: np.ndarray, H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -448,6 +465,10 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
             ev["frames"]["uncertainty"] = uncertainty(wider, M)
     elif cfg.repeats > 0:
         ev["repeatability"] = timed("repeatability", repeatability, aligner, result, T_init, view, cfg, init_sigma, seed)
+    tiles = tiles_covariance(result)
+    if tiles is not None:
+        covariance = tiles
+        ev["tiles"] = {"count": len(result.tile_scores[0]), "uncertainty": uncertainty(tiles, M)}
     if result.objective != "nid":  # NID's values rise by 1e-5..1e-3: its uncertainty, from their Hessian, stands for it
         ev["sharpness"] = timed("sharpness", sharpness, aligner, T, M, cfg.sharpness_step_px, cfg.sharpness_level,
                                  result.intrinsics)

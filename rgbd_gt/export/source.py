@@ -143,9 +143,11 @@ def _shot(name: str, image: Path, camera: Camera, camera_name: str, pose_file: P
 
 def stated_uncertainty(evidence: dict) -> dict:
     """The worst-direction 1-sigmas (`align.verify.uncertainty`) of the covariance a pose file
-    states: with the frames as the samples for a joint solve (`frames.uncertainty`), else the
-    aligner's (`uncertainty`); {} when there are none."""
-    return (evidence.get("frames") or {}).get("uncertainty") or evidence.get("uncertainty") or {}
+    states: with the frames as the samples for a joint solve (`frames.uncertainty`), with the
+    photo's tiles as the samples for a single photo (`tiles.uncertainty`), else the aligner's
+    (`uncertainty`); {} when there are none."""
+    return ((evidence.get("frames") or {}).get("uncertainty") or (evidence.get("tiles") or {}).get("uncertainty")
+            or evidence.get("uncertainty") or {})
 
 
 def pose_covariance(keys: dict) -> np.ndarray:
