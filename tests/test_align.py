@@ -409,27 +409,29 @@ def test_no_state_survives_between_two_refines(tmp_path, synth_scene):
 
 
 def test_a_single_photos_covariance_takes_the_photos_tiles_as_the_samples(tmp_path, synth_scene):
-    """The pose's gradient of the objective summed per tile of the photo (at most 8 x 8 tiles)
-    adds up to its whole gradient at the result, with the same Gauss-Newton matrix; the covariance
-    with the tiles as the samples is never narrower than the aligner's, and the truth lies
-    far fewer of its sigmas away (measured on synthetic scenes: a Mahalanobis^2 of 490-14000 under
-    the aligner's, 49-276 under the tiles')."""
+    """The gradient of the objective summed per tile of the photo (at most 8 x 8 tiles) adds up to
+    its whole gradient at the result, with the same Gauss-Newton matrix; the result's covariance
+    with the tiles as the samples is their sandwich, and, kept where wider than the aligner's, the
+    truth lies far fewer of its sigmas away (measured on synthetic scenes: a Mahalanobis^2 of
+    490-14000 under the aligner's, 49-276 under the tiles')."""
+    from rgbd_gt.align.covariance import sandwich, wider
     from rgbd_gt.align.refine import make_aligner
-    from rgbd_gt.align.verify import tiles_covariance
     from rgbd_gt.pose import invert, translated, update_of
 
     synth_scene(tmp_path, 3)
     inputs = load_inputs(tmp_path / "scan.ply", tmp_path / "photo.png", tmp_path / "camera.yaml", tmp_path / "init_pose.yaml")
     aligner = make_aligner(inputs, dataclasses.replace(RefineConfig(), max_points=20000, levels=3), "cpu")
     result = aligner.refine(inputs.T_init)
-    g, H = result.tile_scores
-    assert 2 <= len(g) <= 64
     objective = aligner.objective
     at = objective.evaluate(0, [translated(result.T_cam_from_scan, objective.centre)], torch.zeros(5))
-    np.testing.assert_allclose(g.sum(0), at.g[0][:6], rtol=1e-6, atol=1e-9 * np.abs(at.g[0][:6]).max())
-    np.testing.assert_allclose(H, at.H[0][:6, :6], rtol=1e-6)
-    laplace, tiles = result.covariance, tiles_covariance(result)
-    widened = np.linalg.eigvalsh(np.linalg.solve(np.linalg.cholesky(laplace), np.linalg.solve(np.linalg.cholesky(laplace), tiles).T))
+    g, H = objective.tile_scores(0, at)
+    assert 2 <= len(g) <= 64 and result.tiles[1] == len(g)
+    np.testing.assert_allclose(g.sum(0), at.g[0], rtol=1e-6, atol=1e-9 * np.abs(at.g[0]).max())
+    np.testing.assert_allclose(H, at.H[0])
+    np.testing.assert_allclose(result.tiles[0], sandwich(g, H)[:6, :6], rtol=1e-6)
+    laplace, tiles = result.covariance, wider(result.covariance, result.tiles[0])
+    L = np.linalg.cholesky(laplace)
+    widened = np.linalg.eigvalsh(np.linalg.solve(L, np.linalg.solve(L, tiles).T))
     assert widened.min() > 1 - 1e-9 and widened.max() > 4
     e = update_of(result.T_cam_from_scan @ invert(read_pose(tmp_path / "gt_pose.yaml")[0]))
     assert e @ np.linalg.solve(tiles, e) < e @ np.linalg.solve(laplace, e) / 4

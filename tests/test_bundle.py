@@ -293,8 +293,10 @@ def test_schur_step_and_covariance_are_the_dense_ones():
     rng = np.random.default_rng(1)
     cfg = RefineConfig(bundle_agreement=0.0)
     n = 6
-    photos = [BundlePhoto(SimpleNamespace(name="photometric", free=3, cfg=cfg, device="cpu", centre=np.zeros(3)), np.eye(4),
-                          k % 2, k // 2)
+    # each photo's gradient in 5 tiles (`Photometric.tile_scores`), for the covariance with the tiles as the samples
+    tiles = [rng.normal(size=(5, 9)) for _ in range(n)]
+    photos = [BundlePhoto(SimpleNamespace(name="photometric", free=3, cfg=cfg, device="cpu", centre=np.zeros(3),
+                                          tile_scores=lambda level, at, G=tiles[k]: (G, at.H[0])), np.eye(4), k % 2, k // 2)
               for k in range(n)]
     bundle = Bundle(photos, 2, 2)
     terms = []
@@ -326,6 +328,21 @@ def test_schur_step_and_covariance_are_the_dense_ones():
         J[:, 6 * nb:] = Js
         assert np.allclose(result.pose_covariance[i], J @ cov @ J.T, rtol=1e-8, atol=1e-14)
     assert np.allclose(result.rig_covariance[1], cov[6 * nb + 6:, 6 * nb + 6:], rtol=1e-8)
+    # the tiles as the samples: the dense sandwich A^-1 B A^-1 of every photo's tiles placed in the
+    # joint unknowns (each photo's rows divided by its residual variance, 1 here)
+    placed = []
+    for i in range(n):
+        Jb, Js = bundle._maps(i, rig)
+        P = np.zeros((9, len(A)))
+        P[:, 6 * bundle.body_of[i]:6 * bundle.body_of[i] + 6], P[:, 6 * nb:] = Jb, Js
+        placed.append(P)
+    G = np.concatenate([tiles[i] @ placed[i] for i in range(n)])
+    Gc = G - G.mean(0)
+    sandwich = len(G) / (len(G) - 1) * np.linalg.solve(A, np.linalg.solve(A, Gc.T @ Gc).T)
+    for i in range(n):
+        assert result.tiles[i][1] == 5 * n
+        assert np.allclose(result.tiles[i][0], placed[i][:6] @ sandwich @ placed[i][:6].T, rtol=1e-8, atol=1e-14)
+    assert np.allclose(result.rig_tiles[1], sandwich[6 * nb + 6:6 * nb + 12, 6 * nb + 6:6 * nb + 12], rtol=1e-8)
 
 
 def test_a_shot_at_no_minimum_is_left_out_of_the_covariances():
@@ -344,8 +361,10 @@ def test_a_shot_at_no_minimum_is_left_out_of_the_covariances():
     rng = np.random.default_rng(2)
     cfg = RefineConfig(bundle_agreement=0.0)
     n = 6
-    photos = [BundlePhoto(SimpleNamespace(name="photometric", free=0, cfg=cfg, device="cpu", centre=np.zeros(3)), np.eye(4),
-                          k % 2, k // 2) for k in range(n)]
+    tiles = [rng.normal(size=(4, 6)) for _ in range(n)]
+    photos = [BundlePhoto(SimpleNamespace(name="photometric", free=0, cfg=cfg, device="cpu", centre=np.zeros(3),
+                                          tile_scores=lambda level, at, G=tiles[k]: (G, at.H[0])), np.eye(4), k % 2, k // 2)
+              for k in range(n)]
     bundle = Bundle(photos, 2, 2)
     terms = []
     for k in range(n):
@@ -372,6 +391,14 @@ def test_a_shot_at_no_minimum_is_left_out_of_the_covariances():
             assert np.allclose(result.pose_covariance[k], expected.pose_covariance[k - 2 * (k > 2)], rtol=1e-8)
             assert np.isfinite(result.evidence[k]["leave_one_out_sigmas"])
     assert np.allclose(result.rig_covariance[1], expected.rig_covariance[1], rtol=1e-8)
+    # ... and so are their covariances with the tiles as the samples (the shot left out has none)
+    for k in range(n):
+        if k // 2 == 1:
+            assert result.tiles[k] is None
+        else:
+            assert result.tiles[k][1] == expected.tiles[k - 2 * (k > 2)][1] == 16
+            assert np.allclose(result.tiles[k][0], expected.tiles[k - 2 * (k > 2)][0], rtol=1e-8)
+    assert np.allclose(result.rig_tiles[1], expected.rig_tiles[1], rtol=1e-8)
 
 
 def test_run_solves_a_bundle_and_exports_its_rig(rig_run, tmp_path):

@@ -242,7 +242,7 @@ def test_report_in_a_headless_browser(exported, tmp_path):
     """report.html in chromium: every image loads, the table sorts by verdict, the page's numbers
     equal the pose files'."""
     from rgbd_gt.export.report import write_report
-    from rgbd_gt.export.source import read_run
+    from rgbd_gt.export.source import read_run, stated_uncertainty
 
     playwright = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
     d, bout, out, _ = exported
@@ -264,7 +264,8 @@ def test_report_in_a_headless_browser(exported, tmp_path):
             # per photo: its thumbnail and the depth preview (a bundle has no overlays); a pair each shot
             assert len(sizes) == 2 * 4 + 2 and all(ok and w > 0 for ok, w in sizes), sizes
             for name in PHOTOS:
-                u = pose[name]["evidence"]["uncertainty"]
+                u = pose[name]["evidence"]["tiles"]["uncertainty"]  # what the pose file's covariance states
+                assert u == stated_uncertainty(pose[name]["evidence"])
                 for key in ("rotation_deg", "translation_mm", "image_px"):
                     text = page.inner_text(f'[id="{name}"] [data-key="{key}"]')
                     assert text == format(u[key], ".4g"), (name, key, text)

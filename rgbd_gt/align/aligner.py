@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from rgbd_gt.align import lbfgs
+from rgbd_gt.align.covariance import sandwich
 from rgbd_gt.align.objective import Objective, lockstep
 from rgbd_gt.errors import LEFT_THE_SCAN, InputError
 from rgbd_gt.pose import apply_update, random_starts, rotation_error_deg, translated
@@ -60,9 +61,18 @@ class RefineResult:
     # a joint solve (nid, several frames): each frame's share of the objective as a quadratic at
     # the result, (g (F, 6), H (F, 6, 6), units (6,)) (`Nid.frame_quadratics`)
     frame_quadratics: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-    # a single photo (photometric): the pose's gradient summed per tile of the photo (K, 6) and its
-    # Gauss-Newton matrix (6, 6) at the result (`Photometric.tile_scores`)
-    tile_scores: tuple[np.ndarray, np.ndarray] | None = None
+    # a photo of a colored scan: the covariance (6, 6) of the update with the photo's tiles as the
+    # samples (`align.covariance.sandwich` of `Photometric.tile_scores`; a bundle's photo: of all its
+    # photos' tiles in its joint system), and how many tiles
+    tiles: tuple[np.ndarray, int] | None = None
+
+
+def tiles_sandwich(scores: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray, int] | None:
+    """`RefineResult.tiles` from a photo's tile scores (g (K, P), H (P, P)), or None."""
+    if scores is None:
+        return None
+    C = sandwich(*scores)
+    return None if C is None else (C[:6, :6], len(scores[0]))
 
 
 def damped(H: np.ndarray, lam: float) -> np.ndarray:
@@ -152,7 +162,7 @@ class Aligner:
             intrinsics=q.double().cpu().numpy() if obj.free else None, intrinsics_sigma=sigma,
             start_residuals=start_res, end_residuals=obj.residuals(0, final) if keep_residuals else None,
             frame_quadratics=getattr(final, "quadratics", None) if cov is not None else None,
-            tile_scores=getattr(final, "tiles", None) if cov is not None else None,
+            tiles=tiles_sandwich(getattr(final, "tiles", None)) if cov is not None else None,
             **obj.summary(final),
         )
 

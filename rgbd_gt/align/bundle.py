@@ -43,6 +43,7 @@ import torch
 
 from rgbd_gt.align import lbfgs
 from rgbd_gt.align.aligner import STEP_CAP_PX, Aligner, damped
+from rgbd_gt.align.covariance import sandwich
 from rgbd_gt.align.photometric import scaled_inverse
 from rgbd_gt.errors import LEFT_THE_SCAN, InputError
 from rgbd_gt.pose import (apply_update, invert, rotation_error_deg, translated, translation_error_m, update_of,
@@ -102,6 +103,10 @@ class BundleResult:
     levels: list[dict]
     seconds: float
     evidence: list[dict] = field(default_factory=list)  # per photo: the cross-photo evidence
+    # photometric: per photo the covariance (6, 6) of its update with every photo's tiles as the
+    # samples (`_tiles`) and how many tiles, and the same of each relative pose (C, 6, 6); None for nid
+    tiles: list[tuple[np.ndarray, int]] | None = None
+    rig_tiles: np.ndarray | None = None
 
 
 def _apart(T: np.ndarray, U: np.ndarray) -> float:
@@ -540,6 +545,52 @@ class Bundle:
                     s = slice(self.rig_at[c], self.rig_at[c] + 6)
                     result.rig_covariance[c] = determined(Si[s, s])
             result.evidence = self._evidence(Hs, gs, scale, spread, system, prior, Ui, cov_body, kept, S_b)
+        if not self.nid:
+            self._tiles(result, terms, rig, scale, pairs, system, prior, kept)
+
+    def _tiles(self, result: BundleResult, terms: list, rig: np.ndarray, scale: list[float], pairs: list[dict],
+               system, prior, kept: list[bool]) -> None:
+        """The covariance of every photo's pose and of the rig with the photos' tiles as the samples
+        (`Photometric.tile_scores`; each pair of the agreement term one sample more): the sandwich
+        of the joint system over all unknowns at once (6 a body, then the shared parameters), of
+        the kept bodies (as the aligner's covariance), into result.tiles (None for a photo of a
+        body left out) and result.rig_tiles. Left None where the system has no minimum."""
+        nb = len(self.body_keys)
+        n = 6 * nb + self.shared
+        U, W, _, Vb, _ = system
+        H = np.zeros((n, n))
+        H[6 * nb:, 6 * nb:] = sum(Vb[b] for b in range(nb) if kept[b]) + prior[2]
+        for b in range(nb):
+            H[6 * b:6 * b + 6, 6 * b:6 * b + 6] = U[b] if kept[b] else np.eye(6)  # a body left out: its own, apart
+            if kept[b]:
+                H[6 * b:6 * b + 6, 6 * nb:] = W[b]
+                H[6 * nb:, 6 * b:6 * b + 6] = W[b].T
+
+        def placed(b: int, maps: tuple[np.ndarray, np.ndarray]) -> np.ndarray:  # (P, n): a photo's parameters' rows
+            out = np.zeros((len(maps[0]), n))
+            out[:, 6 * b:6 * b + 6], out[:, 6 * nb:] = maps
+            return out
+
+        samples = [self.photos[i].objective.tile_scores(0, at)[0] / scale[i] @ placed(self.body_of[i], self._maps(i, rig))
+                   for i, at in enumerate(terms) if kept[self.body_of[i]]]
+        for (i, j), pair in zip(self.pairs, pairs):
+            if kept[self.body_of[i]]:
+                (Jbi, Jsi), (Jbj, Jsj) = self._maps(i, rig), self._maps(j, rig)
+                samples.append((pair["g"] * self.weight / pair["scale"])[None] @ placed(self.body_of[i], (np.vstack([Jbi, Jbj]),
+                                                                                                           np.vstack([Jsi, Jsj]))))
+        C = sandwich(np.concatenate(samples), H) if samples else None
+        if C is None:
+            return
+        count = sum(len(x) for x in samples)
+        result.tiles = []
+        for i in range(len(self.photos)):
+            M = placed(self.body_of[i], self._maps(i, rig))[:6]
+            result.tiles.append((M @ C @ M.T, count) if kept[self.body_of[i]] else None)
+        if self.rig_cameras:
+            result.rig_tiles = np.zeros((self.rig_cameras, 6, 6))
+            for c in range(1, self.rig_cameras):
+                k = 6 * nb + self.rig_at[c]
+                result.rig_tiles[c] = C[k:k + 6, k:k + 6]
 
     def _quadratics(self, terms: list, bodies, rig) -> tuple[list, list, list[float], list[float] | None]:
         """Per photo at the result, finest level: its matrix H (P, P) and gradient g (P,) over

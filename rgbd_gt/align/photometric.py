@@ -554,21 +554,19 @@ class Photometric:
         return covariance(at.H[0], float(at.wrr[0]), int(at.count[0]))
 
     def tile_scores(self, level: int, at: Terms, tiles: int = TILES) -> tuple[np.ndarray, np.ndarray]:
-        """The pose's gradient of the objective (J^T W r) summed over the visible points in each of
-        tiles x tiles tiles of the photo, (K, 6) for the K tiles with points, and the pose's J^T W J
-        (6, 6), at the first pose of `at` (evaluated alone with its Jacobian), for the covariance
-        with the tiles as the samples (`verify.tiles_covariance`)."""
+        """The gradient of the objective (J^T W r) over the parameters (pose, free corrections)
+        summed over the visible points in each of tiles x tiles tiles of the photo, (K, P) for
+        the K tiles with points, and J^T W J (P, P), at the first pose of `at` (evaluated alone
+        with its Jacobian): the samples of the covariance with the tiles as the samples
+        (`align.covariance.sandwich`)."""
         _, _, _, du, dv = at.seen
         sar, sbr = at.pulls
-        pull = (du[:, :6].double() * sar[:, None] + dv[:, :6].double() * sbr[:, None])  # (c, 6)
+        pull = du.double() * sar[:, None] + dv.double() * sbr[:, None]  # (c, P)
         uv = at.uv[0][at.mask[0]]
         h, w = self.levels[level].photo.image.shape[:2]
-        col = (uv[:, 0] * (tiles / w)).long().clamp(0, tiles - 1)
-        row = (uv[:, 1] * (tiles / h)).long().clamp(0, tiles - 1)
-        sums = torch.zeros(tiles * tiles, 6, dtype=pull.dtype, device=pull.device).index_add_(0, row * tiles + col, pull)
-        held = torch.zeros(tiles * tiles, dtype=torch.bool, device=pull.device)
-        held[row * tiles + col] = True
-        return sums[held].cpu().numpy(), at.H[0][:6, :6]
+        tile = (uv[:, 1] * (tiles / h)).long().clamp(0, tiles - 1) * tiles + (uv[:, 0] * (tiles / w)).long().clamp(0, tiles - 1)
+        sums = torch.zeros(tiles * tiles, pull.shape[1], dtype=pull.dtype, device=pull.device).index_add_(0, tile, pull)
+        return sums[torch.bincount(tile, minlength=tiles * tiles) > 0].cpu().numpy(), at.H[0]
 
     def summary(self, at: Terms) -> dict:
         """`RefineResult`'s objective-specific fields of the first pose of at."""

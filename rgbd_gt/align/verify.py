@@ -23,6 +23,7 @@ import numpy as np
 
 from rgbd_gt.align.aligner import Aligner, RefineResult
 from rgbd_gt.align.config import VerifyConfig
+from rgbd_gt.align.covariance import sandwich, wider
 from rgbd_gt.camera import Camera, backproject, project, without_distortion
 from rgbd_gt.pose import apply_update, random_starts, rotation_error_deg, transform_points, translation_error_m, worst_sigmas
 from rgbd_gt.camera import Q_SIZE
@@ -37,7 +38,8 @@ class Verification:
     evidence: dict  # the numbers (docs/trust.md says what each means)
     seconds: float = 0.0
     # (6, 6) of the pose update, as `RefineResult.covariance`, that the pose file states: the
-    # aligner's, or for a joint solve its frames' where that is wider (`frames_covariance`)
+    # aligner's, widened where the frames of a joint solve (`frames_covariance`) or the tiles of a
+    # photo (`RefineResult.tiles`) as the samples say more
     covariance: np.ndarray | None = None
 
 
@@ -177,47 +179,15 @@ def frame_folds(aligner: Aligner, result: RefineResult, view: _View, cfg: Verify
             "spread_mm": worst["mm"], "spread_deg": worst["deg"], "groups": groups}
 
 
-def sandwich_covariance(cov: np.ndarray | None, g: np.ndarray, H: np.ndarray, units: np.ndarray | None = None) -> np.ndarray | None:
-    """(6, 6) the covariance `cov` (of the pose update, as `RefineResult.covariance`) widened in
-    every direction where the sandwich H^-1 B H^-1 of K samples is wider: g (K, 6) the samples'
-    shares of the objective's gradient at the result, H (6, 6) the objective's Hessian there, B
-    K / (K - 1) times the scatter of g; both in parameters scaled by units (6,) (default 1).
-    The aligner's (Laplace) covariance takes every point as an independent sample, but
-    neighbouring points share pixels and each photo and scan has errors of its own. None for
-    fewer than 2 samples, or where cov or H says nothing."""
-    if len(g) < 2 or cov is None or not np.isfinite(cov).all() or np.linalg.eigvalsh(H)[0] <= 0:
-        return None
-    gc = g - g.mean(0)
-    A = np.linalg.solve(H, gc.T) * (1.0 if units is None else units[:, None])  # (6, K) each sample's pull on the minimum
-    sandwich = len(g) / (len(g) - 1) * A @ A.T
-    # the wider of the two along each axis of the Laplace one whitened: max(1, eigenvalue)
-    L = np.linalg.cholesky(cov)
-    Li = np.linalg.inv(L)
-    lam, V = np.linalg.eigh(Li @ sandwich @ Li.T)
-    return L @ (V * np.maximum(lam, 1.0)) @ V.T @ L.T
-
-
 def frames_covariance(result: RefineResult) -> np.ndarray | None:
-    """A joint solve's covariance with its frames as the independent samples
-    (`sandwich_covariance` of the frames' shares, `RefineResult.frame_quadratics`): on KITTI's and
-    Waymo's drives 3-13 times wider than the aligner's in the worst direction
+    """A joint solve's covariance with its frames as the independent samples: the sandwich of the
+    frames' shares (`RefineResult.frame_quadratics`), wherever it is wider than the aligner's
+    (`align.covariance`): on KITTI's and Waymo's drives 3-13 times wider in the worst direction
     (docs/lidar-method.md). None for a single frame."""
     if result.frame_quadratics is None:
         return None
     g, H, units = result.frame_quadratics
-    return sandwich_covariance(result.covariance, g, H.sum(0), units)
-
-
-def tiles_covariance(result: RefineResult) -> np.ndarray | None:
-    """A single photo's covariance with the tiles of the photo as the independent samples
-    (`sandwich_covariance` of `RefineResult.tile_scores`): a photo's residuals are correlated
-    over patches (the scan's colors and the photo's differ by more than noise: sampling, blur,
-    view-dependent shading), which the aligner's covariance, built on independent points, cannot
-    see. None without them (nid, a bundle)."""
-    if result.tile_scores is None:
-        return None
-    g, H = result.tile_scores
-    return sandwich_covariance(result.covariance, g, H)
+    return wider(result.covariance, sandwich(g, H.sum(0), units))
 
 
 def leave_one_out_steps(g: np.ndarray, H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -459,16 +429,17 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
         loo = timed("leave_one_frame_out", leave_one_frame_out, result, view)
         if loo is not None:
             ev["frames"]["leave_one_out"] = loo
-        wider = frames_covariance(result)
-        if wider is not None:
-            covariance = wider
-            ev["frames"]["uncertainty"] = uncertainty(wider, M)
+        framed = frames_covariance(result)
+        if framed is not None:
+            covariance = framed
+            ev["frames"]["uncertainty"] = uncertainty(framed, M)
     elif cfg.repeats > 0:
         ev["repeatability"] = timed("repeatability", repeatability, aligner, result, T_init, view, cfg, init_sigma, seed)
-    tiles = tiles_covariance(result)
-    if tiles is not None:
-        covariance = tiles
-        ev["tiles"] = {"count": len(result.tile_scores[0]), "uncertainty": uncertainty(tiles, M)}
+    if result.tiles is not None:  # a photo's tiles as the samples (`RefineResult.tiles`)
+        tiles = wider(result.covariance, result.tiles[0])
+        if tiles is not None:
+            covariance = tiles
+            ev["tiles"] = {"count": result.tiles[1], "uncertainty": uncertainty(tiles, M)}
     if result.objective != "nid":  # NID's values rise by 1e-5..1e-3: its uncertainty, from their Hessian, stands for it
         ev["sharpness"] = timed("sharpness", sharpness, aligner, T, M, cfg.sharpness_step_px, cfg.sharpness_level,
                                  result.intrinsics)
