@@ -149,6 +149,27 @@ def make_seeds(folder: Path, data: Path | None) -> dict[str, Path]:
                        "device: cpu\nrefine:\n  levels: 2\n  iterations: 3\n  max_points: 3000\n  min_points: 500\n"
                        "  upsample: 1\n  verify:\n    repeats: 0\n")
     seeds["run_cfg"] = run_cfg
+    # finished runs, export's inputs: `run` on run.yaml, and a stereo rig's shot by refine --bundle
+    # (its bundle file with absolute paths, so that a mutant copy elsewhere still finds its files)
+    if not (folder / "run_out" / "run.json").is_file():
+        _cli(["run", str(run_cfg)], folder)
+    seeds["run_dir"] = folder / "run_out"
+    rig = folder / "rig_scene"
+    if not (rig / "bundle.yaml").is_file():
+        _cli(["synth", str(rig), "--size", "small", "--seed", "0", "--rig", "stereo"], folder)
+    spec = yaml.safe_load((rig / "bundle.yaml").read_text())
+    spec["scan"] = str(rig / spec["scan"])
+    for c in spec["cameras"].values():
+        c["file"] = str(rig / c["file"])
+    for ph in spec["photos"]:
+        ph["image"], ph["init"] = str(rig / ph["image"]), str(rig / ph["init"])
+    bundle = folder / "bundle.yaml"
+    bundle.write_text(yaml.safe_dump(spec, sort_keys=False))
+    seeds["bundle"] = bundle
+    if not (folder / "bundle_out" / "bundle.json").is_file():
+        _cli(["refine", "--bundle", str(bundle), "-o", str(folder / "bundle_out"), "--device", "cpu", "--repeats", "0",
+              "--levels", "2", "--iterations", "3"], folder)
+    seeds["bundle_dir"] = folder / "bundle_out"
     if data is not None and (data / "lidar_camera/pjlab_1/calib.pcd").is_file():
         pjlab = data / "lidar_camera/pjlab_1"  # a site: a scan with its board, a LiDAR frame with the rig's extrinsic
         site = folder / "site.yaml"
@@ -172,7 +193,10 @@ def make_seeds(folder: Path, data: Path | None) -> dict[str, Path]:
     if data is not None and data.is_dir():
         real = {"pcd": data / "lidar_camera/pjlab_1/calib.pcd", "calib_txt": data / "lidar_camera/pjlab_1/calib.txt",
                 "jpg": data / "lidar_camera/pjlab_1/calib.jpg", "e57_real": data / "e57/bunnyInt32.e57",
-                "e57_images": data / "e57/tiny_pc_and_images.e57", "board_jpg": data / "checkerboard/left01.jpg"}
+                "e57_images": data / "e57/tiny_pc_and_images.e57", "board_jpg": data / "checkerboard/left01.jpg",
+                # a KITTI frame: a binary_compressed sweep, and gt.json as both camera and pose
+                "kitti_pcd": data / "lidar_camera/kitti_00/pcd/000000.pcd", "kitti_png": data / "lidar_camera/kitti_00/img/000000.png",
+                "kitti_json": data / "lidar_camera/kitti_00/gt.json"}
         seeds.update({k: p for k, p in real.items() if p.is_file()})
     if "calib_txt" in seeds:  # the same rig as livox_camera_calib writes it
         from rgbd_gt.io import read_pose
@@ -203,6 +227,21 @@ def make_seeds(folder: Path, data: Path | None) -> dict[str, Path]:
     return seeds
 
 
+def _cli(argv: list[str], cwd: Path) -> None:
+    """Run a command for a seed; raise when it fails."""
+    from rgbd_gt.cli import main
+
+    old = os.getcwd()
+    os.chdir(cwd)
+    try:
+        main(argv)
+    except SystemExit as exc:
+        if exc.code:
+            raise RuntimeError(f"making a fuzz seed: rgbd-gt {' '.join(argv)} exited {exc.code}") from None
+    finally:
+        os.chdir(old)
+
+
 # ---------------------------------------------------------------- mutators
 
 
@@ -226,6 +265,8 @@ def kind_of(path: Path) -> str:
         return "text" if path.read_bytes()[:9] == b"%YAML:1.0" else "yaml"
     if suffix in (".csv", ".txt"):
         return "text"
+    if suffix == ".json":
+        return "json"
     if suffix == ".ply" and path.read_bytes()[:64].find(b"format ascii") >= 0:
         return "text"
     return "binary"
@@ -250,6 +291,8 @@ def mutate(src: Path, dst: Path, rng: random.Random, yaml_keys: set[str] | None 
         choices += ["yaml_value"] * 4 + ["number"] * 2 + ["drop_line"]
     elif kind == "text":
         choices += ["number"] * 4 + ["drop_line"]
+    elif kind == "json":
+        choices += ["number"] * 2
     elif data[:8] == b"ASTM-E57":
         choices += ["e57_xml_number"] * 3
     elif _header_end(data):
@@ -264,7 +307,8 @@ def _mutate(how: str, data: bytes, kind: str, src: Path, dst: Path, rng: random.
     if how == "truncate":
         cut = rng.randint(1, max(1, len(data) - 1))
         dst.write_bytes(data[:cut])
-        return f"truncated to {cut}/{len(data)} bytes", kind == "binary" and not (headerless and cut % 16 == 0)
+        return f"truncated to {cut}/{len(data)} bytes", (kind == "binary" and not (headerless and cut % 16 == 0)) or (
+            kind == "json" and cut < len(data.rstrip()))
     if how == "flip":
         buf = bytearray(data)
         n = rng.randint(1, 8)
@@ -315,7 +359,8 @@ def _mutate(how: str, data: bytes, kind: str, src: Path, dst: Path, rng: random.
         a, b = rng.choice(spans)
         new = rng.choice(ODD_NUMBERS + ([b"1000000000000", b"-5", b"1e30"] if how == "header_number" else []))
         dst.write_bytes(data[:a] + new + data[b:])
-        bad = new in CERTAINLY_BAD and kind != "yaml"  # a YAML number may sit in a comment or free metadata
+        bad = new in CERTAINLY_BAD and kind not in ("yaml", "json")  # a YAML number may sit in a comment or free
+        # metadata, a JSON one in a string
         if how == "header_number":
             line = data[data.rfind(b"\n", 0, a) + 1:data.find(b"\n", a)]
             bad = line.startswith((b"element vertex", b"POINTS", b"WIDTH")) and new in (
@@ -401,6 +446,12 @@ def templates(seeds: dict[str, Path]) -> list[dict]:
         dict(argv=["pick", "--scan", s["scan_small"], "--image", s["photo"], "--camera", s["camera"], "--no-browser",
                    "-o", "{out}/picks.csv"], outs=["picks.csv"], serves=True),
         dict(argv=["run", s["run_cfg"]], outs=["run_out"], slow=True, own_config=True),
+        dict(argv=["export", s["run_dir"], "-o", "{out}/ds", "-f", "plain,colmap,nerfstudio", "--include", "suspect"],
+             outs=["ds"]),
+        dict(argv=["export", s["bundle_dir"], "-o", "{out}/ds", "-f", "plain,middlebury,kitti", "--include", "suspect"],
+             outs=["ds"]),
+        dict(argv=["refine", "--bundle", s["bundle"], "-o", "{out}/solved", "--device", "cpu", "--repeats", "0",
+                   "--levels", "2", "--iterations", "3"], outs=["solved"], slow=True),
     ]
     if "site_cfg" in s:
         t.append(dict(argv=["run", s["site_cfg"]], outs=["site_out"], slow=True, own_config=True))
@@ -429,12 +480,16 @@ def templates(seeds: dict[str, Path]) -> list[dict]:
             dict(argv=["init-pose", "--scan", s["scan_small"], "--image", s["board_jpg"], "--camera", s["camera"],
                        "--correspondences", s["pairs"], "-o", "{out}/init.yaml"], outs=["init.yaml"]),
         ]
+    if "kitti_json" in s:
+        t.append(dict(argv=["overlay", "--scan", s["kitti_pcd"], "--image", s["kitti_png"], "--camera", s["kitti_json"],
+                            "--pose", s["kitti_json"], "-o", "{out}/ov.png"], outs=["ov.png", "ov_blend.png", "ov_points.png"]))
     seed_paths = {str(v) for v in seeds.values()}
     for tpl in t:
         tpl["slots"] = [k for k, a in enumerate(tpl["argv"]) if a in seed_paths]
     return t
 
 
+READ_BY_EXPORT = {"run.json", "bundle.json", "pose.yaml", "rig.yaml", "camera.yaml", "intrinsics.json"}  # of a run's files
 NEVER_VALID = ("nan", "inf", "-inf", "abc", "", "0x10", "1,2")  # of ODD_ARGS, what no option takes
 UNBOUNDED = ("--max-depth",)  # a distance with no upper bound: 1e20 m means no limit, as 0 does
 ODD_ARGS = ["nan", "inf", "-inf", "-1", "0", "abc", "", "1e308", "-0", "99999999999999999999", "0x10", "1,2"]
@@ -459,10 +514,22 @@ def make_trial(k: int, tpls: list[dict], seeds: dict[str, Path], root: Path, rng
         i = rng.choice(tpl["slots"])
         src = Path(argv[i])
         dst = folder / ("in_" + src.name)
-        keys = None
-        if src.suffix in (".yaml", ".yml"):
-            keys = CAMERA_KEYS if "camera" in src.name else POSE_KEYS if "pose" in src.name else CONFIG_KEYS
-        how, change, invalid = mutate(src, dst, rng, keys)
+        if src.is_dir():  # a finished run: a copy with one of the files export reads mutated
+            shutil.copytree(src, dst)
+            files = sorted(p for p in dst.rglob("*") if p.is_file() and (p.name in READ_BY_EXPORT or {"cameras", ".scan-cache"} & set(p.parts)))
+            target = rng.choice(files)
+            original = folder / ("orig_" + target.name)  # outside the run: its suffix says how to mutate it
+            target.rename(original)
+            how, change, invalid = mutate(original, target, rng, CAMERA_KEYS if target.parent.name == "cameras" else
+                                          POSE_KEYS if target.name == "pose.yaml" else None)
+            original.unlink()
+            invalid = invalid and ".scan-cache" not in target.parts  # a broken cache may be made again
+            change = f"{target.relative_to(dst)}: {change}"
+        else:
+            keys = None
+            if src.suffix in (".yaml", ".yml"):
+                keys = CAMERA_KEYS if "camera" in src.name else POSE_KEYS if "pose" in src.name else CONFIG_KEYS
+            how, change, invalid = mutate(src, dst, rng, keys)
         kind = f"file: {how}"
         for j in tpl["slots"]:  # a file given for two options (calib.txt: camera and pose) is one file
             if argv[j] == str(src):
@@ -518,7 +585,7 @@ def make_trial(k: int, tpls: list[dict], seeds: dict[str, Path], root: Path, rng
         elif how == "existing folder":
             (folder / "adir").mkdir()
             argv[j + 1] = str(folder / "adir")
-            invalid = argv[j] not in ("--report", "--extract-images")
+            invalid = argv[j] not in ("--report", "--extract-images") and argv[:1] != ["export"] and "--bundle" not in argv  # folders they write into
         elif how == "under a file":
             (folder / "afile").write_text("x")
             inputs.append(folder / "afile")
@@ -545,8 +612,9 @@ def make_trial(k: int, tpls: list[dict], seeds: dict[str, Path], root: Path, rng
 
 
 def _digest(path: Path) -> str:
-    if path.is_dir():
-        return "dir:" + ",".join(sorted(f"{p.relative_to(path)}={_digest(p)}" for p in path.rglob("*") if p.is_file()))
+    if path.is_dir():  # a run's scan cache may be made again: not an input overwritten
+        return "dir:" + ",".join(sorted(f"{p.relative_to(path)}={_digest(p)}" for p in path.rglob("*")
+                                        if p.is_file() and ".scan-cache" not in p.relative_to(path).parts))
     if not path.exists():
         return "-"
     h = hashlib.sha1()
@@ -659,6 +727,8 @@ def fuzz(trials: int, seed: int, root: Path, data: Path | None, log: Callable[[s
     if pid == 0:
         code = 1
         try:
+            null = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(null, 1)  # the seed runs' tables: not the fuzz's log
             make_seeds(root / "seeds", data)
             code = 0
         finally:
@@ -712,9 +782,12 @@ def write_report(path: Path, results: list[Result], seed: int, seconds: float) -
     for kind, rs in sorted(by_kind.items()):
         lines.append(f"| {kind} | {len(rs)} | {sum(r.trial.invalid for r in rs)} | {sum(bool(r.problems) for r in rs)} |")
     lines += ["", "What a trial is: one command line of the seeds (a small synthetic scene with exact truth, and the "
-              "small real files of ../shared/data: a PJLab LiDAR frame with its calibration text and photo, two E57 "
+              "small real files of ../shared/data: a PJLab LiDAR frame with its calibration text and photo, a KITTI frame "
+              "(a binary_compressed sweep, gt.json as camera and pose), two E57 "
               "files, a checkerboard photo; `run` on a config of one scan and on a site of two, the synthetic scan with its board "
-              "and the LiDAR frame with its rig's extrinsic, each trial on its own copy) with one change: a file mutated (truncated, bytes changed, emptied, random "
+              "and the LiDAR frame with its rig's extrinsic, each trial on its own copy; `refine --bundle` on a stereo rig's shot; "
+              "`export` of a finished `run` and of that bundle's output, on a copy of the folder with one file export reads "
+              "mutated, its scan cache included) with one change: a file mutated (truncated, bytes changed, emptied, random "
               "or another format's bytes, a number, a header count or an E57 XML value replaced with its page checksum "
               "made right, a YAML value of another type, a line removed), an odd argument (NaN, inf, negative, huge, "
               "not a number, an unknown or a missing option, an unknown command) or an odd output path (an existing "
@@ -722,7 +795,8 @@ def write_report(path: Path, results: list[Result], seed: int, seconds: float) -
               "'Certainly invalid' trials must end with exit 2; the others may end either way but never crash, "
               "hang, leave a partial output or change an input.", "",
               "Decided here: `-o` in a folder that does not exist is created, at the end and only when the command "
-              "succeeds, by every command (README, Outputs)."]
+              "succeeds, by every command (README, Outputs). A run's damaged scan cache is prepared again (it is a cache, "
+              "not an input); export's and refine --bundle's `-o` are folders, an existing one is written into."]
     failed = [r for r in results if r.problems]
     lines += ["", "## Failures", ""]
     lines += [f"- {', '.join(r.problems)}: `{r.trial.name}` (exit {r.code}): {r.stderr.strip().splitlines()[-1][:200] if r.stderr.strip() else ''}"

@@ -19,6 +19,7 @@ import json
 import os
 import shutil
 import tempfile
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -176,7 +177,11 @@ def prepare_scan(scan_path: Path, root: Path | None = None,
     folder = cache_folder(root, scan_path, key)
     meta = _current_meta(folder, key)
     if meta is not None:
-        return _open(folder, scan_path, meta)
+        try:
+            return _open(folder, scan_path, meta)
+        except DAMAGED:  # a file of it lost or cut short (a full disk, a copy stopped halfway): made again
+            progress("the scan's cache is damaged: preparing the scan again")
+            shutil.rmtree(folder, ignore_errors=True)
     progress("preparing the scan (once)")
     _build(scan_path, folder, key, progress)
     for old in root.glob(f"{scan_path.stem}-*/meta.json"):  # this file's earlier contents: stale
@@ -259,13 +264,27 @@ def whole_scan_geometry(read: Scan) -> Scan:
 def open_prepared(folder: Path, scan_path: Path) -> PreparedScan:
     """A prepared scan's cache folder, opened without checking it against the scan file (the
     caller prepared it: `prepare_scan`)."""
-    return _open(folder, scan_path, json.loads((folder / "meta.json").read_text()))
+    from rgbd_gt.errors import InputError
+
+    try:
+        return _open(folder, scan_path, json.loads((folder / "meta.json").read_text()))
+    except DAMAGED as exc:
+        raise InputError(f"the scan's cache is damaged ({exc}); remove the folder to prepare the scan again", folder) from None
+
+
+# what reading a cut-short, emptied or foreign cache file raises (zipfile.BadZipFile: blocks.npz)
+DAMAGED = (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile)
 
 
 def _open(folder: Path, scan_path: Path, meta: dict) -> PreparedScan:
+    """The cache in `folder` as its meta.json `meta` describes it; DAMAGED when a file of it
+    does not read back as written."""
     arrays = {k: np.load(folder / f"{k}.npy", mmap_mode="r") for k in meta["arrays"]}
     with np.load(folder / "blocks.npz") as z:
         blocks = Blocks(z["start"], z["lo"], z["hi"])
+    short = [k for k, a in arrays.items() if len(a) != meta["points"]] + (["blocks"] if len(blocks) != meta["blocks"] else [])
+    if short:
+        raise ValueError(f"{', '.join(short)}: not as many entries as meta.json says")
     return PreparedScan(folder, scan_path, np.array(meta["centre"]), np.array(meta["origins"]).reshape(-1, 3), arrays,
                         blocks, meta.get("angular_step"), meta["key"]["sha1"])
 

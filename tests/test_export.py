@@ -227,6 +227,17 @@ def test_export_errors(rig_run, tmp_path, synth_scene):
     pose.write_text(re.sub(r"(covariance:\n- \[)[^,]+", r"\1.nan", text))
     assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(pose), "covariance: not finite")
     pose.write_text(text)
+    rig = (broken / "rig.yaml").read_text()
+    nan = yaml.safe_load(rig)
+    nan["relative"]["right"]["sigma"]["translation_mm"][0] = float("nan")
+    for bad in (b"\x92\x00garbage", b"- 1\n- 2\n", yaml.safe_dump(nan).encode()):
+        (broken / "rig.yaml").write_bytes(bad)
+        assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(broken / "rig.yaml"))
+    (broken / "rig.yaml").write_text(rig)
+    camera = broken / "cameras" / "right.yaml"
+    keys = yaml.safe_load(camera.read_text())
+    camera.write_text(yaml.safe_dump({**keys, "sigma": {"focal_px": "many"}}))
+    assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(camera), "sigma")
     (broken / "bundle.json").write_text("{")
     assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(broken / "bundle.json"))
     assert_one_line_error(run_cli("export", bout, "-o", bout / "photo" / "pose.yaml", "-f", "plain"), "-o")

@@ -27,7 +27,7 @@ def test_fuzz_every_command(tmp_path):
     assert not failures, "\n\n".join(failures)
     # the run covered every command, certainly invalid input and valid runs
     commands = {t["argv"][0] for t in trials if not t["name"].startswith("command ")}
-    assert {"ingest", "init-pose", "refine", "export-depth", "qa-edges", "overlay", "pick"} <= commands
+    assert {"ingest", "init-pose", "refine", "export-depth", "qa-edges", "overlay", "pick", "export"} <= commands
     assert sum(t["invalid"] for t in trials) > 30
     assert sum(t["code"] == 0 for t in trials) > 10
     assert any(t["code"] == 2 and "Usage:" in t["stderr"] for t in trials)  # argument errors: click's usage message

@@ -144,6 +144,30 @@ def test_a_changed_scan_file_is_prepared_again(scenes, tmp_path):
     np.testing.assert_allclose(np.sort(second.subset(slice(None)).xyz[:, 0]), np.sort(scan.xyz[:, 0]), atol=2e-6)
 
 
+def test_a_damaged_cache_is_prepared_again(scenes, tmp_path):
+    """A cache file cut short, emptied or overwritten (a full disk, a copy stopped halfway) is not
+    read as the scan: prepare_scan makes the cache again; a caller that opens it without checking
+    (open_prepared) gets one `error:` naming the folder."""
+    from rgbd_gt.errors import InputError
+    from rgbd_gt.prepared import open_prepared
+
+    path = scenes / "s5" / "scan.ply"
+    first = prepare_scan(path, tmp_path / "cache")
+    folder, xyz = first.folder, np.array(first.arrays["xyz"])
+    del first
+    for name, damage in (("xyz.npy", lambda b: b[: len(b) // 2]), ("normals.npy", lambda b: b""),
+                         ("blocks.npz", lambda b: b"\x00" * 300), ("blocks.npz", lambda b: b[:1000])):
+        f = folder / name
+        f.write_bytes(damage(f.read_bytes()))
+        with pytest.raises(InputError, match="damaged") as exc:
+            open_prepared(folder, path)
+        assert str(exc.value).startswith(f"{folder}: ")
+        again = prepare_scan(path, tmp_path / "cache")
+        assert again.folder == folder
+        np.testing.assert_array_equal(again.arrays["xyz"], xyz)
+        assert len(again.arrays["normals"]) == len(xyz)
+
+
 def test_a_run_that_prepared_the_same_scan_meanwhile_keeps_its_cache(scenes, tmp_path):
     """Two runs started together on one output folder both prepare the scan: the second to finish
     keeps the first's cache (which the first has open) instead of replacing it under it."""

@@ -133,6 +133,7 @@ class Aligner:
         T = self._local(T_init)
         n_levels = obj.prepare(T)
         top = n_levels - 1 if coarsest is None else min(coarsest, n_levels - 1)
+        finest = min(finest, top)  # a pyramid shallower than the level asked for (--levels 2) ends on its top
         q = self._q(intrinsics)
         start_res = obj.residuals(0, obj.evaluate(0, [T], q, jacobian=False)) if keep_residuals else None
         if obj.method == "lbfgs":
@@ -180,6 +181,7 @@ class Aligner:
         Ts = [self._local(T) for T in starts]
         n_levels = obj.prepare(Ts[0])  # prepared by an earlier refine, else around the first start
         top = n_levels - 1 if coarsest is None else min(coarsest, n_levels - 1)
+        finest = min(finest, top)
         if obj.method == "lbfgs":
             runs = self._searched(Ts, top, finest, iterations or self.cfg.iterations, None)
             return [None if run is None else self._scan(run[0]) for run in runs]

@@ -315,6 +315,11 @@ class Bundle:
             Js[6 + k, self.q_at[c] + k] = 1.0
         return Jb, Js
 
+    def _pair_maps(self, i: int, j: int, rig: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`_maps` of an agreement pair's parameters (photo i's, then photo j's; one body)."""
+        (Jbi, Jsi), (Jbj, Jsj) = self._maps(i, rig), self._maps(j, rig)
+        return np.vstack([Jbi, Jbj]), np.vstack([Jsi, Jsj])
+
     def _system(self, Hs: list, gs: list, rig: np.ndarray, scale: list[float], pairs: list[dict] = ()):
         """The joint Gauss-Newton system of the photos' matrices Hs (P, P) and gradients gs (P,)
         over their parameters (pose, free corrections), each divided by its scale, per body:
@@ -327,9 +332,8 @@ class Bundle:
         # (body, maps of its parameters, H, g): each photo, then each pair (both photos of one shot: one body)
         parts = [(self.body_of[i], self._maps(i, rig), H / scale[i], g / scale[i]) for i, (H, g) in enumerate(zip(Hs, gs))]
         for (i, j), pair in zip(self.pairs, pairs):
-            (Jbi, Jsi), (Jbj, Jsj) = self._maps(i, rig), self._maps(j, rig)
             w = self.weight / pair["scale"]
-            parts.append((self.body_of[i], (np.vstack([Jbi, Jbj]), np.vstack([Jsi, Jsj])), pair["H"] * w, pair["g"] * w))
+            parts.append((self.body_of[i], self._pair_maps(i, j, rig), pair["H"] * w, pair["g"] * w))
         for b, (Jb, Js), H, g in parts:
             U[b] += Jb.T @ H @ Jb
             W[b] += Jb.T @ H @ Js
@@ -575,9 +579,7 @@ class Bundle:
                    for i, at in enumerate(terms) if kept[self.body_of[i]]]
         for (i, j), pair in zip(self.pairs, pairs):
             if kept[self.body_of[i]]:
-                (Jbi, Jsi), (Jbj, Jsj) = self._maps(i, rig), self._maps(j, rig)
-                samples.append((pair["g"] * self.weight / pair["scale"])[None] @ placed(self.body_of[i], (np.vstack([Jbi, Jbj]),
-                                                                                                           np.vstack([Jsi, Jsj]))))
+                samples.append((pair["g"] * self.weight / pair["scale"])[None] @ placed(self.body_of[i], self._pair_maps(i, j, rig)))
         C = sandwich(np.concatenate(samples), H) if samples else None
         if C is None:
             return

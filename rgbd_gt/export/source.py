@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from rgbd_gt.camera import Camera
-from rgbd_gt.errors import InputError
+from rgbd_gt.errors import InputError, read_yaml
 
 
 @dataclass
@@ -52,8 +52,8 @@ def read_run(folder: Path) -> list[Source]:
     if (folder / "bundle.json").is_file() and not (folder / "run.json").is_file():
         try:
             return [_bundle_source(folder, Path(_json(folder / "bundle.json")["bundle"]))]
-        except (KeyError, TypeError) as exc:
-            raise InputError(f"not a bundle record rgbd-gt wrote (no {exc})", folder / "bundle.json") from None
+        except (KeyError, TypeError, AttributeError) as exc:
+            raise InputError(f"not a bundle record rgbd-gt wrote ({_why(exc)})", folder / "bundle.json") from None
     if not (folder / "run.json").is_file():
         raise InputError("not a finished run: it holds neither run.json (rgbd-gt run) nor bundle.json "
                          "(rgbd-gt refine --bundle)", folder)
@@ -64,8 +64,12 @@ def read_run(folder: Path) -> list[Source]:
                          "wrote into one folder; give each its own", folder)
     try:
         return _run_sources(folder, record)
-    except (KeyError, TypeError) as exc:
-        raise InputError(f"not a run record rgbd-gt wrote (no {exc})", folder / "run.json") from None
+    except (KeyError, TypeError, AttributeError) as exc:
+        raise InputError(f"not a run record rgbd-gt wrote ({_why(exc)})", folder / "run.json") from None
+
+
+def _why(exc: Exception) -> str:
+    return f"no {exc}" if isinstance(exc, KeyError) else str(exc)
 
 
 def _run_sources(folder: Path, record: dict) -> list[Source]:
@@ -105,8 +109,6 @@ def _run_sources(folder: Path, record: dict) -> list[Source]:
 def _bundle_source(folder: Path, bundle: Path, name: str = "bundle", errors: dict[str, str] | None = None) -> Source:
     """The photos of the bundle file `bundle` solved into `folder` (`steps.write_bundled`); a
     photo without a pose file is missing, with its error in `errors` (summary.csv's) when given."""
-    import yaml
-
     from rgbd_gt.io import read_camera
     from rgbd_gt.io.bundle_file import read_bundle
 
@@ -118,13 +120,42 @@ def _bundle_source(folder: Path, bundle: Path, name: str = "bundle", errors: dic
             missing[entry.image.stem] = errors.get(entry.image.name) or "no refined pose"
             continue
         cam_file = folder / "cameras" / f"{entry.camera}.yaml"
-        keys = yaml.safe_load(cam_file.read_text()) if cam_file.is_file() else {}
-        shot = _shot(entry.image.stem, entry.image, read_camera(cam_file), entry.camera, pose,
-                     {k: float(v) for k, v in (keys.get("sigma") or {}).items() if k in ("focal_px", "cx_px", "cy_px")})
+        shot = _shot(entry.image.stem, entry.image, read_camera(cam_file), entry.camera, pose, _camera_sigma(cam_file))
         shot.shot, shot.mask = entry.shot, entry.mask
         photos.append(shot)
-    rig = yaml.safe_load((folder / "rig.yaml").read_text()) if (folder / "rig.yaml").is_file() else None
+    rig = _rig(folder / "rig.yaml") if (folder / "rig.yaml").is_file() else None
     return Source(name, spec.scan, folder, photos, rig, missing)
+
+
+def _camera_sigma(path: Path) -> dict[str, float]:
+    """{focal_px, cx_px, cy_px}: the 1-sigmas of a bundle's solved camera file (`sigma:`)."""
+    keys = read_yaml(path)
+    sigma = (keys.get("sigma") if isinstance(keys, dict) else None) or {}
+    picked = {k: v for k, v in sigma.items() if k in ("focal_px", "cx_px", "cy_px")} if isinstance(sigma, dict) else None
+    if picked is None or not all(_nonnegative(v) for v in picked.values()):
+        raise InputError(f"sigma: not 1-sigmas in pixels ({sigma!r})", path)
+    return {k: float(v) for k, v in picked.items()}
+
+
+def _rig(path: Path) -> dict:
+    """rig.yaml (`steps.write_bundled`), checked for what export reads of it: the cameras in
+    order and each later camera's `relative` entry with its translation 1-sigma (mm, 3 numbers)."""
+    rig = read_yaml(path)
+    try:
+        cameras = rig["cameras"]
+        if not isinstance(cameras, list) or not all(isinstance(c, str) for c in cameras):
+            raise TypeError(f"cameras: not a list of names ({cameras!r})")
+        for c in cameras[1:]:
+            mm = ((rig["relative"][c] or {}).get("sigma") or {}).get("translation_mm", [0, 0, 0])
+            if not (isinstance(mm, list) and len(mm) == 3 and all(_nonnegative(v) for v in mm)):
+                raise TypeError(f"relative.{c}.sigma.translation_mm: not 3 numbers ({mm!r})")
+    except (KeyError, TypeError, AttributeError) as exc:
+        raise InputError(f"not a rig record rgbd-gt wrote ({_why(exc)})", path) from None
+    return rig
+
+
+def _nonnegative(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) and v >= 0
 
 
 def _shot(name: str, image: Path, camera: Camera, camera_name: str, pose_file: Path, sigma: dict) -> Shot:

@@ -105,6 +105,9 @@ def read_bundle(path: str | os.PathLike) -> BundleSpec:
         unknown = [c for c in rig if c not in cameras]
         if unknown or len(set(rig)) != len(rig):
             raise InputError(f"rig.cameras must name distinct cameras of `cameras:` ({', '.join(unknown) or 'a repeat'})", path)
+        if not isinstance(r.get("prior") or {}, dict):
+            raise InputError("rig.prior must map rig cameras after the first to {pose, sigma_rotation_deg, "
+                             "sigma_translation_mm}", path)
         for name, p in (r.get("prior") or {}).items():
             if name not in rig[1:] or not isinstance(p, dict):
                 raise InputError(f"rig.prior.{name}: a prior is given per rig camera after the first, as "
@@ -120,8 +123,9 @@ def read_bundle(path: str | os.PathLike) -> BundleSpec:
         if not isinstance(item, dict):
             raise InputError(f"photo {k}: must be {{image, camera, init[, shot][, mask]}}", path)
         camera = item.get("camera", next(iter(cameras)) if len(cameras) == 1 else None)
-        if camera not in cameras:
+        if isinstance(camera, (list, dict)) or str(camera) not in cameras:
             raise InputError(f"photo {k}: camera must name one of {', '.join(cameras)}", path)
+        camera = str(camera)
         shot = item.get("shot")
         if rig and camera in rig:
             if isinstance(shot, bool) or not isinstance(shot, int):
