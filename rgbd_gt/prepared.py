@@ -27,7 +27,7 @@ from typing import Callable
 import numpy as np
 
 from rgbd_gt.camera import Camera
-from rgbd_gt.errors import require_file
+from rgbd_gt.errors import InputError, require_file
 from rgbd_gt.io.atomic import atomic_output
 from rgbd_gt.scan import Scan
 from rgbd_gt.render.blocks import VIEW_MARGIN, Blocks, block_order, block_points, blocks_in_view, points_in_view, thinning_step
@@ -264,8 +264,6 @@ def whole_scan_geometry(read: Scan) -> Scan:
 def open_prepared(folder: Path, scan_path: Path) -> PreparedScan:
     """A prepared scan's cache folder, opened without checking it against the scan file (the
     caller prepared it: `prepare_scan`)."""
-    from rgbd_gt.errors import InputError
-
     try:
         return _open(folder, scan_path, json.loads((folder / "meta.json").read_text()))
     except DAMAGED as exc:

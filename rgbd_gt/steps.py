@@ -438,9 +438,9 @@ def bundle_step(spec, cfg, device: str = "auto", cache: PathLike | None = None,
     for name in names:
         c = order.index(name)
         k = next(i for i, e in enumerate(spec.photos) if e.camera == name)
-        sigma = {"focal_px": result.q_sigma[c, 0] * inputs[k].camera.fx, "cx_px": result.q_sigma[c, 1] * inputs[k].camera.fx,
-                 "cy_px": result.q_sigma[c, 2] * inputs[k].camera.fy,
-                 **{coef: result.q_sigma[c, 3 + j] for j, coef in enumerate(("k1", "k2", "p1", "p2", "k3"))}}
+        qs = result.stated_q_sigma(c)
+        sigma = {"focal_px": qs[0] * inputs[k].camera.fx, "cx_px": qs[1] * inputs[k].camera.fx, "cy_px": qs[2] * inputs[k].camera.fy,
+                 **{coef: qs[3 + j] for j, coef in enumerate(("k1", "k2", "p1", "p2", "k3"))}}
         keys = {"refined": spec.cameras[name].refine, "photos": sum(e.camera == name for e in spec.photos),
                 "sigma": {key: float(v) for key, v in sigma.items() if np.isfinite(v)}}
         cameras[name] = (out[k].camera, keys)

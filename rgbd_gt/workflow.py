@@ -594,7 +594,7 @@ def shared_camera(job: ScanJob, prepared, camera, cfg: RunConfig, progress: Call
         raise InputError("no photo gave a camera estimate (refine_intrinsics): " + (errors[0] if errors else "check the boards and the camera file"))
     progress(f"{len(photos)} photos: one camera")
     solved = Bundle(photos, 1).solve()
-    q, sigma = solved.q[0], solved.q_sigma[0]
+    q, sigma = solved.q[0], solved.stated_q_sigma(0)  # as a bundle's cameras/ files state it
     result = corrected(camera, q)
     write_camera(out / "camera.yaml", result)
     with atomic_output(out / "intrinsics.json") as tmp:

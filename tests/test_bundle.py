@@ -363,6 +363,9 @@ def test_schur_step_and_covariance_are_the_dense_ones():
         assert result.tiles[i][1] == 5 * n
         assert np.allclose(result.tiles[i][0], placed[i][:6] @ sandwich @ placed[i][:6].T, rtol=1e-8, atol=1e-14)
     assert np.allclose(result.rig_tiles[1], sandwich[6 * nb + 6:6 * nb + 12, 6 * nb + 6:6 * nb + 12], rtol=1e-8)
+    for c in range(2):  # each camera's free corrections (cameras/NAME.yaml's sigma: the wider of the two)
+        k = slice(6 * nb + bundle.q_at[c], 6 * nb + bundle.q_at[c] + 3)
+        assert np.allclose(result.q_covariance[c], cov[k, k], rtol=1e-8) and np.allclose(result.q_tiles[c], sandwich[k, k], rtol=1e-8)
 
 
 def test_a_shot_at_no_minimum_is_left_out_of_the_covariances():

@@ -184,6 +184,7 @@ def test_run_refines_one_camera_for_all_photos(tmp_path, synth_scene):
     estimates = __import__("json").loads((tmp_path / "out" / "intrinsics.json").read_text())
     assert [e["photo"] for e in estimates["photos"]] == ["photo.png", "photo_1.png"]
     assert estimates["solve"] == "joint" and all(e["residual_vs_others"] > 0 for e in estimates["photos"])
+    assert estimates["shared_sigma"][0] > 0 and estimates["shared_sigma"][1] is None  # focal alone was free
     for photo, truth in (("photo", "gt_pose.yaml"), ("photo_1", "gt_pose_1.yaml")):
         T = read_pose(tmp_path / "out" / photo / "pose.yaml")[0]
         gt = read_pose(scene / truth)[0]

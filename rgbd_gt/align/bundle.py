@@ -43,7 +43,7 @@ import torch
 
 from rgbd_gt.align import lbfgs
 from rgbd_gt.align.aligner import STEP_CAP_PX, Aligner, damped
-from rgbd_gt.align.covariance import sandwich
+from rgbd_gt.align.covariance import sandwich, wider
 from rgbd_gt.align.photometric import scaled_inverse
 from rgbd_gt.errors import LEFT_THE_SCAN, InputError
 from rgbd_gt.pose import (apply_update, invert, rotation_error_deg, translated, translation_error_m, update_of,
@@ -103,10 +103,23 @@ class BundleResult:
     levels: list[dict]
     seconds: float
     evidence: list[dict] = field(default_factory=list)  # per photo: the cross-photo evidence
+    q_covariance: list[np.ndarray] = field(default_factory=list)  # per camera (F, F) of its F free corrections
     # photometric: per photo the covariance (6, 6) of its update with every photo's tiles as the
-    # samples (`_tiles`) and how many tiles, and the same of each relative pose (C, 6, 6); None for nid
+    # samples (`_tiles`) and how many tiles, the same of each relative pose (C, 6, 6) and of each
+    # camera's free corrections (F, F); None for nid
     tiles: list[tuple[np.ndarray, int]] | None = None
     rig_tiles: np.ndarray | None = None
+    q_tiles: list[np.ndarray] | None = None
+
+    def stated_q_sigma(self, c: int) -> np.ndarray:
+        """(Q_SIZE,) camera c's 1-sigmas as a bundle states them (cameras/NAME.yaml): with every
+        photo's tiles as the samples wherever wider than the aligner's (`covariance.wider`), inf
+        where not free."""
+        qs = self.q_sigma[c].copy()
+        stated = wider(self.q_covariance[c], self.q_tiles[c]) if self.q_tiles and self.q_covariance else None
+        if stated is not None and len(stated):
+            qs[:len(stated)] = np.sqrt(np.diag(stated))
+        return qs
 
 
 def _apart(T: np.ndarray, U: np.ndarray) -> float:
@@ -542,6 +555,7 @@ class Bundle:
                 result.pose_covariance[i] = determined(Jb @ cov_body[b] @ Jb.T + cross + cross.T + Js @ Si @ Js.T)
             for c in range(self.cameras):
                 s = slice(self.q_at[c], self.q_at[c] + self.free[c])
+                result.q_covariance.append(Si[s, s])
                 result.q_sigma[c, :self.free[c]] = np.sqrt(np.diag(Si[s, s]))
             if self.rig_cameras:
                 result.rig_covariance = np.zeros((self.rig_cameras, 6, 6))
@@ -558,7 +572,7 @@ class Bundle:
         (`Photometric.tile_scores`; each pair of the agreement term one sample more): the sandwich
         of the joint system over all unknowns at once (6 a body, then the shared parameters), of
         the kept bodies (as the aligner's covariance), into result.tiles (None for a photo of a
-        body left out) and result.rig_tiles. Left None where the system has no minimum."""
+        body left out), result.rig_tiles and result.q_tiles. Left None where the system has no minimum."""
         nb = len(self.body_keys)
         n = 6 * nb + self.shared
         U, W, _, Vb, _ = system
@@ -593,6 +607,8 @@ class Bundle:
             for c in range(1, self.rig_cameras):
                 k = 6 * nb + self.rig_at[c]
                 result.rig_tiles[c] = C[k:k + 6, k:k + 6]
+        result.q_tiles = [C[6 * nb + self.q_at[c]:, 6 * nb + self.q_at[c]:][:self.free[c], :self.free[c]]
+                          for c in range(self.cameras)]
 
     def _quadratics(self, terms: list, bodies, rig) -> tuple[list, list, list[float], list[float] | None]:
         """Per photo at the result, finest level: its matrix H (P, P) and gradient g (P,) over
