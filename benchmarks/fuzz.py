@@ -170,6 +170,14 @@ def make_seeds(folder: Path, data: Path | None) -> dict[str, Path]:
         _cli(["refine", "--bundle", str(bundle), "-o", str(folder / "bundle_out"), "--device", "cpu", "--repeats", "0",
               "--levels", "2", "--iterations", "3"], folder)
     seeds["bundle_dir"] = folder / "bundle_out"
+    fast = {"levels": 2, "iterations": 3, "max_points": 3000, "min_points": 500, "upsample": 1, "verify": {"repeats": 0}}
+    run_bundle = folder / "run_bundle.yaml"  # run with a bundle file: its photos solved together first
+    run_bundle.write_text(yaml.safe_dump({"bundle": str(bundle), "output": "run_bundle_out", "device": "cpu", "refine": fast}))
+    run_camera = folder / "run_camera.yaml"  # run that refines one camera over its photos first
+    run_camera.write_text(yaml.safe_dump({
+        "scan": str(small), "camera": str(seeds["camera"]), "photos": [str(seeds["photo"])], "output": "run_camera_out",
+        "init": str(seeds["init"]), "device": "cpu", "refine": {**fast, "refine_intrinsics": "focal"}}))
+    seeds.update(run_bundle_cfg=run_bundle, run_camera_cfg=run_camera)
     if data is not None and (data / "lidar_camera/pjlab_1/calib.pcd").is_file():
         pjlab = data / "lidar_camera/pjlab_1"  # a site: a scan with its board, a LiDAR frame with the rig's extrinsic
         site = folder / "site.yaml"
@@ -409,7 +417,7 @@ CAMERA_KEYS = {"fx", "fy", "cx", "cy", "width", "height", "distortion"}
 POSE_KEYS = {"T_cam_from_scan"}
 CONFIG_KEYS = {"levels", "iterations", "max_points", "min_points", "upsample", "verify", "scan", "camera", "photos", "output",
                "board", "refine", "device", "sizes", "board_cols", "board_rows", "square_m", "hfov_deg", "range_noise_m",
-               "texel_m", "scans"}
+               "texel_m", "scans", "bundle", "init", "refine_intrinsics"}
 
 
 def templates(seeds: dict[str, Path]) -> list[dict]:
@@ -446,6 +454,8 @@ def templates(seeds: dict[str, Path]) -> list[dict]:
         dict(argv=["pick", "--scan", s["scan_small"], "--image", s["photo"], "--camera", s["camera"], "--no-browser",
                    "-o", "{out}/picks.csv"], outs=["picks.csv"], serves=True),
         dict(argv=["run", s["run_cfg"]], outs=["run_out"], slow=True, own_config=True),
+        dict(argv=["run", s["run_bundle_cfg"]], outs=["run_bundle_out"], slow=True, own_config=True),
+        dict(argv=["run", s["run_camera_cfg"]], outs=["run_camera_out"], slow=True, own_config=True),
         dict(argv=["export", s["run_dir"], "-o", "{out}/ds", "-f", "plain,colmap,nerfstudio", "--include", "suspect"],
              outs=["ds"]),
         dict(argv=["export", s["bundle_dir"], "-o", "{out}/ds", "-f", "plain,middlebury,kitti", "--include", "suspect"],
@@ -785,7 +795,8 @@ def write_report(path: Path, results: list[Result], seed: int, seconds: float) -
               "small real files of ../shared/data: a PJLab LiDAR frame with its calibration text and photo, a KITTI frame "
               "(a binary_compressed sweep, gt.json as camera and pose), two E57 "
               "files, a checkerboard photo; `run` on a config of one scan and on a site of two, the synthetic scan with its board "
-              "and the LiDAR frame with its rig's extrinsic, each trial on its own copy; `refine --bundle` on a stereo rig's shot; "
+              "and the LiDAR frame with its rig's extrinsic, a bundle file, and one scan whose camera is refined over its photos, each "
+              "trial on its own copy; `refine --bundle` on a stereo rig's shot; "
               "`export` of a finished `run` and of that bundle's output, on a copy of the folder with one file export reads "
               "mutated, its scan cache included) with one change: a file mutated (truncated, bytes changed, emptied, random "
               "or another format's bytes, a number, a header count or an E57 XML value replaced with its page checksum "

@@ -384,7 +384,6 @@ def bundle_step(spec, cfg, device: str = "auto", cache: PathLike | None = None,
 
     from rgbd_gt.align.aligner import Aligner, RefineResult
     from rgbd_gt.align.bundle import Bundle, BundlePhoto, RigPrior
-    from rgbd_gt.align.covariance import wider
     from rgbd_gt.align.refine import make_aligner, objective_of, refined_camera
     from rgbd_gt.align.verify import bundle_reasons, verify
     from rgbd_gt.io import read_pose
@@ -451,9 +450,7 @@ def bundle_step(spec, cfg, device: str = "auto", cache: PathLike | None = None,
         rig = {"cameras": spec.rig, "reference": spec.rig[0], "relative": {}}
         for name in spec.rig[1:]:
             c = order.index(name)
-            # the covariance it states: with every photo's tiles as the samples where wider (as the photos')
-            stated = wider(result.rig_covariance[c], None if result.rig_tiles is None else result.rig_tiles[c])
-            sd = np.sqrt(np.diag(result.rig_covariance[c] if stated is None else stated))
+            sd = np.sqrt(np.diag(result.stated_rig_covariance(c)))
             rig["relative"][name] = {
                 "T_cam_from_reference": result.rig[c].tolist(), "baseline_m": float(np.linalg.norm(invert(result.rig[c])[:3, 3])),
                 "sigma": {"rotation_deg": np.degrees(sd[:3]).tolist(), "translation_mm": (sd[3:] * 1e3).tolist()}}

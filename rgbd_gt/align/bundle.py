@@ -121,6 +121,12 @@ class BundleResult:
             qs[:len(stated)] = np.sqrt(np.diag(stated))
         return qs
 
+    def stated_rig_covariance(self, c: int) -> np.ndarray:
+        """(6, 6) rig camera c's relative pose covariance as a bundle states it (rig.yaml): the
+        same rule as `stated_q_sigma`."""
+        stated = wider(self.rig_covariance[c], None if self.rig_tiles is None else self.rig_tiles[c])
+        return self.rig_covariance[c] if stated is None else stated
+
 
 def _apart(T: np.ndarray, U: np.ndarray) -> float:
     """How far two relative poses lie apart: degrees plus centimetres."""
