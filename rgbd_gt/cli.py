@@ -771,7 +771,7 @@ def export_dataset(
     model; nerfstudio's transforms.json; rectified stereo pairs with disparity (middlebury,
     kitti) from a rig. Also report.html, a page to judge the run by eye."""
     from rgbd_gt.engine import CACHE_FOLDER
-    from rgbd_gt.export.dataset import export_run
+    from rgbd_gt.export.dataset import FORMATS, export_run
     from rgbd_gt.export.source import read_run
     from rgbd_gt.io.outputs import Outputs
 
@@ -785,7 +785,7 @@ def export_dataset(
         raise InputError("-o: is the run's own folder (its report.html would be replaced); give another", output)
     outs = Outputs([run_dir / n for n in ("run.json", "bundle.json")] + [s.scan for s in sources]
                    + [p.image for s in sources for p in s.photos])
-    staged = outs.folder(output, "-o")
+    staged = outs.folder(output, "-o", whole=True)  # an earlier export's format folders are replaced, not mixed in
     if cache is None and (run_dir / CACHE_FOLDER).is_dir():
         cache = run_dir / CACHE_FOLDER
     outs.checked_folder(cache, "--cache")
@@ -815,6 +815,9 @@ def export_dataset(
                   f"{p['occluded'] / max(p['valid'], 1):.1%} occluded")
     for name, why in done.left_out.items():
         out.print(f"left out {name}: {why}")
+    earlier = [f for f in FORMATS if f not in chosen and (output / f).is_dir()]
+    if earlier:
+        out.print(f"kept from an earlier export: {', '.join(earlier)} (export.json lists only {', '.join(chosen)})")
     out.print(f"wrote {', '.join(chosen)} and report.html into {output} in {time.perf_counter() - start:.1f} s")
 
 

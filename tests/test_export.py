@@ -206,6 +206,25 @@ def test_pixel_sigma_against_finite_differences():
     np.testing.assert_allclose(sf.depth, expect, rtol=2e-3, atol=1e-7)
 
 
+def test_export_again_replaces_its_formats(rig_run, tmp_path):
+    """An export into the folder of an earlier one replaces each format's folder wholesale: no
+    photo of the earlier data set stays among the new (a training loader globs the folders);
+    what it does not write stays, and it says which formats those are."""
+    _, bout = rig_run
+    out = tmp_path / "dataset"
+    assert run_cli("export", bout, "-o", out, "-f", "plain,colmap").returncode == 0
+    (out / "plain" / "stale").mkdir()
+    (out / "plain" / "stale" / "depth.exr").write_bytes(b"old")
+    (out / "notes.txt").write_text("mine")
+    proc = run_cli("export", bout, "-o", out, "-f", "plain")
+    assert proc.returncode == 0, proc.stderr
+    assert sorted(p.name for p in (out / "plain").iterdir() if p.is_dir()) == sorted(PHOTOS)
+    assert (out / "notes.txt").read_text() == "mine" and (out / "colmap").is_dir()
+    assert "kept from an earlier export: colmap" in proc.stdout
+    assert json.loads((out / "export.json").read_text())["formats"] == ["plain"]
+    assert not [p for p in out.parent.iterdir() if p.name.startswith(".rgbd-gt")]
+
+
 def test_export_errors(rig_run, tmp_path, synth_scene):
     d, bout = rig_run
     assert_one_line_error(run_cli("export", d, "-o", tmp_path / "x", "--format", "plain"), "not a finished run", str(d))

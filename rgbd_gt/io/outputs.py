@@ -41,6 +41,7 @@ class Outputs:
     def __init__(self, inputs: Iterable[str | os.PathLike | None]):
         self.inputs = [Path(p) for p in inputs if p is not None]
         self.staged: list[tuple[Path, Path, bool]] = []  # (staged path, target, is a folder)
+        self._whole: set[Path] = set()  # staged folders whose entries replace the target's wholesale
         self._stage_dirs: list[Path] = []
 
     def _check(self, path: Path, option: str, folder: bool) -> Path:
@@ -84,12 +85,16 @@ class Outputs:
         self.staged.append((stage, path, False))
         return stage
 
-    def folder(self, path: str | os.PathLike, option: str) -> Path:
+    def folder(self, path: str | os.PathLike, option: str, whole: bool = False) -> Path:
         """Check an output folder; returns an empty staging folder whose files go into it at commit
-        (beside what the folder already holds; a file of the same name is replaced)."""
+        (beside what the folder already holds; a file of the same name is replaced). whole: each
+        folder at the staging folder's top replaces the one of its name wholesale, so that nothing
+        of an earlier run's folder stays among the new files (a data set's photos)."""
         path = Path(path)
         stage = self._stage(self._check(path, option, folder=True)) / (path.name or "out")
         self.staged.append((stage, path, True))
+        if whole:
+            self._whole.add(stage)
         return stage
 
     def checked_folder(self, path: str | os.PathLike | None, option: str) -> Path | None:
@@ -106,6 +111,10 @@ class Outputs:
             for stage, target, is_folder in self.staged:
                 if is_folder:
                     target.mkdir(parents=True, exist_ok=True)
+                    if stage in self._whole:
+                        for src in sorted(stage.iterdir()):
+                            _replace_whole(src, target / src.name)
+                        continue
                     for src in sorted(stage.rglob("*")):
                         dst = target / src.relative_to(stage)
                         if src.is_dir():
@@ -134,6 +143,19 @@ class Outputs:
             self.commit()
         else:
             self.discard()
+
+
+def _replace_whole(src: Path, dst: Path) -> None:
+    """Move src to dst, whatever dst held: an old folder is set aside first and removed after."""
+    old = None
+    if dst.is_dir() and not dst.is_symlink():
+        old = dst.with_name(f".rgbd-gt-old-{uuid.uuid4().hex[:12]}")
+        os.replace(dst, old)
+    elif dst.exists() and src.is_dir():
+        dst.unlink()
+    os.replace(src, dst)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
 
 
 def hold_folder(path: Path, option: str):
