@@ -139,15 +139,15 @@ def make_seeds(folder: Path, data: Path | None) -> dict[str, Path]:
         fs.write("image_height", cam.height)
         fs.release()
     seeds["camera_xml"] = xml
-    refine_cfg = folder / "refine.yaml"  # fast settings: the fuzz is about inputs, not accuracy
-    refine_cfg.write_text("levels: 2\niterations: 3\nmax_points: 3000\nmin_points: 500\nupsample: 1\n"
-                          "verify:\n  repeats: 0\n")
+    # fast settings: the fuzz is about inputs, not accuracy
+    fast = {"levels": 2, "iterations": 3, "max_points": 3000, "min_points": 500, "upsample": 1, "verify": {"repeats": 0}}
+    refine_cfg = folder / "refine.yaml"
+    refine_cfg.write_text(yaml.safe_dump(fast, sort_keys=False))
     seeds["refine_cfg"] = refine_cfg
+    board = {"cols": 9, "rows": 6, "square": 0.05, "points": str(seeds["board"])}
     run_cfg = folder / "run.yaml"
-    run_cfg.write_text(f"scan: {small}\ncamera: {seeds['camera']}\nphotos: [{seeds['photo']}]\noutput: run_out\n"
-                       f"board:\n  cols: 9\n  rows: 6\n  square: 0.05\n  points: {seeds['board']}\n"
-                       "device: cpu\nrefine:\n  levels: 2\n  iterations: 3\n  max_points: 3000\n  min_points: 500\n"
-                       "  upsample: 1\n  verify:\n    repeats: 0\n")
+    run_cfg.write_text(yaml.safe_dump({"scan": str(small), "camera": str(seeds["camera"]), "photos": [str(seeds["photo"])],
+                                       "output": "run_out", "board": board, "device": "cpu", "refine": fast}, sort_keys=False))
     seeds["run_cfg"] = run_cfg
     # finished runs, export's inputs: `run` on run.yaml, and a stereo rig's shot by refine --bundle
     # (its bundle file with absolute paths, so that a mutant copy elsewhere still finds its files)
@@ -170,7 +170,6 @@ def make_seeds(folder: Path, data: Path | None) -> dict[str, Path]:
         _cli(["refine", "--bundle", str(bundle), "-o", str(folder / "bundle_out"), "--device", "cpu", "--repeats", "0",
               "--levels", "2", "--iterations", "3"], folder)
     seeds["bundle_dir"] = folder / "bundle_out"
-    fast = {"levels": 2, "iterations": 3, "max_points": 3000, "min_points": 500, "upsample": 1, "verify": {"repeats": 0}}
     run_bundle = folder / "run_bundle.yaml"  # run with a bundle file: its photos solved together first
     run_bundle.write_text(yaml.safe_dump({"bundle": str(bundle), "output": "run_bundle_out", "device": "cpu", "refine": fast}))
     run_camera = folder / "run_camera.yaml"  # run that refines one camera over its photos first
@@ -183,9 +182,7 @@ def make_seeds(folder: Path, data: Path | None) -> dict[str, Path]:
         site = folder / "site.yaml"
         site.write_text(yaml.safe_dump({
             "output": "site_out", "device": "cpu", "camera": str(seeds["camera"]),
-            "board": {"cols": 9, "rows": 6, "square": 0.05, "points": str(seeds["board"])},
-            "refine": {"levels": 2, "iterations": 3, "max_points": 3000, "min_points": 500, "upsample": 1,
-                       "search_starts": 1, "verify": {"repeats": 0}},
+            "board": board, "refine": {**fast, "search_starts": 1},
             "scans": [{"scan": str(small), "photos": [str(seeds["photo"])], "name": "room"},
                       {"scan": str(pjlab / "calib.pcd"), "camera": str(pjlab / "calib.txt"), "init": str(pjlab / "calib.txt"),
                        "photos": [str(pjlab / "calib.jpg")], "name": "street"}]}, sort_keys=False))
