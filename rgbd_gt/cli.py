@@ -561,8 +561,11 @@ def _refine_bundle(bundle: Path, output: Path, cfg, device: str, cache: Optional
 
     spec = read_bundle(bundle)
     outs = Outputs([bundle] + spec.files())
-    staged = outs.folder(output, "-o")
+    staged = outs.folder(output, "-o", whole=True)  # each photo's folder and cameras/ replaced, not mixed in
     outs.checked_folder(cache, "--cache")
+    stems = {e.image.stem for e in spec.photos}
+    earlier = sorted(f"{f.parent.name}/" for f in output.glob("*/pose.yaml") if f.parent.name not in stems)
+    earlier += ["rig.yaml"] * (not spec.rig and (output / "rig.yaml").is_file())
     with _progress() as bar:
         task = bar.add_task("bundle", total=None)
         done = bundle_step(spec, cfg, device, cache, progress=lambda message: bar.update(task, description=message))
@@ -591,6 +594,8 @@ def _refine_bundle(bundle: Path, output: Path, cfg, device: str, cache: Optional
         for name, rel in done.rig["relative"].items():
             out.print(f"rig {name} from {done.rig['reference']}: baseline {rel['baseline_m'] * 1e3:.2f} mm "
                       f"(1 sigma {max(rel['sigma']['translation_mm']):.3f} mm)")
+    if earlier:
+        out.print(f"kept from an earlier solve: {', '.join(earlier)} (bundle.json lists only this bundle's photos)")
     out.print(f"solved in {r.seconds:.1f} s ({r.iterations} iterations), {time.perf_counter() - start:.1f} s in all; wrote {output}")
     if strict and any(d.verification.verdict == "failed" for d in done.photos):
         raise typer.Exit(3)

@@ -102,14 +102,27 @@ def test_shared_focal_and_zoomed_photo(synth_scene, tmp_path):
 
     spec["cameras"]["camera"]["refine"] = "focal"
     (d / "bundle.yaml").write_text(yaml.safe_dump(spec))
-    proc = run_cli("refine", "--bundle", d / "bundle.yaml", "-o", tmp_path / "shared", "--device", "cpu", "--repeats", "1",
+    held = tmp_path / "held"
+    # the bundle file changed since: its earlier solve is not exported as if it were this one's
+    assert_one_line_error(run_cli("export", held, "-o", tmp_path / "x", "-f", "plain", "--include", "suspect"),
+                          str(d / "bundle.yaml"), "changed since")
+    # solved again into that folder, beside files an earlier solve left there (a rig.yaml that
+    # is not even readable): named, not read
+    (held / "old").mkdir()
+    (held / "old" / "pose.yaml").write_text("left over")
+    (held / "rig.yaml").write_bytes(b"\x92 not a rig")
+    proc = run_cli("refine", "--bundle", d / "bundle.yaml", "-o", held, "--device", "cpu", "--repeats", "1",
                    "--max-points", "30000")
     assert proc.returncode == 0, proc.stderr
-    solved = read_camera(tmp_path / "shared" / "cameras" / "camera.yaml")
+    assert "kept from an earlier solve: old/, rig.yaml" in " ".join(proc.stdout.split()), proc.stdout
+    solved = read_camera(held / "cameras" / "camera.yaml")
     assert 1.002 < solved.fx / cam.fx < 1.018  # between the two photos' focal lengths
-    doc = [yaml.safe_load((tmp_path / "shared" / s / "pose.yaml").read_text()) for s in ("photo", "zoomed")]
+    doc = [yaml.safe_load((held / s / "pose.yaml").read_text()) for s in ("photo", "zoomed")]
     changes = [x["evidence"]["camera"]["focal_change"] for x in doc]
     assert changes[0] < 0 < changes[1]  # each photo freed moves its focal towards its own
+    proc = run_cli("export", held, "-o", tmp_path / "x", "-f", "plain", "--include", "suspect", "--include", "failed")
+    assert proc.returncode == 0, proc.stderr
+    assert sorted(json.loads((tmp_path / "x" / "export.json").read_text())["photos"]) == ["photo", "zoomed"]
 
 
 def test_bundle_file_errors(synth_scene, tmp_path):

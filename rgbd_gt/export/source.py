@@ -111,8 +111,14 @@ def _bundle_source(folder: Path, bundle: Path, name: str = "bundle", errors: dic
     photo without a pose file is missing, with its error in `errors` (summary.csv's) when given."""
     from rgbd_gt.io import read_camera
     from rgbd_gt.io.bundle_file import read_bundle
+    from rgbd_gt.prepared import file_key
 
     spec = read_bundle(bundle)
+    record = _json(folder / "bundle.json")
+    solved = record.get("bundle_sha1") if isinstance(record, dict) else None
+    if solved is not None and solved != file_key(bundle)["sha1"]:  # its photos, cameras or shots may be others now
+        raise InputError(f"changed since the photos in {folder} were solved from it (bundle.json holds another "
+                         "SHA-1): solve them again", bundle)
     photos, missing = [], {}
     for entry in spec.photos:
         pose = folder / entry.image.stem / "pose.yaml"
@@ -123,7 +129,11 @@ def _bundle_source(folder: Path, bundle: Path, name: str = "bundle", errors: dic
         shot = _shot(entry.image.stem, entry.image, read_camera(cam_file), entry.camera, pose, _camera_sigma(cam_file))
         shot.shot, shot.mask = entry.shot, entry.mask
         photos.append(shot)
-    rig = _rig(folder / "rig.yaml") if (folder / "rig.yaml").is_file() else None
+    # an earlier solve's rig.yaml may lie beside a solve without a rig: read only the bundle's own
+    rig = _rig(folder / "rig.yaml") if spec.rig and (folder / "rig.yaml").is_file() else None
+    if rig is not None and rig["cameras"] != spec.rig:
+        raise InputError(f"is a rig of {', '.join(rig['cameras'])}, not the bundle's {', '.join(spec.rig)}: "
+                         "written by another solve", folder / "rig.yaml")
     return Source(name, spec.scan, folder, photos, rig, missing)
 
 
