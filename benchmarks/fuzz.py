@@ -496,7 +496,7 @@ def templates(seeds: dict[str, Path]) -> list[dict]:
     return t
 
 
-READ_BY_EXPORT = {"run.json", "bundle.json", "pose.yaml", "rig.yaml", "camera.yaml", "intrinsics.json"}  # of a run's files
+READ_BY_EXPORT = {"run.json", "bundle.json", "pose.yaml", "init.yaml", "rig.yaml", "camera.yaml", "intrinsics.json"}  # of a run's files
 NEVER_VALID = ("nan", "inf", "-inf", "abc", "", "0x10", "1,2")  # of ODD_ARGS, what no option takes
 UNBOUNDED = ("--max-depth",)  # a distance with no upper bound: 1e20 m means no limit, as 0 does
 ODD_ARGS = ["nan", "inf", "-inf", "-1", "0", "abc", "", "1e308", "-0", "99999999999999999999", "0x10", "1,2"]

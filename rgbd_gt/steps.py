@@ -481,8 +481,10 @@ def write_bundled(folder: Path, spec, done: Bundled, bundle: Path, total_seconds
         with atomic_output(folder / "rig.yaml") as tmp:
             tmp.write_text(yaml.safe_dump(done.rig, sort_keys=False, default_flow_style=None))
     r = done.result
-    summary = {"bundle": str(Path(bundle).resolve()), "bundle_sha1": file_key(Path(bundle))["sha1"], "photos": [
-        {"image": str(e.image), "pose": f"{e.image.stem}/pose.yaml", "camera": e.camera, "shot": e.shot,
+    summary = {"bundle": str(Path(bundle).resolve()), "bundle_sha1": file_key(Path(bundle))["sha1"],
+               "scan_sha1": file_key(spec.scan)["sha1"], "photos": [
+        {"image": str(e.image), "photo_sha1": file_key(e.image)["sha1"], "pose": f"{e.image.stem}/pose.yaml",
+         "camera": e.camera, "shot": e.shot,
          "verdict": d.verification.verdict, "reasons": d.verification.reasons, **d.verification.evidence["bundle"]}
         for e, d in zip(spec.photos, done.photos)], "iterations": r.iterations, "levels": r.levels,
         "seconds": round(r.seconds, 3), "total_seconds": round(total_seconds, 3)}

@@ -123,6 +123,11 @@ def test_shared_focal_and_zoomed_photo(synth_scene, tmp_path):
     proc = run_cli("export", held, "-o", tmp_path / "x", "-f", "plain", "--include", "suspect", "--include", "failed")
     assert proc.returncode == 0, proc.stderr
     assert sorted(json.loads((tmp_path / "x" / "export.json").read_text())["photos"]) == ["photo", "zoomed"]
+    # a photo replaced since (bundle.json holds each photo's SHA-1): not exported with the old pose
+    with open(d / "zoomed.png", "ab") as f:
+        f.write(b"\0")
+    assert_one_line_error(run_cli("export", held, "-o", tmp_path / "y", "-f", "plain", "--include", "suspect"),
+                          str(d / "zoomed.png"), "changed since photo zoomed was solved")
 
 
 def test_bundle_file_errors(synth_scene, tmp_path):

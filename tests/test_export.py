@@ -245,6 +245,11 @@ def test_export_errors(rig_run, tmp_path, synth_scene):
     assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(pose))
     pose.write_text(re.sub(r"(covariance:\n- \[)[^,]+", r"\1.nan", text))
     assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(pose), "covariance: not finite")
+    for bad, said in ((text.replace("\nverdict: ok\n", "\nverdict: <b>ok</b>\n", 1), "verdict"),
+                      (re.sub(r"\nreasons: .*\n", "\nreasons: [.inf]\n", text, count=1), "reasons"),
+                      (re.sub(r"\nevidence:\n", "\nevidence: [1, 2]\nwas_evidence:\n", text, count=1), "evidence")):
+        pose.write_text(bad)
+        assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(pose), said)
     pose.write_text(text)
     rig = (broken / "rig.yaml").read_text()
     nan = yaml.safe_load(rig)

@@ -196,6 +196,10 @@ def test_run_refines_one_camera_for_all_photos(tmp_path, synth_scene):
     # whose folders were made with the old one, which say so (remove them to redo them)
     (scene / "camera_off.yaml").write_text((scene / "camera_off.yaml").read_text() + "# calibrated again\n")
     assert_one_line_error(run_cli("run", tmp_path / "run.yaml"), "no photo gave a camera estimate", "made from another camera")
+    # nor is the run exported with it: its poses were solved with the old camera
+    assert_one_line_error(run_cli("export", tmp_path / "out", "-o", tmp_path / "ds", "-f", "plain"),
+                          str(scene / "camera_off.yaml"), "changed since photo photo was solved")
+    assert not (tmp_path / "ds").exists()
 
 
 def test_run_on_a_real_lidar_frame_with_the_rigs_extrinsic(tmp_path):

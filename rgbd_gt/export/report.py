@@ -88,7 +88,9 @@ def rectified_lines(left: np.ndarray, right: np.ndarray, every: int = 12) -> np.
 
 
 def _num(v, fmt: str = ".4g") -> str:
-    return "-" if v is None or (isinstance(v, float) and not np.isfinite(v)) else format(v, fmt)
+    if isinstance(v, bool) or not isinstance(v, (int, float)):  # a hand-edited pose file's value: shown as it is
+        return "-" if v is None else html.escape(str(v))
+    return format(v, fmt) if np.isfinite(v) else "-"
 
 
 def write_report(path: Path, sources: list, folder: Path | None = None, exported=None) -> None:

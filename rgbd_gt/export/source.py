@@ -45,13 +45,15 @@ class Source:
     missing: dict[str, str] = field(default_factory=dict)  # photos without a refined pose: why (summary.csv's error)
 
 
-def read_run(folder: Path) -> list[Source]:
+def read_run(folder: Path, stale_missing: bool = False) -> list[Source]:
     """The scans of a finished `run` (OUTPUT/run.json) or `refine --bundle` output
-    (bundle.json) in `folder`, every photo that has a refined pose."""
+    (bundle.json) in `folder`, every photo that has a refined pose. A photo whose scan, photo or
+    camera file changed since its pose was solved (`_changed`) is an error, or with stale_missing
+    (the run's own page, after a rerun that refused that photo) missing, with why."""
     folder = Path(folder)
     if (folder / "bundle.json").is_file() and not (folder / "run.json").is_file():
         try:
-            return [_bundle_source(folder, Path(_json(folder / "bundle.json")["bundle"]))]
+            return [_bundle_source(folder, Path(_json(folder / "bundle.json")["bundle"]), stale_missing=stale_missing)]
         except (KeyError, TypeError, AttributeError) as exc:
             raise InputError(f"not a bundle record rgbd-gt wrote ({_why(exc)})", folder / "bundle.json") from None
     if not (folder / "run.json").is_file():
@@ -63,7 +65,7 @@ def read_run(folder: Path) -> list[Source]:
         raise InputError("holds both run.json (rgbd-gt run) and bundle.json (rgbd-gt refine --bundle): two runs "
                          "wrote into one folder; give each its own", folder)
     try:
-        return _run_sources(folder, record)
+        return _run_sources(folder, record, stale_missing)
     except (KeyError, TypeError, AttributeError) as exc:
         raise InputError(f"not a run record rgbd-gt wrote ({_why(exc)})", folder / "run.json") from None
 
@@ -72,17 +74,17 @@ def _why(exc: Exception) -> str:
     return f"no {exc}" if isinstance(exc, KeyError) else str(exc)
 
 
-def _run_sources(folder: Path, record: dict) -> list[Source]:
+def _run_sources(folder: Path, record: dict, stale_missing: bool) -> list[Source]:
     from rgbd_gt.io import read_camera
     from rgbd_gt.io.image import read_image
 
-    sources, errors = [], _errors(folder / "summary.csv")
+    sources, errors, sha1s = [], _errors(folder / "summary.csv"), {}
     for entry in record["scans"]:
         if "photos" not in entry:
             raise InputError("run.json lists no photos (made by an older rgbd-gt): run it again", folder / "run.json")
         out = folder / entry.get("folder", ".")
         if "bundle" in entry:  # its photos solved together (run's `bundle:`), with their cameras as solved
-            sources.append(_bundle_source(out, Path(entry["bundle"]), entry.get("name", "bundle"), errors))
+            sources.append(_bundle_source(out, Path(entry["bundle"]), entry.get("name", "bundle"), errors, stale_missing))
             continue
         camera_file = Path(entry["camera"])
         shared, sigma = out / "camera.yaml", {}
@@ -95,18 +97,48 @@ def _run_sources(folder: Path, record: dict) -> list[Source]:
         photos, missing = [], {}
         camera = None
         for image in map(Path, entry["photos"]):
-            pose = out / image.stem / "pose.yaml"
-            if pose.is_file():
+            pose, made = out / image.stem / "pose.yaml", out / image.stem / "init.yaml"  # init.yaml: `steps.made_from`
+            keys = read_yaml(made) if pose.is_file() and made.is_file() else {}
+            if not isinstance(keys, dict):
+                raise InputError("not a pose file rgbd-gt wrote (no keys)", made)
+            stale = _changed(keys, image.stem, {"photo": image, "camera": Path(entry["camera"]), "scan": Path(entry["scan"])}, sha1s)
+            if stale is not None and not stale_missing:
+                raise stale
+            if pose.is_file() and stale is None:
                 if camera is None:  # a calibration text or JSON file has no size: the photos' (as run's job_camera)
                     camera = read_camera(camera_file, lambda: read_image(image).shape[1::-1])
                 photos.append(_shot(image.stem, image, camera, "camera", pose, sigma))
             else:
-                missing[image.stem] = errors.get(image.name) or entry.get("error") or "no refined pose"
+                missing[image.stem] = errors.get(image.name) or entry.get("error") or str(stale or "no refined pose")
         sources.append(Source(entry.get("name", "scan"), Path(entry["scan"]), out, photos, missing=missing))
     return sources
 
 
-def _bundle_source(folder: Path, bundle: Path, name: str = "bundle", errors: dict[str, str] | None = None) -> Source:
+def _changed(keys: dict, photo: str, files: dict[str, Path], sha1s: dict[Path, str]) -> InputError | None:
+    """The error when one of `files` ({kind: path}) is not the file that photo's pose was solved
+    from: the SHA-1 recorded beside it (keys' KIND_sha1: `steps.made_from` in a run photo's
+    init.yaml, bundle.json's) differs, so that a camera file calibrated again, a photo or a scan
+    replaced, is not exported with a pose solved for the old one; else None. sha1s: the files'
+    SHA-1s read so far, shared by the photos."""
+    from rgbd_gt.prepared import file_key
+
+    for kind, path in files.items():
+        then = keys.get(f"{kind}_sha1")
+        if then is None:
+            continue
+        if path not in sha1s:
+            try:
+                sha1s[path] = file_key(path)["sha1"]
+            except OSError as exc:
+                raise InputError(f"cannot read ({exc.strerror or exc})", path) from None
+        if sha1s[path] != then:
+            return InputError(f"changed since photo {photo} was solved from it (the {kind} then had SHA-1 "
+                              f"{str(then)[:12]}): solve it again, or put that {kind} back", path)
+    return None
+
+
+def _bundle_source(folder: Path, bundle: Path, name: str = "bundle", errors: dict[str, str] | None = None,
+                   stale_missing: bool = False) -> Source:
     """The photos of the bundle file `bundle` solved into `folder` (`steps.write_bundled`); a
     photo without a pose file is missing, with its error in `errors` (summary.csv's) when given."""
     from rgbd_gt.io import read_camera
@@ -115,15 +147,21 @@ def _bundle_source(folder: Path, bundle: Path, name: str = "bundle", errors: dic
 
     spec = read_bundle(bundle)
     record = _json(folder / "bundle.json")
-    solved = record.get("bundle_sha1") if isinstance(record, dict) else None
+    record = record if isinstance(record, dict) else {}
+    solved = record.get("bundle_sha1")
     if solved is not None and solved != file_key(bundle)["sha1"]:  # its photos, cameras or shots may be others now
         raise InputError(f"changed since the photos in {folder} were solved from it (bundle.json holds another "
                          "SHA-1): solve them again", bundle)
-    photos, missing = [], {}
+    photos, missing, sha1s = [], {}, {}
+    by_pose = {p.get("pose"): p for p in record.get("photos") or [] if isinstance(p, dict)}
     for entry in spec.photos:
         pose = folder / entry.image.stem / "pose.yaml"
-        if errors is not None and not pose.is_file():
-            missing[entry.image.stem] = errors.get(entry.image.name) or "no refined pose"
+        keys = {"scan_sha1": record.get("scan_sha1"), **by_pose.get(f"{entry.image.stem}/pose.yaml", {})}
+        stale = _changed(keys, entry.image.stem, {"photo": entry.image, "scan": spec.scan}, sha1s)
+        if stale is not None and not stale_missing:
+            raise stale
+        if stale is not None or (errors is not None and not pose.is_file()):
+            missing[entry.image.stem] = (errors or {}).get(entry.image.name) or str(stale or "no refined pose")
             continue
         cam_file = folder / "cameras" / f"{entry.camera}.yaml"
         shot = _shot(entry.image.stem, entry.image, read_camera(cam_file), entry.camera, pose, _camera_sigma(cam_file))
@@ -172,14 +210,24 @@ def _shot(name: str, image: Path, camera: Camera, camera_name: str, pose_file: P
     from rgbd_gt.io import read_pose
 
     T, keys = read_pose(pose_file)
+    # what export and the report read of it, as refine writes it
+    verdict, reasons, evidence = keys.get("verdict", "failed"), keys.get("reasons") or [], keys.get("evidence") or {}
+    if verdict not in ("ok", "suspect", "failed"):
+        raise InputError(f"verdict: not ok, suspect or failed ({verdict!r:.40})", pose_file)
+    if not isinstance(reasons, list) or not all(isinstance(r, str) for r in reasons):
+        raise InputError(f"reasons: not a list of text ({reasons!r:.40})", pose_file)
+    try:
+        if not isinstance(stated_uncertainty(evidence), dict):
+            raise AttributeError("uncertainty")
+    except AttributeError as exc:
+        raise InputError(f"evidence: not as refine writes it ({exc})", pose_file) from None
     try:
         cov = pose_covariance(keys)
     except (TypeError, ValueError) as exc:
         raise InputError(f"covariance: not a 6 x 6 matrix of numbers ({exc})", pose_file) from None
     if "covariance" in keys and not np.isfinite(cov).all():  # refine writes it only when determined
         raise InputError("covariance: not finite", pose_file)
-    return Shot(name, image, camera, camera_name, T, cov, keys.get("verdict", "failed"),
-                list(keys.get("reasons") or []), pose_file, sigma, evidence=keys.get("evidence") or {})
+    return Shot(name, image, camera, camera_name, T, cov, verdict, reasons, pose_file, sigma, evidence=evidence)
 
 
 def stated_uncertainty(evidence: dict) -> dict:
