@@ -152,6 +152,12 @@ def made_from(scan: PathLike, scan_sha1: str | None, files: dict[str, PathLike],
     return made
 
 
+def made_from_other(recorded: dict, made: dict) -> str | None:
+    """The first kind of input whose SHA-1 in `recorded` differs from `made`'s (`made_from`), or
+    None. No SHA-1 recorded is no difference: outputs written before they were are resumed."""
+    return next((k.removesuffix("_sha1") for k in made if k.endswith("_sha1") and recorded.get(k) not in (None, made[k])), None)
+
+
 def refine_config(config: PathLike | None = None, repeats: int | None = None, **flags):
     """The aligner's settings: configs/refine.yaml (or `config`) with the options given (None:
     as the file says); InputError naming them when they make it inconsistent."""
@@ -372,6 +378,7 @@ class Bundled:
     cameras: dict[str, tuple[Camera, dict]]
     rig: dict | None
     result: object  # align.bundle.BundleResult
+    scan_sha1: str  # of the scan file as it was prepared (bundle.json's)
 
 
 def bundle_step(spec, cfg, device: str = "auto", cache: PathLike | None = None,
@@ -387,7 +394,7 @@ def bundle_step(spec, cfg, device: str = "auto", cache: PathLike | None = None,
     from rgbd_gt.align.refine import make_aligner, objective_of, refined_camera
     from rgbd_gt.align.verify import bundle_reasons, verify
     from rgbd_gt.io import read_pose
-    from rgbd_gt.prepared import prepare_scan
+    from rgbd_gt.prepared import file_key, prepare_scan
 
     progress("reading the scan")
     prepared = prepare_scan(Path(spec.scan), cache)
@@ -454,7 +461,8 @@ def bundle_step(spec, cfg, device: str = "auto", cache: PathLike | None = None,
             rig["relative"][name] = {
                 "T_cam_from_reference": result.rig[c].tolist(), "baseline_m": float(np.linalg.norm(invert(result.rig[c])[:3, 3])),
                 "sigma": {"rotation_deg": np.degrees(sd[:3]).tolist(), "translation_mm": (sd[3:] * 1e3).tolist()}}
-    return Bundled(out, cameras, rig, result)
+    # a scan prepared in memory (no cache) was not hashed
+    return Bundled(out, cameras, rig, result, prepared.sha1 or file_key(Path(spec.scan))["sha1"])
 
 
 def write_bundled(folder: Path, spec, done: Bundled, bundle: Path, total_seconds: float) -> None:
@@ -482,7 +490,7 @@ def write_bundled(folder: Path, spec, done: Bundled, bundle: Path, total_seconds
             tmp.write_text(yaml.safe_dump(done.rig, sort_keys=False, default_flow_style=None))
     r = done.result
     summary = {"bundle": str(Path(bundle).resolve()), "bundle_sha1": file_key(Path(bundle))["sha1"],
-               "scan_sha1": file_key(spec.scan)["sha1"], "photos": [
+               "scan_sha1": done.scan_sha1, "photos": [
         {"image": str(e.image), "photo_sha1": file_key(e.image)["sha1"], "pose": f"{e.image.stem}/pose.yaml",
          "camera": e.camera, "shot": e.shot,
          "verdict": d.verification.verdict, "reasons": d.verification.reasons, **d.verification.evidence["bundle"]}

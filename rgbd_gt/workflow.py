@@ -375,12 +375,6 @@ def photo_inputs(photo: Path, prepared, camera, job: ScanJob, lap: Callable[[str
     return inputs, seen
 
 
-def made_from_other(recorded: dict, made: dict) -> str | None:
-    """The first kind of input whose SHA-1 in `recorded` differs from `made`'s (`made_from`), or
-    None. No SHA-1 recorded is no difference: outputs written before they were are resumed."""
-    return next((k.removesuffix("_sha1") for k in made if k.endswith("_sha1") and recorded.get(k) not in (None, made[k])), None)
-
-
 def initial_pose(photo: Path, image: np.ndarray, prepared, camera, job: ScanJob, path: Path) -> tuple[np.ndarray, dict]:
     """The photo's initial pose file `path`: read when it exists, else written from job.init (a
     pose file shared by the photos) or made from job.board (found once per scan, `steps.init_step`).
@@ -396,7 +390,7 @@ def initial_pose(photo: Path, image: np.ndarray, prepared, camera, job: ScanJob,
     elif job.board.points:
         files["board_points"] = Path(job.board.points)
     b = job.board
-    from rgbd_gt.steps import made_from
+    from rgbd_gt.steps import made_from, made_from_other
 
     made = made_from(prepared.source, prepared.sha1, files,
                      None if job.init is not None else (b.cols, b.rows, b.square, b.charuco, b.marker))
@@ -466,7 +460,7 @@ def solve_rig(jobs: list[ScanJob], prepared: list, camera, cfg: RunConfig, out: 
     its steps take it. Reused while rig.yaml names the same frames. Returns the pose and its meta."""
     from rgbd_gt.align.verify import frame_verdict
     from rgbd_gt.io import read_pose, write_pose
-    from rgbd_gt.steps import refine_step
+    from rgbd_gt.steps import made_from_other, refine_step
 
     path = out / RIG_FILE
     names = [f"{j.name}/{j.photos[0].name}" for j in jobs]
@@ -568,7 +562,7 @@ def shared_camera(job: ScanJob, prepared, camera, cfg: RunConfig, progress: Call
     from rgbd_gt.io.atomic import atomic_output
     from rgbd_gt.io.camera_file import write_camera
     from rgbd_gt.scan import scan_colors
-    from rgbd_gt.steps import made_from, open_photo
+    from rgbd_gt.steps import made_from, made_from_other, open_photo
 
     out = job.out
     made = made_from(prepared.source, prepared.sha1, {"camera": job.camera})

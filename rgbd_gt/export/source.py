@@ -121,20 +121,19 @@ def _changed(keys: dict, photo: str, files: dict[str, Path], sha1s: dict[Path, s
     replaced, is not exported with a pose solved for the old one; else None. sha1s: the files'
     SHA-1s read so far, shared by the photos."""
     from rgbd_gt.prepared import file_key
+    from rgbd_gt.steps import made_from_other
 
     for kind, path in files.items():
-        then = keys.get(f"{kind}_sha1")
-        if then is None:
-            continue
-        if path not in sha1s:
+        if keys.get(f"{kind}_sha1") is not None and path not in sha1s:
             try:
                 sha1s[path] = file_key(path)["sha1"]
             except OSError as exc:
                 raise InputError(f"cannot read ({exc.strerror or exc})", path) from None
-        if sha1s[path] != then:
-            return InputError(f"changed since photo {photo} was solved from it (the {kind} then had SHA-1 "
-                              f"{str(then)[:12]}): solve it again, or put that {kind} back", path)
-    return None
+    kind = made_from_other(keys, {f"{kind}_sha1": sha1s[path] for kind, path in files.items() if path in sha1s})
+    if kind is None:
+        return None
+    return InputError(f"changed since photo {photo} was solved from it (the {kind} then had SHA-1 "
+                      f"{str(keys[kind + '_sha1'])[:12]}): solve it again, or put that {kind} back", files[kind])
 
 
 def _bundle_source(folder: Path, bundle: Path, name: str = "bundle", errors: dict[str, str] | None = None,
