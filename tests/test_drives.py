@@ -72,6 +72,30 @@ def test_edge_term_gradient_is_autograds():
     np.testing.assert_allclose(closed, auto, rtol=1e-5, atol=1e-6 * np.abs(auto).max())  # autograd: float32 geometry
 
 
+def test_tiles_shares_add_up_to_the_gradient():
+    """Two KITTI frames as one rig at the reference on the finest level, ring edges and all: the
+    points' and ring edges' shares of the objective's gradient, summed per tile of each frame's
+    photo (`Nid.tile_scores`), add up to its closed-form gradient; the Hessian beside them is the
+    frames' quadratics' sum per radian and metre."""
+    from benchmarks.lidar import refine_inputs
+    from rgbd_gt.align.refine import make_aligner
+
+    scenes = _drive("kitti_00", [0, 10])
+    inputs = [refine_inputs(s, s.T_ref) for s in scenes]
+    obj = make_aligner(inputs[0], RefineConfig(objective="nid"), "cpu", inputs[1:]).objective
+    T_local = translated(scenes[0].T_ref, obj.centre)
+    obj.prepare(T_local)
+    terms = obj.evaluate(0, [T_local])
+    assert terms.parts.edge_points is not None
+    obj.covariance(0, T_local, None, terms)
+    g, H = terms.tiles
+    _, gradient = obj.value_and_gradient(0, [T_local], torch.zeros(1, 6, dtype=torch.float64), obj.batch([terms]))
+    assert 16 < len(g) <= 2 * 64
+    np.testing.assert_allclose(g.sum(0), gradient[0].numpy(), rtol=1e-9, atol=1e-9 * np.abs(g).max())
+    _, Hf, units = terms.quadratics
+    np.testing.assert_allclose(H, Hf.sum(0) / np.outer(units, units))
+
+
 def test_ring_edge_check_tells_the_reference_from_a_wrong_pose():
     """Over 4 KITTI frames at the reference the sweeps' depth edges land on the photos' edges
     well above chance; 1 deg off they do not."""
@@ -292,12 +316,14 @@ def test_joint_solve_of_kitti_frames_is_judged_by_its_frames_apart(tmp_path):
     loo = ev["frames"]["leave_one_out"]
     assert len(loo["left_out_px"]) == 4 and 0 < loo["worst_left_out_px"] < 3.0
     assert "each frame left out" in proc.stdout
-    # the pose file's covariance takes the frames as the samples: never narrower than the aligner's
-    assert ev["frames"]["uncertainty"]["translation_mm"] >= ev["uncertainty"]["translation_mm"]
-    assert ev["frames"]["uncertainty"]["rotation_deg"] >= ev["uncertainty"]["rotation_deg"]
+    # the pose file's covariance takes the frames as the samples, then the photos' tiles where
+    # they say more: never narrower than the aligner's or the frames'
+    for key in ("translation_mm", "rotation_deg"):
+        assert ev["tiles"]["uncertainty"][key] >= ev["frames"]["uncertainty"][key] >= ev["uncertainty"][key]
+    assert 16 < ev["tiles"]["count"] <= 4 * 64
     cov = np.array(meta["covariance"])
-    assert worst_sigmas(cov)["translation_mm"] == pytest.approx(ev["frames"]["uncertainty"]["translation_mm"])
-    assert "uncertainty, frames as samples" in proc.stdout
+    assert worst_sigmas(cov)["translation_mm"] == pytest.approx(ev["tiles"]["uncertainty"]["translation_mm"])
+    assert "uncertainty, frames as samples" in proc.stdout and "uncertainty, photo tiles as samples" in proc.stdout
 
 
 def test_one_sweep_alone_is_warned_about(tmp_path):

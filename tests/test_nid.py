@@ -18,7 +18,7 @@ from rgbd_gt.errors import InputError
 from rgbd_gt.io import load_scan, read_camera, read_pose, save_scan
 from rgbd_gt.io.image import read_image
 from rgbd_gt.scan import Scan, colors_to_gray
-from rgbd_gt.pose import apply_update, rotation_error_deg, so3_exp, translated, translation_error_m
+from rgbd_gt.pose import apply_update, rotation_error_deg, so3_exp, translated, translation_error_m, worst_sigmas
 from rgbd_gt.render.cells import cell_for_density
 from rgbd_gt.render.zbuffer import depth_edges, visible_points
 
@@ -341,6 +341,12 @@ def test_repeat_runs_are_refine_itself_and_the_covariance_is_a_minimum(intensity
     view = _View(al.visible_scan_points(result.T_cam_from_scan), without_distortion(camera))
     sigma = uncertainty(result.covariance, view.motion_metric(result.T_cam_from_scan))
     assert 0 < sigma["image_px"] < 1.0, sigma
+    # with the photo's tiles as the samples: wider (measured 4.7 times along the worst
+    # direction of the camera's position on this scene)
+    from rgbd_gt.align.covariance import wider
+
+    tiles = wider(cov, result.tiles[0])
+    assert result.tiles[1] > 32 and worst_sigmas(tiles)["translation_mm"] > 2 * worst_sigmas(cov)["translation_mm"]
 
 
 def test_nid_refines_an_intensity_only_scan_where_photometric_cannot(intensity_scene, tmp_path):
@@ -392,6 +398,9 @@ def test_real_sweep_converges_from_a_one_degree_init(tmp_path):
     # The Hessian from the objective's values over 1 px is positive definite here (its 1-sigma
     # image motion 0.25-0.5 px at right pjlab_3 results; docs/lidar-method.md).
     assert meta["evidence"]["uncertainty"]["image_px"] < 1.0, meta["evidence"]["uncertainty"]
+    # the pose file states the covariance with the photo's tiles as the samples, never narrower
+    tiles = meta["evidence"]["tiles"]
+    assert 16 < tiles["count"] <= 64 and tiles["uncertainty"]["translation_mm"] >= meta["evidence"]["uncertainty"]["translation_mm"]
     # it stands for the sharpness probe, whose 1e-5..1e-3 rises called every nid result flat
     assert "sharpness" not in meta["evidence"] and not any("flat" in r for r in meta["reasons"]), meta["reasons"]
 

@@ -61,9 +61,9 @@ class RefineResult:
     # a joint solve (nid, several frames): each frame's share of the objective as a quadratic at
     # the result, (g (F, 6), H (F, 6, 6), units (6,)) (`Nid.frame_quadratics`)
     frame_quadratics: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-    # a photo of a colored scan: the covariance (6, 6) of the update with the photo's tiles as the
-    # samples (`align.covariance.sandwich` of `Photometric.tile_scores`; a bundle's photo: of all its
-    # photos' tiles in its joint system), and how many tiles
+    # the covariance (6, 6) of the update with the photo's tiles as the samples
+    # (`align.covariance.sandwich` of the objective's `tile_scores`; a joint nid solve: of all its
+    # frames' tiles; a bundle's photo: of all its photos' tiles in its joint system), and how many tiles
     tiles: tuple[np.ndarray, int] | None = None
 
 

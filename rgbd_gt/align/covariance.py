@@ -8,6 +8,12 @@ from __future__ import annotations
 
 import numpy as np
 
+# a photo in this many x this many tiles, each a sample of the pose's covariance (`tile_scores` of
+# the objectives): residuals of neighbouring points are not independent (they share pixels, and the
+# scan's colors and the photo differ in patches); on ICL-NUIM and synthetic scenes 4 x 4 to 16 x 16
+# gave about the same widening (docs/trust.md, "The covariance a single photo states")
+TILES = 8
+
 
 def sandwich(g: np.ndarray, H: np.ndarray, units: np.ndarray | None = None) -> np.ndarray | None:
     """(P, P) H^-1 B H^-1, B = K / (K - 1) times the scatter of g: g (K, P) the K samples' shares

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from rgbd_gt.align.config import RefineConfig
+from rgbd_gt.align.covariance import TILES
 from rgbd_gt.align.edge_map import CHECK_MIN_STEP_M, EDGE_NEAR_M
 from rgbd_gt.align.nid import nid_of_windows, nid_with_gradient, parzen_windows
 from rgbd_gt.align.objective import lockstep
@@ -198,6 +199,18 @@ class _Evaluation:
                             device=self.nid.device)
 
 
+def _point_pulls(d_u: torch.Tensor, d_v: torch.Tensor, p: torch.Tensor, q: torch.Tensor,
+                 K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each point's share of d loss / d delta at delta's rotation 0: the torque q x d_p and the
+    force d_p (rows, n, 3) each, of points p = q + delta[3:] (rows, n, 3, camera frame), given d
+    loss / d (u, v) of their pinhole projections through K (rows, 4) (rows, n) each (0 for points
+    that do not count)."""
+    iz = 1.0 / p[..., 2].clamp_min(1e-9)
+    g_x, g_y = d_u * K[:, 0:1] * iz, d_v * K[:, 1:2] * iz
+    d_p = torch.stack([g_x, g_y, -(g_x * p[..., 0] + g_y * p[..., 1]) * iz], -1)
+    return torch.linalg.cross(q, d_p), d_p
+
+
 def _pose_gradient(d_u: torch.Tensor, d_v: torch.Tensor, p: torch.Tensor, q: torch.Tensor, K: torch.Tensor,
                    J: torch.Tensor) -> torch.Tensor:
     """(G, 6) d loss / d delta[g] of the points p = so3_exp(w[g]) q + delta[g, 3:] (G x F, n, 3,
@@ -205,12 +218,9 @@ def _pose_gradient(d_u: torch.Tensor, d_v: torch.Tensor, p: torch.Tensor, q: tor
     through K (G x F, 4) (G x F, n) each (0 for points that do not count) and J =
     so3_left_jacobian(w) (G, 3, 3) float64."""
     G = J.shape[0]
-    iz = 1.0 / p[..., 2].clamp_min(1e-9)
-    g_x, g_y = d_u * K[:, 0:1] * iz, d_v * K[:, 1:2] * iz
-    d_p = torch.stack([g_x, g_y, -(g_x * p[..., 0] + g_y * p[..., 1]) * iz], -1).reshape(G, -1, 3)
+    torque, d_p = (x.reshape(G, -1, 3).sum(1) for x in _point_pulls(d_u, d_v, p, q, K))
     # dp = (J dw) x q, so d loss / dw = J^T sum(q x d_p)
-    d_w = (J.transpose(1, 2) @ torch.linalg.cross(q.reshape(G, -1, 3), d_p).sum(1)[..., None])[..., 0]
-    return torch.cat([d_w, d_p.sum(1)], 1)
+    return torch.cat([(J.transpose(1, 2) @ torque[..., None])[..., 0], d_p], 1)
 
 
 def _channels(image: torch.Tensor, edges: bool) -> torch.Tensor:
@@ -272,6 +282,7 @@ class NidTerms:
     weights: torch.Tensor  # (F x C,) float64
     # the frames' shares as quadratics at this pose (`Nid.frame_quadratics`), once the covariance made them
     quadratics: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    tiles: tuple[np.ndarray, np.ndarray] | None = None  # the frames' tile scores (`Nid.tile_scores`), likewise
 
     @property
     def loss(self) -> np.ndarray:
@@ -439,14 +450,17 @@ class Nid:
 
     # -- NID at a pose ------------------------------------------------------------------------------
     def _evaluate(self, parts: _Parts, Ts: list[np.ndarray], delta: torch.Tensor,
-                  weights: torch.Tensor | None = None) -> _Evaluation:
+                  weights: torch.Tensor | None = None, shares: list | None = None) -> _Evaluation:
         """NID per frame and channel pair at apply_update(Ts[g], delta[g]) for each of G poses
         (delta (G, 6) float64; parts: G groups of F rows, `_joined`, or F rows for one pose), on
         the points that land on usable pixels. With weights (G x F x C,), also each pose's gradient
         of sum(weights * NID) with respect to its delta, in closed form (`nid_with_gradient` and
         the derivative of the bilinear interpolant, as strategy A); delta may also be
         differentiated by autograd (tests compare the two). All frames and poses at once: a rig's
-        19 frames, or the wide search's 17 starts, cost a few operations each, not 19 or 17."""
+        19 frames, or the wide search's 17 starts, cost a few operations each, not 19 or 17. With
+        weights and a list `shares`, one pose at delta 0: each point's share of the gradient is
+        appended to it, as (pixels (F, n, 2), shares (F, n, 6)), for the NID's points and the ring
+        edges (`tile_scores`)."""
         T = torch.as_tensor(np.stack(Ts)[:, :3], dtype=torch.float32, device=self.device)  # (G, 3, 4)
         R = so3_exp(delta[:, :3]).to(T.dtype)
         R1, t1 = R @ T[:, :, :3], (R @ T[:, :, 3:])[..., 0]
@@ -457,7 +471,7 @@ class Nid:
             J = so3_left_jacobian(delta[:, :3].double())
             gradient = torch.zeros(len(Ts), 6, dtype=torch.float64, device=self.device)
         if parts.edge_points is not None:
-            score, g = self._edge_score(parts, R1, t1, delta, J)
+            score, g = self._edge_score(parts, R1, t1, delta, J, shares)
             edges = self.cfg.edge_weight * score
             if g is not None:
                 gradient -= self.cfg.edge_weight * g
@@ -488,8 +502,10 @@ class Nid:
             nids.append(value)
             entropies.append(h_ab)
         if weights is not None:
-            gradient += _pose_gradient((d_sampled * s_u).sum(-1), (d_sampled * s_v).sum(-1), p.double(), q.double(),
-                                       parts.K.double(), J)
+            d_u, d_v, p, q = (d_sampled * s_u).sum(-1), (d_sampled * s_v).sum(-1), p.double(), q.double()
+            gradient += _pose_gradient(d_u, d_v, p, q, parts.K.double(), J)
+            if shares is not None:
+                shares.append((uv, torch.cat(_point_pulls(d_u, d_v, p, q, parts.K.double()), -1)))
         return _Evaluation(torch.stack(nids, 1).reshape(-1), [k for k in counts for _ in range(C)],
                            torch.stack(entropies, 1).reshape(-1).detach().tolist(), edges, gradient, len(Ts))
 
@@ -523,12 +539,13 @@ class Nid:
         return torch.cat(out).cpu().numpy()
 
     def _edge_score(self, parts: _Parts, R: torch.Tensor, t: torch.Tensor, delta: torch.Tensor,
-                    J: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | None]:
+                    J: torch.Tensor | None, shares: list | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
         """The ring-edge score of each frame (G x F,) at apply_update((R[g], t[g]), delta[g]) (R (G,
         3, 3), t (G, 3), delta (G, 6)): sum over its ring edges (those on the photo when the parts
         were made, `_edges_of`) of strength x the photo's edge map there, and per pose the gradient
         (G, 6) of their sum with respect to delta when asked by J = so3_left_jacobian(delta[:, :3])
-        (G, 3, 3) (else None). The edges are not Z-buffered: a step's nearer return is the
+        (G, 3, 3) (else None), each edge's share of the objective's gradient appended to `shares`
+        when given (`_evaluate`). The edges are not Z-buffered: a step's nearer return is the
         foreground, which the camera sees but for the parallax of the sensor's offset."""
         q, p = _moved(parts.edge_points, R, t, delta)
         uv, z = _project(p, parts.K)
@@ -540,8 +557,10 @@ class Nid:
         if J is None:
             return (strength * parts.edge_maps.sample(uv)[..., 0].double()).sum(1), None
         sampled, s_u, s_v = (x[..., 0].double() for x in parts.edge_maps.sample(uv, gradient=True))
-        gradient = _pose_gradient(strength * s_u * inside_u, strength * s_v * inside_v, p.double(), q.double(),
-                                  parts.K.double(), J)
+        d_u, d_v, p, q = strength * s_u * inside_u, strength * s_v * inside_v, p.double(), q.double()
+        gradient = _pose_gradient(d_u, d_v, p, q, parts.K.double(), J)
+        if shares is not None:  # the objective less the edges' score
+            shares.append((uv, -self.cfg.edge_weight * torch.cat(_point_pulls(d_u, d_v, p, q, parts.K.double()), -1)))
         return (strength * sampled).sum(1), gradient
 
     def units(self, level: int, T_local: np.ndarray, at: "NidTerms") -> torch.Tensor:
@@ -628,13 +647,42 @@ class Nid:
         g = (plus - minus).T / 2
         return g, H, units.cpu().numpy()
 
+    def tile_scores(self, level: int, T_local: np.ndarray, terms: "NidTerms",
+                    tiles: int = TILES) -> tuple[np.ndarray, np.ndarray]:
+        """The exact gradient of the objective at T_local (terms' points and weights) summed over
+        the points and ring edges in each of tiles x tiles tiles of each frame's photo, (K, 6) for
+        the K tiles with any, and the Hessian (6, 6) of terms.quadratics (`frame_quadratics`,
+        summed over the frames), both per radian and metre: the samples of the covariance with the
+        tiles as the samples (`align.covariance.sandwich`), as a photo of a colored scan's
+        (`Photometric.tile_scores`). NID is no sum over points, but its gradient is: each
+        point's share is its pull through the histogram's derivative."""
+        shares: list = []
+        with torch.no_grad():
+            self._evaluate(terms.parts, [T_local], torch.zeros(1, 6, dtype=torch.float64, device=self.device),
+                           terms.weights, shares)
+        size = terms.parts.images.size  # (F, 2) W, H
+        sums = torch.zeros(len(size) * tiles * tiles, 6, dtype=torch.float64, device=self.device)
+        counts = torch.zeros(len(sums), dtype=torch.long, device=self.device)
+        for uv, pull in shares:
+            col = (uv[..., 0] * (tiles / size[:, 0:1])).long().clamp(0, tiles - 1)
+            row = (uv[..., 1] * (tiles / size[:, 1:2])).long().clamp(0, tiles - 1)
+            frame = torch.arange(len(size), device=self.device)[:, None]
+            tile = ((frame * tiles + row) * tiles + col).reshape(-1)
+            pull = pull.reshape(-1, 6)
+            sums.index_add_(0, tile, pull)
+            counts += torch.bincount(tile[(pull != 0).any(1)], minlength=len(sums))
+        _, H, u = terms.quadratics
+        return sums[counts > 0].cpu().numpy(), H.sum(0) / np.outer(u, u)
+
     def covariance(self, level: int, T_local: np.ndarray, q, terms: "NidTerms") -> np.ndarray:
         """Laplace approximation: the inverse Hessian of the negative log-likelihood
         sum_f n_f H_f NID_f (`_Evaluation.weights`), summed over the frames' `frame_quadratics`;
         a lower bound, as neighbouring points share photo pixels. All inf where it is not
         positive definite: no minimum. The quadratics stay in terms.quadratics (the verdict's
-        frames judged against each other use them)."""
+        frames judged against each other use them), and the frames' tiles, the samples of a wider
+        one, in terms.tiles (`tile_scores`)."""
         terms.quadratics = self.frame_quadratics(level, T_local, terms)
+        terms.tiles = self.tile_scores(level, T_local, terms)
         _, H, u = terms.quadratics
         H = H.sum(0)
         if np.linalg.eigvalsh(H)[0] <= 0:

@@ -20,6 +20,7 @@ import torch
 
 from rgbd_gt.align.color_models import ColorModel, fit_many_with_inliers, unclipped
 from rgbd_gt.align.config import RefineConfig
+from rgbd_gt.align.covariance import TILES
 from rgbd_gt.align.pyramid import PhotoLevel
 from rgbd_gt.align.robust import student_t_loss, student_t_weights
 from rgbd_gt.align.sampling import bilinear, bilinear_sparse, bilinear_with_gradient, central_gradients
@@ -220,11 +221,6 @@ def _valid_at(valid: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
 
 
 POOL = 16  # x max_points: the most scan points an aligner keeps (drawn at random)
-# the photo in this many x this many tiles, each a sample of the pose's covariance (`tile_scores`):
-# residuals of neighbouring points are not independent (they share pixels, and the scan's colors
-# and the photo differ in patches); on ICL-NUIM and synthetic scenes 4 x 4 to 16 x 16 gave about
-# the same widening (docs/trust.md, "The covariance a single photo states")
-TILES = 8
 
 
 class Photometric:

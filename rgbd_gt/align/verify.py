@@ -38,8 +38,8 @@ class Verification:
     evidence: dict  # the numbers (docs/trust.md says what each means)
     seconds: float = 0.0
     # (6, 6) of the pose update, as `RefineResult.covariance`, that the pose file states: the
-    # aligner's, widened where the frames of a joint solve (`frames_covariance`) or the tiles of a
-    # photo (`RefineResult.tiles`) as the samples say more
+    # aligner's, widened where the frames of a joint solve (`frames_covariance`) and then the
+    # tiles of its photos (`RefineResult.tiles`) as the samples say more
     covariance: np.ndarray | None = None
 
 
@@ -435,8 +435,8 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
             ev["frames"]["uncertainty"] = uncertainty(framed, M)
     elif cfg.repeats > 0:
         ev["repeatability"] = timed("repeatability", repeatability, aligner, result, T_init, view, cfg, init_sigma, seed)
-    if result.tiles is not None:  # a photo's tiles as the samples (`RefineResult.tiles`)
-        tiles = wider(result.covariance, result.tiles[0])
+    if result.tiles is not None:  # the photos' tiles as the samples (`RefineResult.tiles`), where they say more than the above
+        tiles = wider(covariance, result.tiles[0])
         if tiles is not None:
             covariance = tiles
             ev["tiles"] = {"count": result.tiles[1], "uncertainty": uncertainty(tiles, M)}

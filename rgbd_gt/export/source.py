@@ -231,10 +231,10 @@ def _shot(name: str, image: Path, camera: Camera, camera_name: str, pose_file: P
 
 def stated_uncertainty(evidence: dict) -> dict:
     """The worst-direction 1-sigmas (`align.verify.uncertainty`) of the covariance a pose file
-    states: with the frames as the samples for a joint solve (`frames.uncertainty`), with the
-    photo's tiles as the samples for a single photo (`tiles.uncertainty`), else the aligner's
-    (`uncertainty`); {} when there are none."""
-    return ((evidence.get("frames") or {}).get("uncertainty") or (evidence.get("tiles") or {}).get("uncertainty")
+    states: with the photos' tiles as the samples (`tiles.uncertainty`, for a joint solve the
+    wider of its frames' and its tiles'), else with the frames as the samples (`frames.uncertainty`,
+    pose files of earlier releases), else the aligner's (`uncertainty`); {} when there are none."""
+    return ((evidence.get("tiles") or {}).get("uncertainty") or (evidence.get("frames") or {}).get("uncertainty")
             or evidence.get("uncertainty") or {})
 
 
