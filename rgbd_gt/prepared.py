@@ -161,19 +161,23 @@ def cache_folder(root: Path, scan_path: Path, key: dict) -> Path:
 
 
 def prepare_scan(scan_path: Path, root: Path | None = None,
-                 progress: Callable[[str], None] = lambda msg: None) -> PreparedScan:
+                 progress: Callable[[str], None] = lambda msg: None, key: dict | None = None) -> PreparedScan:
     """The prepared scan of `scan_path`: the one way every command and `run` reach a scan. With a
     cache folder `root`, from the cache there when its key matches, else built there (and the
     folders of earlier versions of this file removed); without, built in memory for this process
-    (the same arrays, so a command sees what it would see through the cache)."""
+    (the same arrays, so a command sees what it would see through the cache). key: the file's
+    `file_key` where the caller has just taken it (export, checking the scan against its solve),
+    so that a large scan is not read through twice (taken again if the file's size or time differ)."""
     from rgbd_gt.io.scan import load_scan
 
     scan_path = require_file(scan_path)
     if root is None:
         progress("reading the scan")
         return prepared_in_memory(load_scan(scan_path, require_points=True), scan_path, progress)
-    progress("hashing the scan file")
-    key = file_key(scan_path)
+    st = scan_path.stat()
+    if key is None or (key["size"], key["mtime_ns"]) != (st.st_size, st.st_mtime_ns):  # not one taken of this file as it is
+        progress("hashing the scan file")
+        key = file_key(scan_path)
     folder = cache_folder(root, scan_path, key)
     meta = _current_meta(folder, key)
     if meta is not None:

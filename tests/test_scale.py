@@ -144,6 +144,27 @@ def test_a_changed_scan_file_is_prepared_again(scenes, tmp_path):
     np.testing.assert_allclose(np.sort(second.subset(slice(None)).xyz[:, 0]), np.sort(scan.xyz[:, 0]), atol=2e-6)
 
 
+def test_a_key_taken_of_the_file_as_it_is_spares_hashing_it_again(scenes, tmp_path):
+    """export checks a scan against its solve by its SHA-1 (`file_key`) and hands that key to
+    prepare_scan, which then reads the file only to prepare it; a key of the file before it was
+    rewritten (another size or time) is not trusted: the file is hashed and prepared anew."""
+    from rgbd_gt.prepared import file_key
+
+    path = tmp_path / "scan.ply"
+    shutil.copy(scenes / "s5" / "scan.ply", path)
+    cache, said = tmp_path / "cache", []
+    key = file_key(path)
+    first = prepare_scan(path, cache, said.append, key=key)
+    assert "hashing the scan file" not in said and first.sha1 == key["sha1"]
+    scan = load_scan(path)
+    scan.xyz = scan.xyz + [0.01, 0, 0]
+    save_scan(path, scan)
+    said.clear()
+    second = prepare_scan(path, cache, said.append, key=key)  # the key of the file before
+    assert "hashing the scan file" in said and second.sha1 == file_key(path)["sha1"] != key["sha1"]
+    np.testing.assert_allclose(np.sort(second.subset(slice(None)).xyz[:, 0]), np.sort(scan.xyz[:, 0]), atol=2e-6)
+
+
 def test_a_damaged_cache_is_prepared_again(scenes, tmp_path):
     """A cache file cut short, emptied or overwritten (a full disk, a copy stopped halfway) is not
     read as the scan: prepare_scan makes the cache again; a caller that opens it without checking

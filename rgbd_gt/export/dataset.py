@@ -168,7 +168,7 @@ def export_run(run: Path, out: Path, formats: list[str], include: tuple[str, ...
             if not chosen:
                 continue
             t0 = time.perf_counter()
-            prepared = prepare_scan(source.scan, cache)
+            prepared = prepare_scan(source.scan, cache, key=source.scan_key)
             result.prepare_seconds += time.perf_counter() - t0
             result.photos |= {prefix + s.name: {"verdict": s.verdict, "camera": s.camera_name} for s in chosen}
             if {"plain", "nerfstudio"} & set(formats):

@@ -43,6 +43,7 @@ class Source:
     photos: list[Shot]
     rig: dict | None = None  # rig.yaml: reference, relative {camera: {T_cam_from_reference, baseline_m, sigma}}
     missing: dict[str, str] = field(default_factory=dict)  # photos without a refined pose: why (summary.csv's error)
+    scan_key: dict | None = None  # the scan file's `prepared.file_key`, where checking it took one
 
 
 def read_run(folder: Path, stale_missing: bool = False) -> list[Source]:
@@ -78,13 +79,14 @@ def _run_sources(folder: Path, record: dict, stale_missing: bool) -> list[Source
     from rgbd_gt.io import read_camera
     from rgbd_gt.io.image import read_image
 
-    sources, errors, sha1s = [], _errors(folder / "summary.csv"), {}
+    sources, errors, file_keys = [], _errors(folder / "summary.csv"), {}
     for entry in record["scans"]:
         if "photos" not in entry:
             raise InputError("run.json lists no photos (made by an older rgbd-gt): run it again", folder / "run.json")
         out = folder / entry.get("folder", ".")
         if "bundle" in entry:  # its photos solved together (run's `bundle:`), with their cameras as solved
-            sources.append(_bundle_source(out, Path(entry["bundle"]), entry.get("name", "bundle"), errors, stale_missing))
+            sources.append(_bundle_source(out, Path(entry["bundle"]), entry.get("name", "bundle"), errors, stale_missing,
+                                          file_keys))
             continue
         camera_file = Path(entry["camera"])
         shared, sigma = out / "camera.yaml", {}
@@ -101,7 +103,7 @@ def _run_sources(folder: Path, record: dict, stale_missing: bool) -> list[Source
             keys = read_yaml(made) if pose.is_file() and made.is_file() else {}
             if not isinstance(keys, dict):
                 raise InputError("not a pose file rgbd-gt wrote (no keys)", made)
-            stale = _changed(keys, image.stem, {"photo": image, "camera": Path(entry["camera"]), "scan": Path(entry["scan"])}, sha1s)
+            stale = _changed(keys, image.stem, {"photo": image, "camera": Path(entry["camera"]), "scan": Path(entry["scan"])}, file_keys)
             if stale is not None and not stale_missing:
                 raise stale
             if pose.is_file() and stale is None:
@@ -110,26 +112,27 @@ def _run_sources(folder: Path, record: dict, stale_missing: bool) -> list[Source
                 photos.append(_shot(image.stem, image, camera, "camera", pose, sigma))
             else:
                 missing[image.stem] = errors.get(image.name) or entry.get("error") or str(stale or "no refined pose")
-        sources.append(Source(entry.get("name", "scan"), Path(entry["scan"]), out, photos, missing=missing))
+        sources.append(Source(entry.get("name", "scan"), Path(entry["scan"]), out, photos, missing=missing,
+                              scan_key=file_keys.get(Path(entry["scan"]))))
     return sources
 
 
-def _changed(keys: dict, photo: str, files: dict[str, Path], sha1s: dict[Path, str]) -> InputError | None:
+def _changed(keys: dict, photo: str, files: dict[str, Path], file_keys: dict[Path, dict]) -> InputError | None:
     """The error when one of `files` ({kind: path}) is not the file that photo's pose was solved
     from: the SHA-1 recorded beside it (keys' KIND_sha1: `steps.made_from` in a run photo's
     init.yaml, bundle.json's) differs, so that a camera file calibrated again, a photo or a scan
-    replaced, is not exported with a pose solved for the old one; else None. sha1s: the files'
-    SHA-1s read so far, shared by the photos."""
+    replaced, is not exported with a pose solved for the old one; else None. file_keys: the
+    files' `file_key`s taken so far, shared by the photos (and the scan's by its preparation)."""
     from rgbd_gt.prepared import file_key
     from rgbd_gt.steps import made_from_other
 
     for kind, path in files.items():
-        if keys.get(f"{kind}_sha1") is not None and path not in sha1s:
+        if keys.get(f"{kind}_sha1") is not None and path not in file_keys:
             try:
-                sha1s[path] = file_key(path)["sha1"]
+                file_keys[path] = file_key(path)
             except OSError as exc:
                 raise InputError(f"cannot read ({exc.strerror or exc})", path) from None
-    kind = made_from_other(keys, {f"{kind}_sha1": sha1s[path] for kind, path in files.items() if path in sha1s})
+    kind = made_from_other(keys, {f"{kind}_sha1": file_keys[path]["sha1"] for kind, path in files.items() if path in file_keys})
     if kind is None:
         return None
     return InputError(f"changed since photo {photo} was solved from it (the {kind} then had SHA-1 "
@@ -137,7 +140,7 @@ def _changed(keys: dict, photo: str, files: dict[str, Path], sha1s: dict[Path, s
 
 
 def _bundle_source(folder: Path, bundle: Path, name: str = "bundle", errors: dict[str, str] | None = None,
-                   stale_missing: bool = False) -> Source:
+                   stale_missing: bool = False, file_keys: dict[Path, dict] | None = None) -> Source:
     """The photos of the bundle file `bundle` solved into `folder` (`steps.write_bundled`); a
     photo without a pose file is missing, with its error in `errors` (summary.csv's) when given."""
     from rgbd_gt.io import read_camera
@@ -151,12 +154,12 @@ def _bundle_source(folder: Path, bundle: Path, name: str = "bundle", errors: dic
     if solved is not None and solved != file_key(bundle)["sha1"]:  # its photos, cameras or shots may be others now
         raise InputError(f"changed since the photos in {folder} were solved from it (bundle.json holds another "
                          "SHA-1): solve them again", bundle)
-    photos, missing, sha1s = [], {}, {}
+    photos, missing, file_keys = [], {}, {} if file_keys is None else file_keys
     by_pose = {p.get("pose"): p for p in record.get("photos") or [] if isinstance(p, dict)}
     for entry in spec.photos:
         pose = folder / entry.image.stem / "pose.yaml"
         keys = {"scan_sha1": record.get("scan_sha1"), **by_pose.get(f"{entry.image.stem}/pose.yaml", {})}
-        stale = _changed(keys, entry.image.stem, {"photo": entry.image, "scan": spec.scan}, sha1s)
+        stale = _changed(keys, entry.image.stem, {"photo": entry.image, "scan": spec.scan}, file_keys)
         if stale is not None and not stale_missing:
             raise stale
         if stale is not None or (errors is not None and not pose.is_file()):
@@ -171,7 +174,7 @@ def _bundle_source(folder: Path, bundle: Path, name: str = "bundle", errors: dic
     if rig is not None and rig["cameras"] != spec.rig:
         raise InputError(f"is a rig of {', '.join(rig['cameras'])}, not the bundle's {', '.join(spec.rig)}: "
                          "written by another solve", folder / "rig.yaml")
-    return Source(name, spec.scan, folder, photos, rig, missing)
+    return Source(name, spec.scan, folder, photos, rig, missing, file_keys.get(spec.scan))
 
 
 def _camera_sigma(path: Path) -> dict[str, float]:
