@@ -154,7 +154,8 @@ def _bundle_source(folder: Path, bundle: Path, name: str = "bundle", errors: dic
     if solved is not None and solved != file_key(bundle)["sha1"]:  # its photos, cameras or shots may be others now
         raise InputError(f"changed since the photos in {folder} were solved from it (bundle.json holds another "
                          "SHA-1): solve them again", bundle)
-    photos, missing, file_keys = [], {}, {} if file_keys is None else file_keys
+    photos, missing = [], {}
+    file_keys = {} if file_keys is None else file_keys
     by_pose = {p.get("pose"): p for p in record.get("photos") or [] if isinstance(p, dict)}
     for entry in spec.photos:
         pose = folder / entry.image.stem / "pose.yaml"
