@@ -963,7 +963,9 @@ def run_workflow(
     from rgbd_gt.export.report import write_report
     from rgbd_gt.export.source import read_run
 
-    write_report(out_dir / "report.html", read_run(out_dir, stale_missing=True))  # a photo refused by this run among them
+    # a photo refused by this run among them; the scans' SHA-1s as this run prepared them, not read again
+    write_report(out_dir / "report.html", read_run(out_dir, stale_missing=True,
+                                                   known={p.job.scan: p.scan_key for p in prepared if p.scan_key}))
     table = Table(title=f"rgbd-gt run: {len(results)} photo(s) in {seconds:.0f} s")
     wide = out.width >= 110  # on a narrow terminal or in a log (80 columns) the Canny and roll columns go (summary.csv has them)
 

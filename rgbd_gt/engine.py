@@ -44,6 +44,7 @@ class Prepared:
     cached: bool = False
     points: int = 0
     steps: dict[str, float] = field(default_factory=dict)
+    scan_key: dict | None = None  # the scan file's `file_key` as prepared
 
 
 def prepare_job(job: ScanJob, cache_root: Path, progress: Callable[[str], None] = lambda m: None) -> Prepared:
@@ -63,7 +64,7 @@ def prepare_job(job: ScanJob, cache_root: Path, progress: Callable[[str], None] 
             out.unreadable = True
             raise
         out.cached = prepared.folder.name in before
-        out.folder, out.points = prepared.folder, len(prepared)
+        out.folder, out.points, out.scan_key = prepared.folder, len(prepared), prepared.key
         out.steps["scan"] = round(time.perf_counter() - start, 3)
         # a bundle's photos have their inits in the bundle file
         if job.init is None and job.bundle is None and any(not (job.out / p.stem / "init.yaml").exists() for p in job.photos):

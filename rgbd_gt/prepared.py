@@ -45,6 +45,15 @@ def file_key(path: Path) -> dict:
     return {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "sha1": digest}
 
 
+def still_of(path: Path, key: dict | None) -> bool:
+    """Whether `key` (a `file_key` taken earlier, or None) was taken of the file as it is now: the
+    same size and modification time, so that its SHA-1 stands without reading the file again."""
+    if key is None:
+        return False
+    st = path.stat()
+    return (key.get("size"), key.get("mtime_ns")) == (st.st_size, st.st_mtime_ns)
+
+
 @dataclass
 class PreparedScan:
     """A block-ordered scan: arrays (memory-mapped .npy of the cache `folder`, or in memory when
@@ -59,7 +68,12 @@ class PreparedScan:
     arrays: dict[str, np.ndarray]
     blocks: Blocks
     angular_step: float | None  # radians between neighbouring points seen from the scanner (`scan_step`)
-    sha1: str = ""  # of the scan file it was prepared from
+    key: dict | None = None  # the `file_key` of the scan file it was prepared from (None: in memory)
+
+    @property
+    def sha1(self) -> str:
+        """The SHA-1 of the scan file it was prepared from ("" in memory)."""
+        return self.key["sha1"] if self.key else ""
 
     def __len__(self) -> int:
         return len(self.arrays["xyz"])
@@ -174,8 +188,7 @@ def prepare_scan(scan_path: Path, root: Path | None = None,
     if root is None:
         progress("reading the scan")
         return prepared_in_memory(load_scan(scan_path, require_points=True), scan_path, progress)
-    st = scan_path.stat()
-    if key is None or (key["size"], key["mtime_ns"]) != (st.st_size, st.st_mtime_ns):  # not one taken of this file as it is
+    if not still_of(scan_path, key):
         progress("hashing the scan file")
         key = file_key(scan_path)
     folder = cache_folder(root, scan_path, key)
@@ -288,7 +301,7 @@ def _open(folder: Path, scan_path: Path, meta: dict) -> PreparedScan:
     if short:
         raise ValueError(f"{', '.join(short)}: not as many entries as meta.json says")
     return PreparedScan(folder, scan_path, np.array(meta["centre"]), np.array(meta["origins"]).reshape(-1, 3), arrays,
-                        blocks, meta.get("angular_step"), meta["key"]["sha1"])
+                        blocks, meta.get("angular_step"), meta["key"])
 
 
 @dataclass

@@ -6,6 +6,7 @@ import hashlib
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -192,6 +193,18 @@ def test_run_refines_one_camera_for_all_photos(tmp_path, synth_scene):
         assert (tmp_path / "out" / photo / "depth.exr").exists()
     made = __import__("json").loads((tmp_path / "out" / "intrinsics.json").read_text())["made_from"]
     assert made["camera_sha1"] == hashlib.sha1((scene / "camera_off.yaml").read_bytes()).hexdigest()
+    # the run's page reads the run with the scans' keys as the run prepared them (`read_run(known=)`):
+    # a key still of the file as it is stands for its SHA-1, read no more; one of another time does not
+    from rgbd_gt.errors import InputError
+    from rgbd_gt.export.source import read_run
+    from rgbd_gt.prepared import file_key
+
+    scan = Path(__import__("json").loads((tmp_path / "out" / "run.json").read_text())["scans"][0]["scan"])
+    key = file_key(scan)
+    assert read_run(tmp_path / "out", known={scan: key})[0].scan_key is key
+    with pytest.raises(InputError, match="changed since photo"):
+        read_run(tmp_path / "out", known={scan: {**key, "sha1": "0" * 40}})
+    assert read_run(tmp_path / "out", known={scan: {**key, "sha1": "0" * 40, "mtime_ns": 1}})[0].scan_key == key
     # the camera calibrated again: the shared camera is not reused but refined again, from photos
     # whose folders were made with the old one, which say so (remove them to redo them)
     (scene / "camera_off.yaml").write_text((scene / "camera_off.yaml").read_text() + "# calibrated again\n")

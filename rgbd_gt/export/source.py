@@ -46,15 +46,20 @@ class Source:
     scan_key: dict | None = None  # the scan file's `prepared.file_key`, where checking it took one
 
 
-def read_run(folder: Path, stale_missing: bool = False) -> list[Source]:
+def read_run(folder: Path, stale_missing: bool = False, known: dict[Path, dict] | None = None) -> list[Source]:
     """The scans of a finished `run` (OUTPUT/run.json) or `refine --bundle` output
     (bundle.json) in `folder`, every photo that has a refined pose. A photo whose scan, photo or
     camera file changed since its pose was solved (`_changed`) is an error, or with stale_missing
-    (the run's own page, after a rerun that refused that photo) missing, with why."""
+    (the run's own page, after a rerun that refused that photo) missing, with why. known: files'
+    `file_key`s the caller took (the run, of its scans), used where still of the file as it is."""
+    from rgbd_gt.prepared import still_of
+
     folder = Path(folder)
+    file_keys = {Path(p): k for p, k in (known or {}).items() if still_of(Path(p), k)}
     if (folder / "bundle.json").is_file() and not (folder / "run.json").is_file():
         try:
-            return [_bundle_source(folder, Path(_json(folder / "bundle.json")["bundle"]), stale_missing=stale_missing)]
+            return [_bundle_source(folder, Path(_json(folder / "bundle.json")["bundle"]), stale_missing=stale_missing,
+                                   file_keys=file_keys)]
         except (KeyError, TypeError, AttributeError) as exc:
             raise InputError(f"not a bundle record rgbd-gt wrote ({_why(exc)})", folder / "bundle.json") from None
     if not (folder / "run.json").is_file():
@@ -66,7 +71,7 @@ def read_run(folder: Path, stale_missing: bool = False) -> list[Source]:
         raise InputError("holds both run.json (rgbd-gt run) and bundle.json (rgbd-gt refine --bundle): two runs "
                          "wrote into one folder; give each its own", folder)
     try:
-        return _run_sources(folder, record, stale_missing)
+        return _run_sources(folder, record, stale_missing, file_keys)
     except (KeyError, TypeError, AttributeError) as exc:
         raise InputError(f"not a run record rgbd-gt wrote ({_why(exc)})", folder / "run.json") from None
 
@@ -75,11 +80,11 @@ def _why(exc: Exception) -> str:
     return f"no {exc}" if isinstance(exc, KeyError) else str(exc)
 
 
-def _run_sources(folder: Path, record: dict, stale_missing: bool) -> list[Source]:
+def _run_sources(folder: Path, record: dict, stale_missing: bool, file_keys: dict[Path, dict]) -> list[Source]:
     from rgbd_gt.io import read_camera
     from rgbd_gt.io.image import read_image
 
-    sources, errors, file_keys = [], _errors(folder / "summary.csv"), {}
+    sources, errors = [], _errors(folder / "summary.csv")
     for entry in record["scans"]:
         if "photos" not in entry:
             raise InputError("run.json lists no photos (made by an older rgbd-gt): run it again", folder / "run.json")
