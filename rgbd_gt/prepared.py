@@ -48,10 +48,11 @@ def file_key(path: Path) -> dict:
 def still_of(path: Path, key: dict | None) -> bool:
     """Whether `key` (a `file_key` taken earlier, or None) was taken of the file as it is now: the
     same size and modification time, so that its SHA-1 stands without reading the file again."""
-    if key is None:
+    try:
+        st = path.stat()
+    except OSError:  # gone or unreadable: whoever reads it next says so
         return False
-    st = path.stat()
-    return (key.get("size"), key.get("mtime_ns")) == (st.st_size, st.st_mtime_ns)
+    return key is not None and (key.get("size"), key.get("mtime_ns")) == (st.st_size, st.st_mtime_ns)
 
 
 @dataclass
