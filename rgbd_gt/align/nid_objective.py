@@ -663,10 +663,10 @@ class Nid:
         size = terms.parts.images.size  # (F, 2) W, H
         sums = torch.zeros(len(size) * tiles * tiles, 6, dtype=torch.float64, device=self.device)
         counts = torch.zeros(len(sums), dtype=torch.long, device=self.device)
+        frame = torch.arange(len(size), device=self.device)[:, None]
         for uv, pull in shares:
             col = (uv[..., 0] * (tiles / size[:, 0:1])).long().clamp(0, tiles - 1)
             row = (uv[..., 1] * (tiles / size[:, 1:2])).long().clamp(0, tiles - 1)
-            frame = torch.arange(len(size), device=self.device)[:, None]
             tile = ((frame * tiles + row) * tiles + col).reshape(-1)
             pull = pull.reshape(-1, 6)
             sums.index_add_(0, tile, pull)
