@@ -9,7 +9,7 @@ import torch
 
 from conftest import DATA
 from rgbd_gt.align.config import RefineConfig
-from rgbd_gt.pose import apply_update, translated, worst_sigmas
+from rgbd_gt.pose import apply_update, rotation_error_deg, translated, worst_sigmas
 from rgbd_gt.render.rings import ring_steps
 
 DRIVES = DATA / "lidar_camera"
@@ -278,6 +278,32 @@ def test_frames_covariance_is_the_sandwich_where_wider_than_the_aligners():
     assert frames_covariance(result(g[:1])) is None
 
 
+def test_groups_apart_widen_the_frames_covariance_where_they_disagree():
+    """K groups of frames refined apart are each an estimate from 1/K of the frames: their ends'
+    sample covariance over K is the whole's. Two groups ending at +-e from the result state e e^T;
+    a group that lost the scan (no update) is no sample; the frames' covariance is widened along
+    e only, to at least e e^T."""
+    from rgbd_gt.align.aligner import RefineResult
+    from rgbd_gt.align.verify import frames_covariance, groups_covariance
+
+    e = np.array([1e-4, -2e-4, 5e-4, 2e-3, -1e-3, 9e-3])
+    np.testing.assert_allclose(groups_covariance([{"update": list(e)}, {"update": list(-e)}]), np.outer(e, e), rtol=1e-12)
+    ends = np.random.default_rng(2).normal(size=(4, 6))
+    np.testing.assert_allclose(groups_covariance([{"update": list(u)} for u in ends]), np.cov(ends.T) / 4, rtol=1e-12)
+    assert groups_covariance([{"update": list(e)}, {"px": float("inf")}]) is None
+    F, units = 4, np.full(6, 1e-3)
+    H = np.stack([np.eye(6) * 1e4] * F)
+    laplace = np.linalg.inv(H.sum(0)) * 1e-6
+    result = RefineResult(np.eye(4), np.zeros((1, 1)), 0, 0.0, 1.0, 1000, 0.0, covariance=laplace, objective="nid",
+                          frame_quadratics=(np.zeros((F, 6)), H, units))
+    groups = [{"update": list(e)}, {"update": list(-e)}]
+    wide = frames_covariance(result, groups)
+    assert e @ np.linalg.solve(wide, e) == pytest.approx(1.0, rel=1e-6)  # e e^T is now inside it, just
+    across = np.linalg.svd(e[None])[2][1:]  # the directions the groups agree in keep the frames' covariance
+    np.testing.assert_allclose(across @ wide @ across.T, across @ laplace @ across.T, rtol=1e-6, atol=1e-20)
+    np.testing.assert_allclose(frames_covariance(result), laplace, rtol=1e-9)
+
+
 def test_joint_solve_of_kitti_frames_is_judged_by_its_frames_apart(tmp_path):
     """`refine --pairs` over 4 KITTI frames (3 levels, no wide search, to keep it short) from
     0.3 deg and 5 cm off: the verdict refines the frames in 2 groups apart from the result instead
@@ -309,6 +335,9 @@ def test_joint_solve_of_kitti_frames_is_judged_by_its_frames_apart(tmp_path):
     assert [lv["level"] for lv in ev["convergence"]["levels"]] == [2, 1, 0, 1, 0]
     assert [g["frames"] for g in ev["frames"]["groups"]] == [[0, 2], [1, 3]]
     assert all(np.isfinite(g["px"]) for g in ev["frames"]["groups"])
+    for g in ev["frames"]["groups"]:  # where each group ended, as an update of the result
+        end = apply_update(read_pose(out)[0], np.array(g["update"]))
+        assert rotation_error_deg(end, read_pose(out)[0]) == pytest.approx(g["deg"], rel=1e-3, abs=1e-6)
     assert ev["ring_edges"]["ring_edges"] > 2000 and ev["ring_edges"]["ratio"] > 1.0
     assert len(ev["ring_edges"]["frames"]) == 4 and sum(f["ring_edges"] for f in ev["ring_edges"]["frames"]) == ev["ring_edges"]["ring_edges"]
     assert set(ev["seconds"]) >= {"frames", "ring_edges", "leave_one_frame_out"}
@@ -323,6 +352,9 @@ def test_joint_solve_of_kitti_frames_is_judged_by_its_frames_apart(tmp_path):
     assert 16 < ev["tiles"]["count"] <= 4 * 64
     cov = np.array(meta["covariance"])
     assert worst_sigmas(cov)["translation_mm"] == pytest.approx(ev["tiles"]["uncertainty"]["translation_mm"])
+    # ... nor narrower than the groups apart disagree: half their difference lies within 1 sigma
+    half = (np.array(ev["frames"]["groups"][0]["update"]) - np.array(ev["frames"]["groups"][1]["update"])) / 2
+    assert half @ np.linalg.solve(cov, half) <= 1 + 1e-6
     assert "uncertainty, frames as samples" in proc.stdout and "uncertainty, photo tiles as samples" in proc.stdout
 
 

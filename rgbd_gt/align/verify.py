@@ -25,7 +25,8 @@ from rgbd_gt.align.aligner import Aligner, RefineResult
 from rgbd_gt.align.config import VerifyConfig
 from rgbd_gt.align.covariance import sandwich, wider
 from rgbd_gt.camera import Camera, backproject, project, without_distortion
-from rgbd_gt.pose import apply_update, random_starts, rotation_error_deg, transform_points, translation_error_m, worst_sigmas
+from rgbd_gt.pose import (apply_update, random_starts, rotation_error_deg, transform_points, translation_error_m, update_of,
+                          worst_sigmas)
 from rgbd_gt.camera import Q_SIZE
 
 VERDICTS = ("ok", "suspect", "failed")
@@ -152,7 +153,8 @@ def frame_folds(aligner: Aligner, result: RefineResult, view: _View, cfg: Verify
     frames) dealt into cfg.folds groups (frame k into group k mod folds), each refined apart from
     the result, from pyramid level cfg.fold_coarsest down to cfg.fold_finest; each group's distance
     from the result, in pixels of the visible points and of a grid over the whole photo, mm and
-    deg, and the largest. Where the frames agree, each group's own minimum lies at the result;
+    deg, and the largest, and where it ended as an update of the result (`update`: rotation
+    vector (rad), translation (m); `T_end = apply_update(T, update)`; `groups_covariance`). Where the frames agree, each group's own minimum lies at the result;
     where some frames' structure made it by chance, the others slide away. (Solved from the init
     instead, half a drive's frames often miss the basin all of them find: KITTI's from 3 deg.)"""
     from rgbd_gt.errors import InputError
@@ -173,21 +175,38 @@ def frame_folds(aligner: Aligner, result: RefineResult, view: _View, cfg: Verify
             groups.append({"frames": keep, "px": float("inf"), "photo_px": float("inf"), "mm": float("inf"), "deg": float("inf")})
             continue
         groups.append({"frames": keep, "px": view.motion_px(end, T), "photo_px": photo.motion_px(end, T),
-                       "mm": translation_error_m(end, T) * 1e3, "deg": rotation_error_deg(end, T)})
+                       "mm": translation_error_m(end, T) * 1e3, "deg": rotation_error_deg(end, T),
+                       "update": update_of(end @ np.linalg.inv(T)).tolist()})
     worst = {key: max(g[key] for g in groups) for key in ("px", "photo_px", "mm", "deg")}
     return {"folds": cfg.folds, "spread_px": worst["px"], "spread_photo_px": worst["photo_px"],
             "spread_mm": worst["mm"], "spread_deg": worst["deg"], "groups": groups}
 
 
-def frames_covariance(result: RefineResult) -> np.ndarray | None:
+def groups_covariance(groups: list[dict]) -> np.ndarray | None:
+    """(6, 6) the covariance that the groups of frames refined apart (`frame_folds`) show: each of
+    K groups is an estimate of the pose from 1/K of the frames, so their updates' sample
+    covariance is about K times the whole's. It sees what the frames' quadratics cannot: where
+    a group's own minimum lies beyond their reach (KITTI's two halves 1-2 cm apart along the
+    optical axis, docs/lidar-method.md). Rank K - 1 at most: it widens only the directions the
+    groups disagree in. None for fewer than 2 groups that ended."""
+    ends = np.array([g["update"] for g in groups if g.get("update") is not None])
+    if len(ends) < 2:
+        return None
+    return np.cov(ends, rowvar=False) / len(ends)
+
+
+def frames_covariance(result: RefineResult, groups: list[dict] | None = None) -> np.ndarray | None:
     """A joint solve's covariance with its frames as the independent samples: the sandwich of the
     frames' shares (`RefineResult.frame_quadratics`), wherever it is wider than the aligner's
     (`align.covariance`): on KITTI's and Waymo's drives 3-13 times wider in the worst direction
-    (docs/lidar-method.md). None for a single frame."""
+    (docs/lidar-method.md); then wider still where the groups refined apart disagree more
+    (`groups_covariance` of `frame_folds`' groups). None for a single frame."""
     if result.frame_quadratics is None:
         return None
     g, H, units = result.frame_quadratics
-    return wider(result.covariance, sandwich(g, H.sum(0), units))
+    framed = wider(result.covariance, sandwich(g, H.sum(0), units))
+    apart = None if groups is None else groups_covariance(groups)
+    return framed if apart is None else wider(framed, apart)
 
 
 def leave_one_out_steps(g: np.ndarray, H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -429,7 +448,7 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
         loo = timed("leave_one_frame_out", leave_one_frame_out, result, view)
         if loo is not None:
             ev["frames"]["leave_one_out"] = loo
-        framed = frames_covariance(result)
+        framed = frames_covariance(result, ev["frames"]["groups"])
         if framed is not None:
             covariance = framed
             ev["frames"]["uncertainty"] = uncertainty(framed, M)
