@@ -154,9 +154,10 @@ def frame_folds(aligner: Aligner, result: RefineResult, view: _View, cfg: Verify
     the result, from pyramid level cfg.fold_coarsest down to cfg.fold_finest; each group's distance
     from the result, in pixels of the visible points and of a grid over the whole photo, mm and
     deg, and the largest, and where it ended as an update of the result (`update`: rotation
-    vector (rad), translation (m); `T_end = apply_update(T, update)`; `groups_covariance`). Where the frames agree, each group's own minimum lies at the result;
-    where some frames' structure made it by chance, the others slide away. (Solved from the init
-    instead, half a drive's frames often miss the basin all of them find: KITTI's from 3 deg.)"""
+    vector (rad), translation (m); `T_end = apply_update(T, update)`; `groups_covariance`).
+    Where the frames agree, each group's own minimum lies at the result; where some frames'
+    structure made it by chance, the others slide away. (Solved from the init instead, half a
+    drive's frames often miss the basin all of them find: KITTI's from 3 deg.)"""
     from rgbd_gt.errors import InputError
 
     obj = aligner.objective
