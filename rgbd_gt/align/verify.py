@@ -25,8 +25,8 @@ from rgbd_gt.align.aligner import Aligner, RefineResult
 from rgbd_gt.align.config import VerifyConfig
 from rgbd_gt.align.covariance import sandwich, wider
 from rgbd_gt.camera import Camera, backproject, project, without_distortion
-from rgbd_gt.pose import (apply_update, random_starts, rotation_error_deg, transform_points, translation_error_m, update_of,
-                          worst_sigmas)
+from rgbd_gt.pose import (apply_update, invert, random_starts, rotation_error_deg, transform_points, translation_error_m,
+                          update_of, worst_sigmas)
 from rgbd_gt.camera import Q_SIZE
 
 VERDICTS = ("ok", "suspect", "failed")
@@ -177,7 +177,7 @@ def frame_folds(aligner: Aligner, result: RefineResult, view: _View, cfg: Verify
             continue
         groups.append({"frames": keep, "px": view.motion_px(end, T), "photo_px": photo.motion_px(end, T),
                        "mm": translation_error_m(end, T) * 1e3, "deg": rotation_error_deg(end, T),
-                       "update": update_of(end @ np.linalg.inv(T)).tolist()})
+                       "update": update_of(end @ invert(T)).tolist()})
     worst = {key: max(g[key] for g in groups) for key in ("px", "photo_px", "mm", "deg")}
     return {"folds": cfg.folds, "spread_px": worst["px"], "spread_photo_px": worst["photo_px"],
             "spread_mm": worst["mm"], "spread_deg": worst["deg"], "groups": groups}
@@ -196,7 +196,7 @@ def groups_covariance(groups: list[dict]) -> np.ndarray | None:
     return np.cov(ends, rowvar=False) / len(ends)
 
 
-def frames_covariance(result: RefineResult, groups: list[dict] | None = None) -> np.ndarray | None:
+def frames_covariance(result: RefineResult, groups: list[dict] = ()) -> np.ndarray | None:
     """A joint solve's covariance with its frames as the independent samples: the sandwich of the
     frames' shares (`RefineResult.frame_quadratics`), wherever it is wider than the aligner's
     (`align.covariance`): on KITTI's and Waymo's drives 3-13 times wider in the worst direction
@@ -206,7 +206,7 @@ def frames_covariance(result: RefineResult, groups: list[dict] | None = None) ->
         return None
     g, H, units = result.frame_quadratics
     framed = wider(result.covariance, sandwich(g, H.sum(0), units))
-    apart = None if groups is None else groups_covariance(groups)
+    apart = groups_covariance(groups)
     return framed if apart is None else wider(framed, apart)
 
 
