@@ -2,6 +2,8 @@
 gradient, the aligner on a synthetic intensity-only scan with exact truth and on a real LiDAR
 sweep, the joint solve of several pairs, calibration text files, and the sweep helpers."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -268,6 +270,19 @@ def test_frames_evaluated_together_are_each_alone(intensity_scene):
     np.testing.assert_allclose(together.entropies, first.entropies + second.entropies, rtol=1e-5)
     np.testing.assert_allclose(together.gradient.numpy(), (first.gradient + second.gradient).numpy(), rtol=1e-3,
                                atol=1e-4 * float(together.gradient.abs().max()))
+
+
+def test_a_sweep_without_ring_edges_on_the_photo_refines_as_one_without_the_term(intensity_scene):
+    """A sweep whose rings step by less than EDGE_MIN_STEP_M everywhere (a room, a tunnel: no
+    returns for the ring-edge term) used to crash the term's sampling of zero points; it refines
+    exactly as a scan without ring steps, alone and beside a frame that has none either."""
+    frames, T = _two_frames(intensity_scene)
+    flat = [dataclasses.replace(f, edges=np.full(len(f.points), 0.5, np.float32)) for f in frames]
+    cfg = RefineConfig(objective="nid", levels=2, search_starts=0, iterations=5)
+    for with_steps, without in ((flat[:1], frames[:1]), (flat, frames)):
+        a, b = (Aligner(Nid(fs, cfg)).refine(T) for fs in (with_steps, without))
+        np.testing.assert_array_equal(a.T_cam_from_scan, b.T_cam_from_scan)
+        assert a.loss == b.loss
 
 
 def test_frame_quadratics_are_central_differences_of_each_frames_share(intensity_scene):

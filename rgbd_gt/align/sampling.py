@@ -118,7 +118,7 @@ def bilinear_stacked(flat: torch.Tensor, base: torch.Tensor, size: torch.Tensor,
     a, b = (u - u0).unsqueeze(-1), (v - v0).unsqueeze(-1)
     row = size[:, 0:1].long()
     i00 = base + v0.long() * row + u0.long()
-    f00, f10, f01, f11 = (x.reshape(F, n, -1) for x in _rows(flat, *(i.reshape(-1) for i in (i00, i00 + 1, i00 + row, i00 + row + 1))))
+    f00, f10, f01, f11 = (x.reshape(F, n, flat.shape[1]) for x in _rows(flat, *(i.reshape(-1) for i in (i00, i00 + 1, i00 + row, i00 + row + 1))))
     value = _blend(f00, f10, f01, f11, a, b)
     if not gradient:
         return value
