@@ -22,6 +22,8 @@ BENCHMARKS = {
     "load": ("load_large_scan", "reading a 40-million-point scan (printed)", lambda out, data: []),
     "trust": ("trust", "the verdict on a labelled set: trust.md", lambda out, data: ["--out", out, "--data", data]),
     "lidar": ("lidar", "real LiDAR-camera frames: lidar.md", lambda out, data: ["--out", out, "--data", data]),
+    "synthetic_drive": ("synthetic_drive", "sweeps with exact truth, single and joint: synthetic_drive.md",
+                        lambda out, data: ["--out", out / "synthetic_drive.md"]),
     "verticals": ("verticals", "the verticals check against the references (printed)", lambda out, data: ["--data", data]),
     "intrinsics": ("intrinsics", "refining the camera with the pose: intrinsics.md",
                    lambda out, data: ["--out", out / "intrinsics.md"]),

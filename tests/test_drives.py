@@ -1,13 +1,13 @@
 """LiDAR drives with the data sets' own calibrations (KITTI, Waymo: ../shared/data/lidar_camera):
 the sweeps' depth steps along their rings, the ring-edge term of the NID objective and its
 gradient, the ring-edge image check against chance, and the verdict of a joint solve over
-several frames judged against each other."""
+several frames judged against each other; a synthetic sweep with exact truth (`rgbd_gt.synth.drive`)."""
 
 import numpy as np
 import pytest
 import torch
 
-from conftest import DATA
+from conftest import DATA, run_cli
 from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.pose import apply_update, rotation_error_deg, translated, worst_sigmas
 from rgbd_gt.render.rings import ring_steps
@@ -217,6 +217,57 @@ def test_a_sweep_is_judged_by_its_ring_edges_and_its_frames_agreement():
     assert hinged[0] == "suspect" and "hinges on frame 2" in hinged[1][0]
     open_ = {**loo, "left_out_px": [0.2, float("inf"), 0.3], "worst_left_out_px": float("inf")}
     assert decide({**ev, "frames": {**ev["frames"], "leave_one_out": open_}}, cfg) == ("ok", [])
+
+
+@pytest.fixture(scope="module")
+def room_sweep(tmp_path_factory):
+    """One frame of a synthetic drive (`rgbd_gt.synth.drive`, seed 3: a room, the LiDAR 27 cm
+    behind the camera, an HDL-64E's spacing) as files: sweep.ply, photo.png, camera.yaml and
+    truth.yaml (the exact LiDAR-to-camera pose)."""
+    from rgbd_gt.io import save_scan, write_camera, write_pose
+    from rgbd_gt.io.image import write_image
+    from rgbd_gt.synth.drive import synthetic_drive
+
+    d = tmp_path_factory.mktemp("room_sweep")
+    drive = synthetic_drive(3, frames=1)
+    save_scan(d / "sweep.ply", drive.frames[0].sweep)
+    write_image(d / "photo.png", drive.frames[0].photo)
+    write_camera(d / "camera.yaml", drive.camera)
+    write_pose(d / "truth.yaml", drive.T_cam_from_lidar, method="synthetic truth")
+    return d
+
+
+def test_a_dense_sweep_is_judged_by_its_ring_edges_not_its_splats(room_sweep, tmp_path):
+    """A sweep close enough to be dense: its points, drawn as splats, can be scored against the
+    photo's structural edges, but fit them weakly even at the truth, where its depth steps along
+    the rings fit the photo's edges clearly. refine from about 1 deg / 4 cm ends at the truth and
+    is `ok` (it was `suspect` for its splats); moved 2 cm to the side the ring edges fall to
+    chance, where the splats' edges barely notice."""
+    import json
+
+    from rgbd_gt.align.config import VerifyConfig
+    from rgbd_gt.io import read_pose, write_pose
+    from rgbd_gt.pose import translation_error_m
+
+    d, cfg = room_sweep, VerifyConfig()
+    truth = read_pose(d / "truth.yaml")[0]
+    write_pose(tmp_path / "init.yaml", apply_update(truth, np.r_[0.01, -0.01, 0.005, 0.03, -0.02, 0.02]), method="test")
+    files = ("--scan", d / "sweep.ply", "--image", d / "photo.png", "--camera", d / "camera.yaml")
+    proc = run_cli("refine", *files, "--init", tmp_path / "init.yaml", "-o", tmp_path / "refined.yaml")
+    assert proc.returncode == 0, proc.stderr
+    T, meta = read_pose(tmp_path / "refined.yaml")
+    assert rotation_error_deg(T, truth) < 0.15 and translation_error_m(T, truth) < 0.006, (rotation_error_deg(T, truth), translation_error_m(T, truth))
+    edges, rings = meta["evidence"]["edges"], meta["evidence"]["ring_edges"]
+    assert edges["edge_check_usable"] and edges["edge_ratio"] < cfg.edge_ratio_ok, edges
+    assert rings["ring_edges"] >= cfg.min_edge_pixels and rings["ratio"] > cfg.ring_edge_ratio_ok, rings
+    assert meta["verdict"] == "ok", meta["reasons"]
+
+    write_pose(tmp_path / "aside.yaml", apply_update(truth, np.r_[0, 0, 0, 0.02, 0, 0]), method="test")
+    proc = run_cli("qa-edges", *files, "--pose", tmp_path / "aside.yaml", "-o", tmp_path / "qa.png",
+                   "--json", tmp_path / "qa.json")
+    assert proc.returncode == 0, proc.stderr
+    scores = json.loads((tmp_path / "qa.json").read_text())
+    assert scores["ring_edge_ratio"] < cfg.ring_edge_ratio_failed <= cfg.edge_ratio_failed <= scores["edge_ratio"], scores
 
 
 def test_leave_one_out_steps_are_the_minima_without_each_frame():

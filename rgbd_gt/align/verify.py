@@ -321,7 +321,11 @@ def decide(ev: dict, cfg: VerifyConfig) -> tuple[str, list[str]]:
     """The verdict and its reasons from the evidence, by the thresholds in cfg (docs/trust.md)."""
     failed, suspect = [], []
     edges, rings = ev.get("edges"), ev.get("ring_edges")
-    if rings is not None and edges is not None and not edges["edge_check_usable"]:  # a sweep: its rings' edges instead
+    # a sweep: its rings' edges, wherever it has enough of them; its points drawn as splats make
+    # weak structural edges even where dense enough to score (at the truth of a synthetic sweep
+    # in a room 1.11-1.15, against 1.7-2.2 for its ring edges: docs/lidar-method.md)
+    if rings is not None and (rings["ring_edges"] >= cfg.min_edge_pixels or edges is None
+                              or not edges["edge_check_usable"]):
         _ratio_reasons(rings["ring_edges"], rings["ratio"], cfg.ring_edge_ratio_failed, cfg.ring_edge_ratio_ok, cfg,
                        "depth edges along the sweep's rings in view", "the sweep's depth edges fit the photo's edges",
                        failed, suspect)
