@@ -5,20 +5,15 @@ the truth (docs/lidar-method.md, "With exact truth")."""
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from rgbd_gt.camera import Camera
-from rgbd_gt.errors import InputError
 from rgbd_gt.scan import Scan
 from rgbd_gt.synth import color
-from rgbd_gt.synth.generate import SynthConfig, _board_visible, extra_cameras, random_camera
-from rgbd_gt.synth.scene import Scene, make_layout
-from rgbd_gt.synth.sensors import build_raycaster, cast, radiance, render_photo_radiance
-from rgbd_gt.synth.textures import make_texture
+from rgbd_gt.synth.generate import SynthConfig, extra_cameras, laid_out, textured
+from rgbd_gt.synth.sensors import cast, radiance, render_photo_radiance
 
 # LiDAR (x forward, y left, z up) to camera (x right, y down, z forward): the LiDAR 27 cm behind
 # the camera and 8 cm above it, as on KITTI's car
@@ -51,19 +46,8 @@ def synthetic_drive(seed: int, frames: int = 4, ring_deg: float = 0.4, azimuth_d
     cfg = SynthConfig()
     preset = cfg.sizes[size]
     rng = np.random.default_rng(seed)
-    for _ in range(cfg.max_layout_tries):
-        surfaces, board, room, cam_pose, scan_pose, light = make_layout(
-            rng, (cfg.board_cols, cfg.board_rows), cfg.square_m, cfg.board_distance_m, cfg.scanner_distance_m,
-            float(np.mean(cfg.hfov_deg)))
-        camera = dataclasses.replace(random_camera(rng, preset, cfg.hfov_deg), distortion=())
-        scene = Scene(room, surfaces, [], [], cfg.texel_m, light, board, cam_pose, scan_pose)
-        rc = build_raycaster(scene)
-        if _board_visible(scene, rc, camera):
-            break
-    else:
-        raise InputError(f"seed {seed}: no valid layout in {cfg.max_layout_tries} tries")
-    scene.textures = [make_texture(rng, preset.texture_px) for _ in range(1 + max(s.texture for s in surfaces))]
-    scene.textures_blurred = [cv2.GaussianBlur(t, (0, 0), 1.5) for t in scene.textures]
+    scene, rc, camera, _ = laid_out(rng, preset, cfg, seed, pinhole=True)
+    textured(scene, rng, preset)
     response = color.random_camera_response(rng)
     elevations = np.deg2rad(np.arange(elevation_deg[0], elevation_deg[1], -ring_deg))
     azimuths = np.deg2rad(np.arange(70.0, -70.0, -azimuth_deg))
@@ -71,7 +55,7 @@ def synthetic_drive(seed: int, frames: int = 4, ring_deg: float = 0.4, azimuth_d
     rays = np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1).reshape(-1, 3)
     rings = np.repeat(np.arange(len(elevations), dtype=np.int16), len(azimuths))
     out = []
-    for world_from_cam in [cam_pose] + extra_cameras(scene, rc, camera, frames - 1, rng):
+    for world_from_cam in [scene.camera_pose] + extra_cameras(scene, rc, camera, frames - 1, rng):
         photo = color.camera_forward(response, render_photo_radiance(scene, rc, camera, world_from_cam,
                                                                      preset.supersample, rng), rng)
         world_from_lidar = world_from_cam @ T_CAM_FROM_LIDAR

@@ -199,6 +199,32 @@ def bundle_file(photos: list[dict], cameras: dict[str, str], rig: list[str] | No
         yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)
 
 
+def laid_out(rng: np.random.Generator, preset: SizePreset, cfg: SynthConfig, seed: int,
+             pinhole: bool = False) -> tuple[Scene, object, Camera, int]:
+    """A random room (`make_layout`, untextured) whose board the random camera sees from the
+    scene's camera pose, its raycaster, that camera (pinhole: without the lens's distortion) and
+    how many layouts were drawn until one did."""
+    for attempt in range(cfg.max_layout_tries):
+        surfaces, board, room, cam_pose, scan_pose, light = make_layout(
+            rng, (cfg.board_cols, cfg.board_rows), cfg.square_m, cfg.board_distance_m, cfg.scanner_distance_m,
+            float(np.mean(cfg.hfov_deg)),
+        )
+        camera = random_camera(rng, preset, cfg.hfov_deg)
+        if pinhole:
+            camera = dataclasses.replace(camera, distortion=())
+        scene = Scene(room, surfaces, [], [], cfg.texel_m, light, board, cam_pose, scan_pose)
+        rc = build_raycaster(scene)
+        if _board_visible(scene, rc, camera):
+            return scene, rc, camera, attempt + 1
+    raise InputError(f"seed {seed}: no valid layout in {cfg.max_layout_tries} tries")
+
+
+def textured(scene: Scene, rng: np.random.Generator, preset: SizePreset) -> None:
+    """Gives the scene's surfaces their textures (and the scanner's blurred ones), in place."""
+    scene.textures = [make_texture(rng, preset.texture_px) for _ in range(1 + max(s.texture for s in scene.surfaces))]
+    scene.textures_blurred = [cv2.GaussianBlur(t, (0, 0), 1.5) for t in scene.textures]
+
+
 def generate(out_dir: Path, seed: int, size: str, cfg: SynthConfig,
              progress: Callable[[str], None] | None = None, photos: int = 1, rig: str | None = None,
              baseline_m: float = 0.12) -> dict:
@@ -219,23 +245,11 @@ def generate(out_dir: Path, seed: int, size: str, cfg: SynthConfig,
     rng = np.random.default_rng(seed)
 
     say("layout")
-    for attempt in range(cfg.max_layout_tries):
-        surfaces, board, room, cam_pose, scan_pose, light = make_layout(
-            rng, (cfg.board_cols, cfg.board_rows), cfg.square_m, cfg.board_distance_m, cfg.scanner_distance_m,
-            float(np.mean(cfg.hfov_deg)),
-        )
-        camera = random_camera(rng, preset, cfg.hfov_deg)
-        scene = Scene(room, surfaces, [], [], cfg.texel_m, light, board, cam_pose, scan_pose)
-        rc = build_raycaster(scene)
-        if _board_visible(scene, rc, camera):
-            break
-    else:
-        raise InputError(f"seed {seed}: no valid layout in {cfg.max_layout_tries} tries")
-
+    scene, rc, camera, attempts = laid_out(rng, preset, cfg, seed)
+    surfaces, board, room, light = scene.surfaces, scene.board, scene.room, scene.light
+    cam_pose, scan_pose = scene.camera_pose, scene.scanner_pose
     say("textures")
-    n_tex = 1 + max(s.texture for s in surfaces)
-    scene.textures = [make_texture(rng, preset.texture_px) for _ in range(n_tex)]
-    scene.textures_blurred = [cv2.GaussianBlur(t, (0, 0), 1.5) for t in scene.textures]
+    textured(scene, rng, preset)
     cam_resp = color.random_camera_response(rng)
     scan_resp = color.random_scanner_response(rng)
 
@@ -338,7 +352,7 @@ def generate(out_dir: Path, seed: int, size: str, cfg: SynthConfig,
         "texel_m": cfg.texel_m,
         "objects": [{"name": s_.name, "shape": s_.shape, "T_world_from_local": s_.pose.tolist(),
                      "lo": s_.lo.tolist(), "hi": s_.hi.tolist()} for s_ in surfaces],
-        "layout_attempts": attempt + 1,
+        "layout_attempts": attempts,
         "more_photos": [{"photo": f"photo_{k}.png", "T_world_from_camera": p.tolist()} for k, p in enumerate(more_poses, start=1)],
     }
     if right is not None:
