@@ -512,12 +512,11 @@ def refine(
     ]
     if "ring_edges" in ev:
         from rgbd_gt.align.edge_map import CHECK_MIN_STEP_M
+        from rgbd_gt.align.verify import frame_verdict
 
         rings = ev["ring_edges"]
         rows.append(("ring edges vs chance", f"{rings['ratio']:.2f} over {rings['ring_edges']:,} depth steps (1.0 = chance)"
                      if rings["ring_edges"] else f"not usable: no depth steps of {CHECK_MIN_STEP_M:g} m or more along the rings in view"))
-        from rgbd_gt.align.verify import frame_verdict
-
         for k in range(len(rings.get("frames") or [])):  # each frame of --pairs judged on its own edges too
             mine, why = frame_verdict("ok", [], rings, k, cfg.verify)
             if mine != "ok":
