@@ -304,6 +304,7 @@ def qa_step(view, photo: np.ndarray, camera: Camera, T: np.ndarray, around: np.n
     check (`qa.verticals`, on `around`: (n, 3) scan points around the camera) and, for a sweep,
     its depth steps along the rings against chance (`qa.edges.ring_edge_check`); the same for
     T_before with keys prefixed before_. A pose that sees no scan edge is an error naming it."""
+    from rgbd_gt.align.edge_map import CHECK_MIN_STEP_M
     from rgbd_gt.qa.edges import qa, ring_edge_check, side_by_side, structural_qa, working_view
     from rgbd_gt.qa.verticals import verticals_qa
 
@@ -324,7 +325,8 @@ def qa_step(view, photo: np.ndarray, camera: Camera, T: np.ndarray, around: np.n
         if rings is not None:
             scores |= {prefix + key: value for key, value in rings.items()}
         ring_text = "" if rings is None else (f"; ring edges {rings['ring_edge_ratio']:.2f} x chance over "
-                                              f"{rings['ring_edges']:,} depth steps")
+                                              f"{rings['ring_edges']:,} depth steps" if rings["ring_edges"] else
+                                              f"; ring edges: no depth steps of {CHECK_MIN_STEP_M:g} m or more in view")
         rows.append((prefix.rstrip("_") or ("after" if T_before is not None else "score"),
                      f"{structural.summary()}; Canny {canny.summary()}; verticals {upright.summary()}{ring_text}"))
     if T_before is not None:
