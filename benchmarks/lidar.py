@@ -373,17 +373,22 @@ def drives_markdown(records: list[dict]) -> list[str]:
             f"| {np.median(deg):.3f} deg, {np.median(cm):.1f} cm | {deg.max():.2f} deg, {cm.max():.1f} cm "
             f"| {v['ok']} / {v['suspect']} / {v['failed']} | **{far_ok}** | {sum(r['verdict'] == 'ok' for r in near)} of {len(near)} "
             f"| {np.median([r['seconds'] / len(r['frames']) for r in done]):.2f} | {np.median([r['verify_seconds'] for r in done]):.1f} |")
-    reasons: dict[str, int] = {}
-    for r in records:
-        for reason in r.get("reasons", []):
-            key = re.split(r"[\d(:]", reason)[0].strip().removesuffix(" by")
-            reasons[key] = reasons.get(key, 0) + 1
-    lines += ["", "The verdicts' reasons, counted over these rows:", ""]
-    lines += [f"- {n} x {key}" for key, n in sorted(reasons.items(), key=lambda kv: -kv[1])]
+    lines += ["", *reason_counts(records)]
     lines += ["", "Published targetless results, for comparison (their own frames, inits and conditions):", "",
               "| method | data | reported |", "|---|---|---|"]
     lines += [f"| {a} | {b} | {c} |" for a, b, c in PUBLISHED]
     return lines
+
+
+def reason_counts(records: list[dict]) -> list[str]:
+    """Markdown lines: the verdicts' reasons over records, each without its figures, by count."""
+    reasons: dict[str, int] = {}
+    for r in records:
+        for reason in r.get("reasons") or []:
+            key = re.split(r"[\d(:]", reason)[0].strip().removesuffix(" by")
+            reasons[key] = reasons.get(key, 0) + 1
+    return ["The verdicts' reasons, counted over these rows:", "",
+            *[f"- {n} x {key}" for key, n in sorted(reasons.items(), key=lambda kv: -kv[1])]]
 
 
 def write_markdown(path: Path, records: list[dict], picks: list[dict] = (), drives: list[dict] = ()) -> None:

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.icl_bench import machine
-from benchmarks.lidar import SIZES, Scene, init_poses, run_case
+from benchmarks.lidar import SIZES, Scene, init_poses, reason_counts, run_case
 from benchmarks.trust import shuffled_tiles
 
 SUCCESS = (0.2, 1.0)  # degrees, cm: the real drives' 0.2 deg / 5 cm, scaled to a room's depths (about a quarter)
@@ -101,12 +101,9 @@ def table(rows: list[dict]) -> list[str]:
 
 
 def write_doc(rows: list[dict], path: Path, frames: int, machine: str) -> None:
+    from rgbd_gt.io.atomic import atomic_output
+
     truth = [r for r in rows if r["solve"] == "from the truth"]
-    reasons: dict[str, int] = {}
-    for r in rows:
-        for why in r.get("reasons") or []:
-            key = why.split(" (")[0]
-            reasons[key] = reasons.get(key, 0) + 1
     lines = [
         "# Sweeps with exact truth: synthetic drives",
         "",
@@ -138,12 +135,10 @@ def write_doc(rows: list[dict], path: Path, frames: int, machine: str) -> None:
         "",
         *table(rows),
         "",
-        "The verdicts' reasons, counted over these rows:",
-        "",
-        *[f"- {n} x {why}" for why, n in sorted(reasons.items(), key=lambda kv: -kv[1])],
-        "",
+        *reason_counts(rows),
     ]
-    path.write_text("\n".join(lines))
+    with atomic_output(path) as tmp:
+        tmp.write_text("\n".join(lines) + "\n")
 
 
 def main(argv: list[str] | None = None) -> int:
