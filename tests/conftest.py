@@ -10,6 +10,20 @@ ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("RGBD_GT_DATA", ROOT.parent / "shared" / "data"))
 
 
+def _share_the_cores() -> None:
+    """Under pytest-xdist (`make test` runs `-n auto`) each worker, and the commands it starts,
+    gets its share of the cores: pools of every core in every worker spin against each other
+    (the same reason as `engine._thread_pools_of`). Set before anything imports torch or numpy."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if workers > 1:
+        threads = str(max(1, (os.cpu_count() or 1) // workers))
+        for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+            os.environ.setdefault(name, threads)
+
+
+_share_the_cores()
+
+
 def _need(sub: str) -> Path:
     path = DATA / sub
     if not path.exists():
