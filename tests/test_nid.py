@@ -45,7 +45,7 @@ def test_nid_gradient_matches_finite_differences():
     b0 = (0.3 * a + 0.5 * torch.as_tensor(rng.uniform(0, 1, 3000))).clamp(0, 1)
     b = b0.clone().requires_grad_(True)
     nid(a, b).backward()
-    value, _, closed = nid_with_gradient(parzen_windows(a, 16), b0, 16)
+    value, _, closed, _ = nid_with_gradient(parzen_windows(a, 16), b0, 16)
     assert float(value) == float(nid(a, b0))
     np.testing.assert_allclose(closed.numpy(), b.grad.numpy(), rtol=1e-9, atol=1e-15)
     idx = rng.choice(3000, 20, replace=False)
@@ -65,12 +65,25 @@ def test_nid_gradient_with_a_mask_equals_it_on_the_masked_windows():
     use = torch.as_tensor(rng.uniform(size=(2, 3000)) < 0.7).double()
     wa = parzen_windows(a, 16)
     masked = nid_with_gradient(wa * use[..., None], b, 16)
-    value, h_ab, d_b = nid_with_gradient(wa, b, 16, use)
+    value, h_ab, d_b, _ = nid_with_gradient(wa, b, 16, use)
     assert torch.equal(value, masked[0]) and torch.equal(h_ab, masked[1])
     assert torch.equal(d_b, masked[2] * use) and bool((d_b[use == 0] == 0).all())
     # ... and without the gradient (`parzen_windows` with use), as they are
     plain = nid_of_windows(wa * use[..., None], parzen_windows(b, 16))
     assert all(torch.equal(x, y) for x, y in zip(nid_of_windows(wa, parzen_windows(b, 16, use)), plain))
+
+
+def test_nid_gradient_with_respect_to_the_samples_weights_matches_autograd():
+    # the weights fall to 0 at the photo's border (`_Stack.inside`): their slope enters the pose's gradient
+    rng = np.random.default_rng(3)
+    a, b = (torch.as_tensor(rng.uniform(0, 1, 3000)) for _ in range(2))
+    b = (0.4 * a + 0.6 * b).clamp(0, 1)
+    use0 = torch.as_tensor(rng.uniform(0, 1, 3000))
+    use = use0.clone().requires_grad_(True)
+    nid_of_windows(parzen_windows(a, 16), parzen_windows(b, 16, use))[0].backward()
+    value, _, _, d_use = nid_with_gradient(parzen_windows(a, 16), b, 16, use0)
+    assert float(value) == pytest.approx(float(nid_of_windows(parzen_windows(a, 16), parzen_windows(b, 16, use0))[0]), abs=1e-12)
+    np.testing.assert_allclose(d_use.numpy(), use.grad.numpy(), rtol=1e-9, atol=1e-15)
 
 
 def test_differentiable_rotation_matches_rodrigues():

@@ -91,15 +91,16 @@ def _entropy_slope(p: torch.Tensor) -> torch.Tensor:
 
 
 def nid_with_gradient(wa: torch.Tensor, b: torch.Tensor, bins: int,
-                      use: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """`nid_of_windows`(wa * use, parzen_windows(b, bins)) and d NID / d b (..., n), in closed form:
-    the chain through the entropies, the histogram and the B-spline windows costs a few small
-    matrix products, where autograd's backward took a third of the aligner's time. wa (..., n,
-    bins), b (..., n); a sample whose window wa is zero does not count (padding), nor one where
-    use (..., n) (0 or 1) is 0. The mask goes on b's 4 weights a sample rather than on wa's bins:
-    the same products, a quarter of the work."""
+                      use: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """`nid_of_windows`(wa, parzen_windows(b, bins, use)), d NID / d b and d NID / d use (..., n)
+    each, in closed form: the chain through the entropies, the histogram and the B-spline windows
+    costs a few small matrix products, where autograd's backward took a third of the aligner's
+    time. wa (..., n, bins), b (..., n); a sample whose window wa is zero does not count
+    (padding); use (..., n) in [0, 1] weighs each sample (default 1). The weight goes on b's 4
+    weights a sample rather than on wa's bins: the same products, a quarter of the work."""
     first, f = _bin_coordinates(b, bins)
-    pieces = _pieces(f) if use is None else _pieces(f) * use[..., None]
+    unweighted = _pieces(f)
+    pieces = unweighted if use is None else unweighted * use[..., None]
     wb, cols = _spread(first, pieces, bins)
     hist = wa.transpose(-1, -2) @ wb
     total = hist.sum((-1, -2), keepdim=True).clamp_min(1e-12)
@@ -111,11 +112,12 @@ def nid_with_gradient(wa: torch.Tensor, b: torch.Tensor, bins: int,
     d_sum = _entropy_slope(pa)[..., :, None] + _entropy_slope(pb)[..., None, :]
     d_p = h_sum[..., None, None] / h_ab_safe**2 * _entropy_slope(p) - d_sum / h_ab_safe
     d_hist = (d_p - (d_p * p).sum((-1, -2), keepdim=True)) / total  # through the normalisation p = hist / total
-    d_f = ((wa @ d_hist).gather(-1, cols) * _slopes(f)).sum(-1)
+    pulls = (wa @ d_hist).gather(-1, cols)  # d NID / d each of a sample's 4 weights in b's windows
+    d_f = (pulls * _slopes(f)).sum(-1)
     inside = ((b >= 0) & (b <= 1)).to(d_f.dtype)  # f moves with clamp(b)
     if use is not None:
         inside = inside * use
-    return 2.0 - h_sum / h_ab_safe[..., 0, 0], h_ab, d_f * inside * (bins - 3)
+    return 2.0 - h_sum / h_ab_safe[..., 0, 0], h_ab, d_f * inside * (bins - 3), (pulls * unweighted).sum(-1)
 
 
 def nid(a: torch.Tensor, b: torch.Tensor, bins: int = 16) -> torch.Tensor:

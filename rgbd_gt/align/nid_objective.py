@@ -63,6 +63,24 @@ class _Stack:
         """The frames' images at uv (F, n, 2): (F, n, C), with gradient also d/du and d/dv."""
         return bilinear_stacked(self.flat, self.base, self.size, uv, gradient)
 
+    def inside(self, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(F, n) each point's weight in the histogram by where it lands (uv (F, n, 2) pixels): 1
+        from BORDER_PX inside the frame's border on, falling smoothly (C1) to 0 on the border; and
+        its d/du and d/dv. A point that stepped onto the photo at full weight made the NID jump
+        there, and a sweep's rings cross the left and right borders every few hundredths of a
+        pixel of motion: L-BFGS stopped on those steps ("converged" in 2-4 iterations) up to 1 cm
+        short of the finest level's minimum (docs/lidar-method.md, "The photo's border")."""
+        def ramp(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:  # smoothstep of x / BORDER_PX
+            x = (x / BORDER_PX).clamp(0, 1)
+            return x * x * (3 - 2 * x), 6 * x * (1 - x) / BORDER_PX
+
+        w, h = self.size[:, 0:1], self.size[:, 1:2]
+        u, v = uv[..., 0].double(), uv[..., 1].double()
+        (left, d_left), (right, d_right) = ramp(u), ramp(w - 1 - u)
+        (top, d_top), (bottom, d_bottom) = ramp(v), ramp(h - 1 - v)
+        across, down = left * right, top * bottom
+        return across * down, (d_left * right - left * d_right) * down, across * (d_top * bottom - top * d_bottom)
+
     def on_photo(self, uv: torch.Tensor, z: torch.Tensor, near: float) -> torch.Tensor:
         """(F, n) bool: points (pixels uv (F, n, 2), depths z (F, n)) at least `near` metres in
         front that land on their frame's usable pixels (`_on_photo` for all frames at once)."""
@@ -242,6 +260,7 @@ EDGE_MIN_STEP_M = 1.0
 # levels "auto" for nid: its search, sky charge and edge term were tuned on 5 levels; the photometric
 # rule's 6 for Waymo's photos took a joint solve from 0.06 to 1.4 deg (docs/lidar-method.md)
 NID_LEVELS = 5
+BORDER_PX = 4.0  # level pixels: a point's weight in the histogram rises from 0 on the photo's border to 1 this far in (`_Stack.inside`)
 EDGE_LEVELS = 3  # the term applies on the 3 finest levels: coarser, the spread edges fill the image (a KITTI photo is 77 x 23 on level 4)
 
 
@@ -478,31 +497,40 @@ class Nid:
         q, p = _moved(parts.points, R1, t1, delta)
         uv, z = _project(p, parts.K)
         ok = parts.images.on_photo(uv, z, 0.1) & parts.real
-        n = ok.sum(1)
-        counts = n.tolist()
-        use = ok.to(torch.float64)
+        counts = ok.sum(1).tolist()
+        inside, in_u, in_v = parts.images.inside(uv)
+        use = ok.to(torch.float64) * inside  # the points off the photo do not count, those at its border partly
+        n = use.sum(1).clamp_min(1e-12)
         if weights is None:
             sampled = parts.images.sample(uv).double()
         else:
             sampled, s_u, s_v = (x.double() for x in parts.images.sample(uv, gradient=True))
             d_sampled = torch.zeros_like(sampled)  # d loss / d sampled channel
+            d_use = torch.zeros_like(use)  # d loss / d use
             w = weights.reshape(rows, C)
         sky = parts.sky.any()
         nids, entropies = [], []
         for c in range(C):
-            if weights is None:  # the points off the photo do not count
+            if weights is None:
                 value, h_ab = nid_of_windows(parts.windows[:, :, c], parzen_windows(sampled[..., c], self.cfg.nid_bins, use))
             else:
-                value, h_ab, d_value = nid_with_gradient(parts.windows[:, :, c], sampled[..., c], self.cfg.nid_bins, use)
+                value, h_ab, d_value, d_weight = nid_with_gradient(parts.windows[:, :, c], sampled[..., c], self.cfg.nid_bins, use)
                 d_sampled[..., c] = w[:, c:c + 1] * d_value
+                d_use += w[:, c:c + 1] * d_weight
             if c == 0 and sky:
-                value = value + self.cfg.sky_weight * parts.sky * (sampled[..., -1] * use).sum(1) / n
+                on_sky = (sampled[..., -1] * use).sum(1) / n
+                value = value + self.cfg.sky_weight * parts.sky * on_sky
                 if weights is not None:
-                    d_sampled[..., -1] = (w[:, 0] * self.cfg.sky_weight * parts.sky / n)[:, None] * use
+                    charge = (w[:, 0] * self.cfg.sky_weight * parts.sky / n)[:, None]
+                    d_sampled[..., -1] = charge * use
+                    d_use += charge * (sampled[..., -1] - on_sky[:, None])
             nids.append(value)
             entropies.append(h_ab)
         if weights is not None:
-            d_u, d_v, p, q = (d_sampled * s_u).sum(-1), (d_sampled * s_v).sum(-1), p.double(), q.double()
+            d_use = d_use * ok  # the hard edges of `on_photo` (depth, usable pixels) have no slope
+            d_u = (d_sampled * s_u).sum(-1) + d_use * in_u
+            d_v = (d_sampled * s_v).sum(-1) + d_use * in_v
+            p, q = p.double(), q.double()
             gradient += _pose_gradient(d_u, d_v, p, q, parts.K.double(), J)
             if shares is not None:
                 shares.append((uv, torch.cat(_point_pulls(d_u, d_v, p, q, parts.K.double()), -1)))
