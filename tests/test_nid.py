@@ -248,6 +248,29 @@ def test_pose_gradient_matches_autograd_and_finite_differences(intensity_scene, 
     assert np.linalg.norm(fd - mean) < 0.06 * np.linalg.norm(closed * units), (fd, mean, closed * units)
 
 
+def test_points_crossing_the_photos_border_make_no_steps(intensity_scene):
+    # a point that stepped onto the photo at full weight made NID jump by what 0.02 px of motion
+    # moves it, and L-BFGS stopped on those steps (docs/lidar-method.md, "The photo's border")
+    d = intensity_scene
+    scan, photo, camera = load_scan(d / "intensity.ply"), read_image(d / "photo.png"), read_camera(d / "camera.yaml")
+    T = read_pose(d / "init_pose.yaml")[0]
+    al = Aligner(Nid([Frame(scan.xyz, scan.intensity, photo_pyramid(photo, camera, 3, torch.device("cpu")))],
+                     RefineConfig(objective="nid", levels=3)))
+    al.prepare(T)
+    _, _, value, gradient, units = _gradients(al, 1, T, np.zeros(6))
+    obj, T_local = al.objective, translated(T, al.objective.centre)
+    parts = obj._parts(1, T_local)
+    sideways = np.eye(6)[3] * units[3]  # the rows of points at the left and right borders cross them
+    s = np.linspace(0, 0.2, 101)  # level pixels
+    crossed = [obj._evaluate(parts, [T_local], torch.as_tensor(x * sideways)[None]).counts[0] for x in s]
+    assert len(set(crossed)) > 5, crossed  # points do cross the border here
+    v = np.array([value(x * sideways) for x in s])
+    g = np.array([gradient(x * sideways) @ sideways for x in s])
+    steps, slope = np.diff(v), (g[1:] + g[:-1]) / 2 * np.diff(s)
+    # measured: 0.014 of the mean step, 0.40 with points at full weight the moment they cross
+    assert np.abs(steps - slope).max() < 0.1 * np.abs(slope).mean(), (steps, slope)
+
+
 def _two_frames(d) -> tuple[list[Frame], np.ndarray]:
     """Two frames of the intensity scene: its photo with the sweep, and the photo at 3/4 size with
     a third of the points; and the init pose."""

@@ -17,7 +17,7 @@ coarse border would otherwise steer the fine levels (docs/lidar-method.md).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -58,6 +58,7 @@ class _Stack:
     base: torch.Tensor  # (F, 1) long: the row of flat where each frame starts
     size: torch.Tensor  # (F, 2) long: each frame's (W, H)
     valid: torch.Tensor | None = None  # (sum of W H,) bool: usable pixels, or None where all are
+    border: float = 0.0  # pixels: the band inside the border where a point's weight rises (`inside`); 0: none
 
     def sample(self, uv: torch.Tensor, gradient: bool = False):
         """The frames' images at uv (F, n, 2): (F, n, C), with gradient also d/du and d/dv."""
@@ -65,14 +66,16 @@ class _Stack:
 
     def inside(self, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(F, n) each point's weight in the histogram by where it lands (uv (F, n, 2) pixels): 1
-        from BORDER_PX inside the frame's border on, falling smoothly (C1) to 0 on the border; and
-        its d/du and d/dv. A point that stepped onto the photo at full weight made the NID jump
-        there, and a sweep's rings cross the left and right borders every few hundredths of a
-        pixel of motion: L-BFGS stopped on those steps ("converged" in 2-4 iterations) up to 1 cm
-        short of the finest level's minimum (docs/lidar-method.md, "The photo's border")."""
-        def ramp(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:  # smoothstep of x / BORDER_PX
-            x = (x / BORDER_PX).clamp(0, 1)
-            return x * x * (3 - 2 * x), 6 * x * (1 - x) / BORDER_PX
+        from `border` pixels inside the frame's border on, falling smoothly (C1) to 0 on the
+        border; and its d/du and d/dv. A point that stepped onto the photo at full weight made the
+        NID jump there, and a sweep's rings cross the left and right borders every few hundredths
+        of a pixel of motion: L-BFGS stopped on those steps ("converged" in 2-4 iterations) up to
+        1 cm short of the finest level's minimum (docs/lidar-method.md, "The photo's border")."""
+        band = max(self.border, 1e-9)
+
+        def ramp(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:  # smoothstep of x / band
+            x = (x / band).clamp(0, 1)
+            return x * x * (3 - 2 * x), 6 * x * (1 - x) / band
 
         w, h = self.size[:, 0:1], self.size[:, 1:2]
         u, v = uv[..., 0].double(), uv[..., 1].double()
@@ -165,7 +168,7 @@ def _joined(parts: list[_Parts]) -> _Parts:
         return _padded([row for part in parts for row in getattr(part, name)])
 
     def repeated(stack: _Stack) -> _Stack:
-        return _Stack(stack.flat, stack.base.repeat(G, 1), stack.size.repeat(G, 1), stack.valid)
+        return _Stack(stack.flat, stack.base.repeat(G, 1), stack.size.repeat(G, 1), stack.valid, stack.border)
 
     first = parts[0]
     joined = _Parts(rows("points"), rows("real"), rows("windows"), repeated(first.images), first.K.repeat(G, 1),
@@ -260,7 +263,11 @@ EDGE_MIN_STEP_M = 1.0
 # levels "auto" for nid: its search, sky charge and edge term were tuned on 5 levels; the photometric
 # rule's 6 for Waymo's photos took a joint solve from 0.06 to 1.4 deg (docs/lidar-method.md)
 NID_LEVELS = 5
-BORDER_PX = 4.0  # level pixels: a point's weight in the histogram rises from 0 on the photo's border to 1 this far in (`_Stack.inside`)
+# pixels of the finest level, half as many a level up:
+# a point's weight in the histogram rises from 0 on the photo's border to 1 this far in
+# (`_Stack.inside`). 4 on every level took a KITTI joint solve from 3 deg to 10.5 deg: on level 4
+# (77 x 23 px) that band is a third of the photo's height
+BORDER_PX = 4.0
 EDGE_LEVELS = 3  # the term applies on the 3 finest levels: coarser, the spread edges fill the image (a KITTI photo is 77 x 23 on level 4)
 
 
@@ -382,7 +389,8 @@ class Nid:
             per_frame.append(idx[torch.argsort(self._keys[k][idx])])
         self._prepared = [[idx[: max(cfg.min_points, cfg.max_points // 4**level)] for idx in per_frame]
                           for level in range(len(self.frames[0].pyramid))]
-        self._stacks = [_stack([images[level] for images in self._images], [f.pyramid[level].valid for f in self.frames])
+        self._stacks = [replace(_stack([images[level] for images in self._images], [f.pyramid[level].valid for f in self.frames]),
+                                            border=BORDER_PX / 2**level)
                         for level in range(len(self._prepared))]
         self._images = None  # held once, in the stacks
         return len(self._prepared)
