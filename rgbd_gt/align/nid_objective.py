@@ -263,10 +263,9 @@ EDGE_MIN_STEP_M = 1.0
 # levels "auto" for nid: its search, sky charge and edge term were tuned on 5 levels; the photometric
 # rule's 6 for Waymo's photos took a joint solve from 0.06 to 1.4 deg (docs/lidar-method.md)
 NID_LEVELS = 5
-# pixels of the finest level, half as many a level up:
-# a point's weight in the histogram rises from 0 on the photo's border to 1 this far in
-# (`_Stack.inside`). 4 on every level took a KITTI joint solve from 3 deg to 10.5 deg: on level 4
-# (77 x 23 px) that band is a third of the photo's height
+# a point's weight in the histogram rises from 0 on the photo's border to 1 this many pixels in on
+# the finest level, half as many a level up (`_Stack.inside`); 4 on every level took a KITTI joint
+# solve from 3 deg to 10.5 deg: on level 4 (77 x 23 px) that band is a third of the photo's height
 BORDER_PX = 4.0
 EDGE_LEVELS = 3  # the term applies on the 3 finest levels: coarser, the spread edges fill the image (a KITTI photo is 77 x 23 on level 4)
 
@@ -390,7 +389,7 @@ class Nid:
         self._prepared = [[idx[: max(cfg.min_points, cfg.max_points // 4**level)] for idx in per_frame]
                           for level in range(len(self.frames[0].pyramid))]
         self._stacks = [replace(_stack([images[level] for images in self._images], [f.pyramid[level].valid for f in self.frames]),
-                                            border=BORDER_PX / 2**level)
+                                border=BORDER_PX / 2**level)
                         for level in range(len(self._prepared))]
         self._images = None  # held once, in the stacks
         return len(self._prepared)
