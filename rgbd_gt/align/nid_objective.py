@@ -507,7 +507,6 @@ class Nid:
         counts = ok.sum(1).tolist()
         inside, in_u, in_v = parts.images.inside(uv)
         use = ok.to(torch.float64) * inside  # the points off the photo do not count, those at its border partly
-        n = use.sum(1).clamp_min(1e-12)
         if weights is None:
             sampled = parts.images.sample(uv).double()
         else:
@@ -525,6 +524,7 @@ class Nid:
                 d_sampled[..., c] = w[:, c:c + 1] * d_value
                 d_use += w[:, c:c + 1] * d_weight
             if c == 0 and sky:
+                n = use.sum(1).clamp_min(1e-12)
                 on_sky = (sampled[..., -1] * use).sum(1) / n
                 value = value + self.cfg.sky_weight * parts.sky * on_sky
                 if weights is not None:
