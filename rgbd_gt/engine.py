@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Callable
 
 from rgbd_gt.errors import InputError
+from rgbd_gt.threads import size_thread_pools
 from rgbd_gt.workflow import PhotoResult, RunConfig, ScanJob
 
 CACHE_FOLDER = ".scan-cache"  # under the run's output folder: beside the outputs it serves
@@ -160,17 +161,13 @@ def run_local(tasks: list[PhotoTask], workers: int, on_result: Callable[[PhotoRe
 @contextmanager
 def _thread_pools_of(threads: int):
     """Processes started inside size their OpenMP and BLAS pools to `threads` (unless the user
-    set them), as Ray does for its tasks: these pools are made when a library loads, so only the
-    environment reaches them. With two workers on 2 cores, each with pools of 2 threads whose
-    idle threads spin, ten photos took 126 s instead of 94 s."""
-    names = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-    saved = {k: os.environ.get(k) for k in names}
-    for k in names:
-        os.environ.setdefault(k, str(threads))
+    set them), as Ray does for its tasks. With two workers on 2 cores, each with pools of 2
+    threads whose idle threads spin, ten photos took 126 s instead of 94 s."""
+    before = size_thread_pools(threads)
     try:
         yield
     finally:
-        for k, v in saved.items():
+        for k, v in before.items():
             if v is None:
                 os.environ.pop(k, None)
             else:

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import pytest
 
+from rgbd_gt.threads import size_thread_pools
+
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("RGBD_GT_DATA", ROOT.parent / "shared" / "data"))
 
@@ -16,9 +18,7 @@ def _share_the_cores() -> None:
     (the same reason as `engine._thread_pools_of`). Set before anything imports torch or numpy."""
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     if workers > 1:
-        threads = str(max(1, (os.cpu_count() or 1) // workers))
-        for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-            os.environ.setdefault(name, threads)
+        size_thread_pools(max(1, (os.cpu_count() or 1) // workers))
 
 
 _share_the_cores()
