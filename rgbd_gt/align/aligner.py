@@ -412,12 +412,6 @@ class Aligner:
                 mine = [(T1, self._loss_at(judge, T1), h, info) for T1, _, h, info in mine]
             chosen.append(min(mine, key=lambda r: r[1]) if mine else None)
         chosen = self._descend(chosen, judge - 1, finest, iterations, progress)
-        if self.objective.second_pass and finest == 0 < judge < top:
-            # L-BFGS ends a level where its line search finds nothing lower, on the joint NID of
-            # many sparse sweeps often short of the minimum: levels 1-0 once more from the result
-            # (fresh curvature memory, the points seen there) bring the stragglers in (KITTI's
-            # joint results 0.056-0.074 deg off instead of up to 0.136; docs/lidar-method.md)
-            chosen = self._descend(chosen, judge, finest, iterations, progress)
         return [None if run is None else (run[0], run[2], run[3]) for run in chosen]
 
     def _loss_at(self, level: int, T: np.ndarray) -> float:

@@ -349,11 +349,6 @@ class Nid:
         self._prepared: list[list[torch.Tensor]] | None = None  # per level, per frame: point indices
         self._sky = [False] * len(frames)
 
-    @property
-    def second_pass(self) -> bool:
-        """Several frames of one rig (a joint solve) stop short of their minimum (`Aligner._searched`)."""
-        return len(self.frames) > 1
-
     def of_frames(self, keep: list[int], cfg: RefineConfig | None = None) -> "Nid":
         """The objective of the frames `keep` (indices) alone (with cfg, default this one's): the
         frames judged apart."""

@@ -29,7 +29,6 @@ class Objective(Protocol):
     name: str  # "photometric" | "nid": the pose file's `objective`
     method: str  # "lm" | "adam" | "lbfgs": how the driver minimises it
     wide_search: bool  # whether far spurious minima call for the coarse level's wide search
-    second_pass: bool  # L-BFGS: whether the finest levels run once more from the descent's result
     free: int  # how many of q are refined (0: none)
     centre: np.ndarray  # (3,) the local frame's origin in the scan frame, metres
     cfg: object  # align.config.RefineConfig

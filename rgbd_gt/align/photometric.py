@@ -237,7 +237,6 @@ class Photometric:
 
     name = "photometric"
     wide_search = False
-    second_pass = False
 
     def __init__(self, points: np.ndarray, colors: np.ndarray, pyramid: list[PhotoLevel], cfg: RefineConfig,
                  normals: np.ndarray | None = None):

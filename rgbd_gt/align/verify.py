@@ -112,8 +112,7 @@ def start_size(T_init: np.ndarray, T: np.ndarray, init_sigma: dict | None, view:
 
 
 def _coarsest(result: RefineResult) -> int:
-    """The coarsest pyramid level the result's refine ran (its `levels` may list a level twice:
-    a joint nid solve's second pass)."""
+    """The coarsest pyramid level the result's refine ran."""
     return max(lv["level"] for lv in result.levels)
 
 
