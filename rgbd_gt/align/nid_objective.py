@@ -97,9 +97,9 @@ class _Stack:
         return ok
 
 
-def _stack(images: list[torch.Tensor], valid: list[torch.Tensor | None] | None = None) -> _Stack:
+def _stack(images: list[torch.Tensor], valid: list[torch.Tensor | None] | None = None, border: float = 0.0) -> _Stack:
     """`_Stack` of F images (H, W, C_f), the channels each lacks zero; valid: their usable-pixel
-    masks (H, W) bool or None."""
+    masks (H, W) bool or None; border: `_Stack.border`."""
     c = max(img.shape[2] for img in images)
     flat = torch.cat([torch.nn.functional.pad(img, (0, c - img.shape[2])).reshape(-1, c) for img in images])
     sizes = torch.tensor([[img.shape[1], img.shape[0]] for img in images], device=flat.device)
@@ -108,7 +108,7 @@ def _stack(images: list[torch.Tensor], valid: list[torch.Tensor | None] | None =
     if valid is not None and any(m is not None for m in valid):
         mask = torch.cat([(torch.ones(img.shape[:2], dtype=torch.bool, device=flat.device) if m is None else m).reshape(-1)
                           for img, m in zip(images, valid)])
-    return _Stack(flat, base[:, None], sizes, mask)
+    return _Stack(flat, base[:, None], sizes, mask, border)
 
 
 def _padded(rows: list[torch.Tensor]) -> torch.Tensor:
@@ -168,7 +168,7 @@ def _joined(parts: list[_Parts]) -> _Parts:
         return _padded([row for part in parts for row in getattr(part, name)])
 
     def repeated(stack: _Stack) -> _Stack:
-        return _Stack(stack.flat, stack.base.repeat(G, 1), stack.size.repeat(G, 1), stack.valid, stack.border)
+        return replace(stack, base=stack.base.repeat(G, 1), size=stack.size.repeat(G, 1))
 
     first = parts[0]
     joined = _Parts(rows("points"), rows("real"), rows("windows"), repeated(first.images), first.K.repeat(G, 1),
@@ -383,8 +383,8 @@ class Nid:
             per_frame.append(idx[torch.argsort(self._keys[k][idx])])
         self._prepared = [[idx[: max(cfg.min_points, cfg.max_points // 4**level)] for idx in per_frame]
                           for level in range(len(self.frames[0].pyramid))]
-        self._stacks = [replace(_stack([images[level] for images in self._images], [f.pyramid[level].valid for f in self.frames]),
-                                border=BORDER_PX / 2**level)
+        self._stacks = [_stack([images[level] for images in self._images], [f.pyramid[level].valid for f in self.frames],
+                               BORDER_PX / 2**level)
                         for level in range(len(self._prepared))]
         self._images = None  # held once, in the stacks
         return len(self._prepared)
