@@ -73,16 +73,18 @@ class _Stack:
         1 cm short of the finest level's minimum (docs/lidar-method.md, "The photo's border")."""
         band = max(self.border, 1e-9)
 
-        def ramp(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:  # smoothstep of x / band
-            x = (x / band).clamp(0, 1)
-            return x * x * (3 - 2 * x), 6 * x * (1 - x) / band
+        def ramp(x: torch.Tensor, far: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            """Smoothstep of the distance to the nearer of two opposite borders (x from one, far
+            - x from the other), and its slope along x. The band is narrower than half the photo,
+            so the farther border's factor is exactly 1: the product of both, for half the work."""
+            other = far - x
+            s = (torch.minimum(x, other) / band).clamp(0, 1)
+            slope = 6 * s * (1 - s) / band
+            return s * s * (3 - 2 * s), torch.where(x <= other, slope, -slope)
 
-        w, h = self.size[:, 0:1], self.size[:, 1:2]
         u, v = uv[..., 0].double(), uv[..., 1].double()
-        (left, d_left), (right, d_right) = ramp(u), ramp(w - 1 - u)
-        (top, d_top), (bottom, d_bottom) = ramp(v), ramp(h - 1 - v)
-        across, down = left * right, top * bottom
-        return across * down, (d_left * right - left * d_right) * down, across * (d_top * bottom - top * d_bottom)
+        (across, d_across), (down, d_down) = ramp(u, self.size[:, 0:1] - 1), ramp(v, self.size[:, 1:2] - 1)
+        return across * down, d_across * down, across * d_down
 
     def on_photo(self, uv: torch.Tensor, z: torch.Tensor, near: float) -> torch.Tensor:
         """(F, n) bool: points (pixels uv (F, n, 2), depths z (F, n)) at least `near` metres in
