@@ -75,8 +75,9 @@ class _Stack:
 
         def ramp(x: torch.Tensor, far: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
             """Smoothstep of the distance to the nearer of two opposite borders (x from one, far
-            - x from the other), and its slope along x. The band is narrower than half the photo,
-            so the farther border's factor is exactly 1: the product of both, for half the work."""
+            - x from the other), and its slope along x. Where the band is narrower than half the
+            level's photo (KITTI's coarsest: 0.25 of 23 px) the farther factor is exactly 1, so
+            this is the product of both for half the work."""
             other = far - x
             s = (torch.minimum(x, other) / band).clamp(0, 1)
             slope = 6 * s * (1 - s) / band
