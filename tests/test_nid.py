@@ -460,7 +460,7 @@ def test_search_results_are_judged_on_a_finer_level():
     """pjlab_3, two of the benchmark's inits 1 deg / 10 cm off (docs/lidar.md) where the search
     result of lowest NID on the coarsest level (1/16 scale) lay in a wrong basin: taken alone it
     ended 1.7 and 0.36 deg off (and from an init 1e-6 away from the first, right: near ties at that
-    scale). With the best three carried down to level 2 and judged on level 1's points, both end at NID's
+    scale). With the best three carried down to level 1 and judged there, both end at NID's
     minimum near the reference (docs/lidar-method.md, "Which search result goes on")."""
     from rgbd_gt.align.refine import RefineInputs, make_aligner
     from benchmarks.lidar import init_poses, pjlab_scene

@@ -394,25 +394,24 @@ class Aligner:
                   progress: Callable[[dict], None] | None) -> list[tuple | None]:
         """L-BFGS coarse to fine after the wide search (cfg.search_starts, for objectives with
         `wide_search`), from each pose of Ts in lockstep. The coarsest level's loss ranks the
-        search's results poorly (at 1/16 scale a wrong basin can score lower), and so does level
-        2's: each of the best few descends to level 2, the lowest loss on level 1's points at its
-        result there goes on alone (docs/lidar-method.md, "Which search result goes on"). Returns
-        per pose of Ts (pose, history records, per-level iterations and stop reasons), None where
-        every run lost the scan."""
+        search's results poorly (at 1/16 scale a wrong basin can score lower): each of the best
+        few goes on to level 1 and the lowest loss at its result there wins (docs/lidar-method.md,
+        "Which search result goes on"). Returns per pose of Ts (pose, history records, per-level
+        iterations and stop reasons), None where every run lost the scan."""
         search = self.objective.wide_search and self.cfg.search_starts > 0
         candidates = self._search(top, Ts) if search else [[T] for T in Ts]
         judge = max(finest, min(1, top))
-        runs = iter(self._descend([(c, math.inf, [], []) for group in candidates for c in group], top, judge + 1,
+        runs = iter(self._descend([(c, math.inf, [], []) for group in candidates for c in group], top, judge,
                                   iterations, progress))
         chosen = []
         for group in candidates:
             mine = [run for run in (next(runs) for _ in group) if run is not None]
             if len(mine) > 1:
-                # on the judging level's points as each result sees them, not on those its own
-                # level began with: KITTI's joint draw 7 from 3 deg otherwise picked one 5.9 deg off
+                # a run's own loss is on the points it saw where the level began, which a candidate
+                # that moved far no longer sees so: KITTI's joint draw 7 from 3 deg picked one 5.9 deg off
                 mine = [(T1, self._loss_at(judge, T1), h, info) for T1, _, h, info in mine]
             chosen.append(min(mine, key=lambda r: r[1]) if mine else None)
-        chosen = self._descend(chosen, judge, finest, iterations, progress)
+        chosen = self._descend(chosen, judge - 1, finest, iterations, progress)
         return [None if run is None else (run[0], run[2], run[3]) for run in chosen]
 
     def _loss_at(self, level: int, T: np.ndarray) -> float:

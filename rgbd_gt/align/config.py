@@ -146,7 +146,7 @@ class RefineConfig:
     search_rotation_deg: float = 3.0  # ... turned this much ...
     search_translation_m: float = 0.2  # ... and moved this much from the init
     search_iterations: int = 10  # ... for at most this many iterations each ...
-    search_keep: int = 3  # ... and this many of lowest NID go on to level 2; the lowest NID on level 1 there goes on
+    search_keep: int = 3  # ... and this many of lowest NID go on to level 1, where the lowest NID wins
     # photometric, lm: also refine the camera (camera.INTRINSICS): none | focal |
     # focal+principal | focal+principal+k1k2 | full (k1 k2 p1 p2 k3)
     refine_intrinsics: str = "none"
