@@ -164,6 +164,20 @@ def test_lockstep_lbfgs_takes_each_starts_own_steps():
         x, n_iter = lbfgs.minimize(lambda x: (rosenbrock(x), gradient(x)), x0s[i], 40)
         assert together[i][1] == n_iter and np.array_equal(together[i][0], x)
 
+    # a start stops where its next quasi-Newton step is small (`small`: the aligner's stop
+    # thresholds), on the way the full run takes and near the minimum at (1, ..., 1)
+    full = lbfgs.minimize_many(batched, x0s, 200)
+    steps: dict[int, list] = {0: [], 1: [], 3: []}
+
+    def small(k, d):
+        steps[k].append(np.abs(d).max())
+        return steps[k][-1] < 1e-3
+
+    early = lbfgs.minimize_many(batched, x0s, 200, small)
+    for i in (0, 1, 3):
+        assert early[i][1] == len(steps[i]) < full[i][1] and steps[i][-1] < 1e-3 <= min(steps[i][:-1])
+        assert np.abs(early[i][0] - 1).max() < 1e-2 and np.abs(full[i][0] - 1).max() < 1e-5
+
 
 def test_lockstep_groups_hold_at_most_their_points():
     """The starts of a level are dealt into lockstep groups of bounded size (the joined arrays of a

@@ -346,7 +346,11 @@ class Aligner:
             slope = units[which] * (1 - torch.tanh(units[which] * x / cap[which]) ** 2)
             return values, (gradients * slope).cpu().numpy()
 
-        found = lbfgs.minimize_many(objective, np.zeros((len(Ts), 6)), iterations)
+        # a step moves the pose by at most units x step (tanh's slope is at most 1): the run stops
+        # as LM's does, once that is below the stop thresholds (its last ~third moved < 0.1 mm on KITTI)
+        sizes = units.cpu().numpy()
+        found = lbfgs.minimize_many(objective, np.zeros((len(Ts), 6)), iterations,
+                                    lambda k, step: self._converged(sizes[k] * step, level))
         return [None if f is None else
                 (apply_update(Ts[k], update(torch.tensor(f[0][None], device=self.device), [k])[0].cpu().numpy()), f[1])
                 for k, f in enumerate(found)]

@@ -14,6 +14,7 @@ batched call pays once for all starts.
 """
 from __future__ import annotations
 
+import functools
 from typing import Callable, Generator
 
 import numpy as np
@@ -120,12 +121,15 @@ def minimize(fun: Objective, x0: np.ndarray, max_iter: int) -> tuple[np.ndarray,
         return done.value
 
 
-def minimize_many(fun: Objectives, x0s: np.ndarray, max_iter: int) -> list[tuple[np.ndarray, int] | None]:
+def minimize_many(fun: Objectives, x0s: np.ndarray, max_iter: int,
+                  small: Callable[[int, np.ndarray], bool] | None = None) -> list[tuple[np.ndarray, int] | None]:
     """`minimize` from each start of x0s (B, n) in lockstep: each round, fun evaluates every
     unfinished start's pending point in one call (`Objectives`). A start whose value is not finite
-    drops out. Returns per start (x, iterations), or None for one that dropped out; each start's
-    iterates are those `minimize` takes from it alone, given the same values."""
-    runs = [_minimizer(x0, max_iter) for x0 in x0s]
+    drops out; one stops where small(start, d) holds for its next quasi-Newton step d (n,)
+    (default: never).
+    Returns per start (x, iterations), or None for one that dropped out; each start's iterates
+    are those `minimize` takes from it alone, given the same values."""
+    runs = [_minimizer(x0, max_iter, None if small is None else functools.partial(small, k)) for k, x0 in enumerate(x0s)]
     pending = {i: next(run) for i, run in enumerate(runs)}
     out: list[tuple[np.ndarray, int] | None] = [None] * len(runs)
     while pending:
@@ -142,9 +146,10 @@ def minimize_many(fun: Objectives, x0s: np.ndarray, max_iter: int) -> list[tuple
     return out
 
 
-def _minimizer(x0: np.ndarray, max_iter: int, tolerance_grad: float = 1e-9, tolerance_change: float = 1e-9,
-               history_size: int = 100) -> Steps:
-    """`minimize`'s algorithm as a generator (`Steps`); returns (x, iterations)."""
+def _minimizer(x0: np.ndarray, max_iter: int, small: Callable[[np.ndarray], bool] | None = None,
+               tolerance_grad: float = 1e-9, tolerance_change: float = 1e-9, history_size: int = 100) -> Steps:
+    """`minimize`'s algorithm as a generator (`Steps`), stopping where small(d) holds for the
+    quasi-Newton step d (n,) it would search along next (default: never); returns (x, iterations)."""
     max_eval = max_iter * 5 // 4
     x = np.array(x0, dtype=np.float64)
     f, g = yield x
@@ -175,6 +180,8 @@ def _minimizer(x0: np.ndarray, max_iter: int, tolerance_grad: float = 1e-9, tole
             d = q * h_diag
             for i in range(len(dirs)):
                 d = d + (alpha[i] - float(dirs[i] @ d) * rho[i]) * steps[i]
+            if small is not None and small(d):  # the quasi-Newton step to the minimum, as LM's update
+                return x, n_iter - 1
         g_prev, f_prev = g, f
         t = min(1.0, 1.0 / float(np.abs(g).sum())) if n_iter == 1 else 1.0
         gtd = float(g @ d)
