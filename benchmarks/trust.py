@@ -172,11 +172,16 @@ def synthetic_cases(folder: Path, seeds: list[int], other_photo: np.ndarray | No
 
 def lidar_cases(folder: Path, rng: np.random.Generator, per_scene: int = 3) -> Iterator[TrustCase]:
     from benchmarks.lidar import pjlab_scenes
+    from rgbd_gt.scan import scan_colors
 
     for sc in pjlab_scenes(folder):
         for k in range(per_scene):
-            yield TrustCase(f"lidar {sc.name} #{k}", "lidar", "lidar", sc.scan, sc.colors, sc.photo, sc.camera,
-                            perturbed(sc.T_ref, rng, 1.0, 0.10), sc.T_ref)
+            T_init = perturbed(sc.T_ref, rng, 1.0, 0.10)
+            # refine's own points: those in view of the init, from the prepared sweep, which carries
+            # the ring steps that the ring-edge term and check need (the loaded sweep has none)
+            view = sc.prepared.views(sc.camera, [T_init])
+            yield TrustCase(f"lidar {sc.name} #{k}", "lidar", "lidar", view, scan_colors(view), sc.photo, sc.camera,
+                            T_init, sc.T_ref)
 
 
 def wrong_camera_cases(icl: Path | None, synth_dir: Path, seeds: list[int]) -> Iterator[TrustCase]:
