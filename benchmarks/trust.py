@@ -177,8 +177,8 @@ def lidar_cases(folder: Path, rng: np.random.Generator, per_scene: int = 3) -> I
     for sc in pjlab_scenes(folder):
         for k in range(per_scene):
             T_init = perturbed(sc.T_ref, rng, 1.0, 0.10)
-            # refine's own points: those in view of the init, from the prepared sweep, which carries
-            # the ring steps that the ring-edge term and check need (the loaded sweep has none)
+            # what refine takes: the points in view of the init, from the prepared sweep (where a
+            # sweep in ring order gets the ring steps of the ring-edge term and check)
             view = sc.prepared.views(sc.camera, [T_init])
             yield TrustCase(f"lidar {sc.name} #{k}", "lidar", "lidar", view, scan_colors(view), sc.photo, sc.camera,
                             T_init, sc.T_ref)
