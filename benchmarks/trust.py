@@ -171,17 +171,15 @@ def synthetic_cases(folder: Path, seeds: list[int], other_photo: np.ndarray | No
 
 
 def lidar_cases(folder: Path, rng: np.random.Generator, per_scene: int = 3) -> Iterator[TrustCase]:
-    from benchmarks.lidar import pjlab_scenes
-    from rgbd_gt.scan import scan_colors
+    from benchmarks.lidar import pjlab_scenes, refine_inputs
 
     for sc in pjlab_scenes(folder):
         for k in range(per_scene):
-            T_init = perturbed(sc.T_ref, rng, 1.0, 0.10)
             # what refine takes: the points in view of the init, from the prepared sweep (where a
             # sweep in ring order gets the ring steps of the ring-edge term and check)
-            view = sc.prepared.views(sc.camera, [T_init])
-            yield TrustCase(f"lidar {sc.name} #{k}", "lidar", "lidar", view, scan_colors(view), sc.photo, sc.camera,
-                            T_init, sc.T_ref)
+            inputs = refine_inputs(sc, perturbed(sc.T_ref, rng, 1.0, 0.10))
+            yield TrustCase(f"lidar {sc.name} #{k}", "lidar", "lidar", inputs.scan, inputs.colors, sc.photo, sc.camera,
+                            inputs.T_init, sc.T_ref)
 
 
 def wrong_camera_cases(icl: Path | None, synth_dir: Path, seeds: list[int]) -> Iterator[TrustCase]:
