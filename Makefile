@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml scripts/setup.sh
 demo: $(STAMP)
 	@bash scripts/demo.sh
 
-# on every core (pytest-xdist; tests/conftest.py shares the cores out): 14-15 min on 2 cores, 23 in one process
+# on every core (pytest-xdist; tests/conftest.py shares the cores out): 10-14 min on 2 cores (the machine's day decides)
 test: $(STAMP)
 	$(PY) -m pytest -q -n auto --dist worksteal
 
