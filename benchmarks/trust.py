@@ -6,9 +6,9 @@ another scene, the photo mirrored, its tiles shuffled, the init 20-50 cm and 5-1
 scan cropped to a sliver of the photo, most of the photo masked, the real LiDAR scenes wherever
 refine lands more than 0.3 deg from the reference, and right photos refined with a camera file
 1-3% off in focal length (issue 48: the blind spot of a verdict that trusts the camera file), as
-are KITTI's and Waymo's drives solved as one rig, as `run` solves them. Cases whose outcome decides the label
-(far inits, slivers, masks) are right or wrong by the same rules; between the two they are left
-out. Every third case is held out of the threshold choice and reported apart.
+are KITTI's and Waymo's drives solved as one rig, as `run` solves them. Cases whose outcome
+decides the label (far inits, slivers, masks) are right or wrong by the same rules; between the
+two they are left out. Every third case is held out of the threshold choice and reported apart.
 """
 
 from __future__ import annotations
@@ -271,7 +271,7 @@ def collect(data: Path, work: Path, log: Callable[[str], None] = print, seeds=(0
     if (data / "lidar_camera").is_dir():
         sources.append(lidar_cases(data / "lidar_camera", rng))
     sources.append(wrong_camera_cases(icl if icl.is_dir() else None, synth_dir, list(seeds)))
-    if (data / "lidar_camera").is_dir():
+    if (data / "lidar_camera").is_dir():  # last: the cases before keep their held-out thirds
         sources.append(drive_camera_cases(data / "lidar_camera"))
     records = []
     for source in sources:
