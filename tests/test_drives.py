@@ -270,6 +270,34 @@ def test_a_dense_sweep_is_judged_by_its_ring_edges_not_its_splats(room_sweep, tm
     assert scores["ring_edge_ratio"] < cfg.ring_edge_ratio_failed <= cfg.edge_ratio_failed <= scores["edge_ratio"], scores
 
 
+def test_a_sweep_states_how_far_an_unchecked_focal_moves_it(room_sweep, tmp_path):
+    """NID cannot free the focal length, so a sweep's result gets no camera check; its evidence
+    says instead how far a focal 1 % off moves the pose along the camera's axis (10 x the points'
+    median depth, mm). The synthetic room with its camera file 2 % long: the pose slides along
+    the axis by that order (measured 0.64 of it; KITTI and Waymo 0.9-1.0 at 1 %), and hardly
+    anywhere else."""
+    from dataclasses import replace
+
+    from rgbd_gt.io import read_camera, read_pose, write_camera, write_pose
+
+    d = room_sweep
+    truth = read_pose(d / "truth.yaml")[0]
+    camera = read_camera(d / "camera.yaml")
+    write_camera(tmp_path / "long.yaml", replace(camera, fx=camera.fx * 1.02, fy=camera.fy * 1.02))
+    write_pose(tmp_path / "init.yaml", apply_update(truth, np.r_[0.01, -0.01, 0.005, 0.03, -0.02, 0.02]), method="test")
+    proc = run_cli("refine", "--scan", d / "sweep.ply", "--image", d / "photo.png", "--camera", tmp_path / "long.yaml",
+                   "--init", tmp_path / "init.yaml", "-o", tmp_path / "refined.yaml")
+    assert proc.returncode == 0, proc.stderr
+    T, meta = read_pose(tmp_path / "refined.yaml")
+    ev = meta["evidence"]
+    assert "camera" not in ev and "not checked (nid)" in proc.stdout
+    per_percent = ev["camera_unchecked"]["axis_mm_per_focal_percent"]
+    assert 20 < per_percent < 60, per_percent  # the room's walls stand 2-6 m from the camera
+    shift = (T @ np.linalg.inv(truth))[:3, 3] * 1e3  # mm, camera frame
+    assert 0.4 * 2 * per_percent < shift[2] < 1.2 * 2 * per_percent, (shift, per_percent)
+    assert np.hypot(shift[0], shift[1]) < 0.2 * shift[2], shift
+
+
 def test_leave_one_out_steps_are_the_minima_without_each_frame():
     """Frames with quadratic shares of known minima m_f and curvatures A_f: the minimum of the
     sum is the curvature-weighted mean of the m_f; each frame left out, the others' weighted mean;
