@@ -274,7 +274,7 @@ def test_a_sweep_states_how_far_an_unchecked_focal_moves_it(room_sweep, tmp_path
     """NID cannot free the focal length, so a sweep's result gets no camera check; its evidence
     says instead how far a focal 1 % off moves the pose along the camera's axis (10 x the points'
     median depth, mm). The synthetic room with its camera file 2 % long: the pose slides along
-    the axis by that order (measured 0.64 of it; KITTI and Waymo 0.8-1.0 at 1 %), and hardly
+    the axis by that order (measured 0.64 of it; KITTI and Waymo 0.9-1.0 at 1 %), and hardly
     anywhere else."""
     from dataclasses import replace
 

@@ -201,6 +201,10 @@ class Aligner:
         """(n, 3) float64 scan-frame points of the finest level visible at pose T."""
         return self.objective.visible_scan_points(self._local(T), self._q(intrinsics)) + self.objective.centre
 
+    def median_depth(self, T: np.ndarray) -> float:
+        """Median depth (m) of the points in view at pose T over all frames (`Nid.median_depth`)."""
+        return self.objective.median_depth(self._local(T))
+
     def ring_edge_check(self, T: np.ndarray, shift_px: float) -> dict | None:
         """The objective's image check of a sweep at pose T (`Nid.ring_edge_check`), or None."""
         check = getattr(self.objective, "ring_edge_check", None)

@@ -655,6 +655,12 @@ class Nid:
         parts = self._parts(0, T_local)
         return parts.points[0][parts.real[0]].double().cpu().numpy()
 
+    def median_depth(self, T_local: np.ndarray) -> float:
+        """Median depth (m) of all frames' finest-level points visible at T_local."""
+        parts = self._parts(0, T_local)
+        R, t = self._pose(T_local)
+        return float((parts.points @ R.T + t)[..., 2][parts.real].median())
+
     def frame_quadratics(self, level: int, T_local: np.ndarray, terms: "NidTerms") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each frame's share of the objective (`_Evaluation.per_frame`, its weights those of
         `terms`, the evaluation at T_local) as a quadratic in the pose update measured in steps of
