@@ -468,10 +468,11 @@ def verify(aligner: Aligner, result: RefineResult, T_init: np.ndarray, camera: C
                                  result.intrinsics)
 
     if cfg.camera_check:
-        camera_ev = timed("camera", camera_check, aligner, result, view, cfg, shared_camera)
-        if camera_ev is not None:
-            ev["camera"] = camera_ev
-        elif not hasattr(aligner.objective, "freeing"):
+        if hasattr(aligner.objective, "freeing"):
+            camera_ev = timed("camera", camera_check, aligner, result, view, cfg, shared_camera)
+            if camera_ev is not None:
+                ev["camera"] = camera_ev
+        else:
             # NID cannot free the focal, and a file about 1 % off passes as `ok`: say how far that
             # moves the pose along the axis, about the focal's error times the median depth of all
             # frames' points (KITTI, Waymo: docs/trust-method.md, "What the verdict does not cover")
