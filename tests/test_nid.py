@@ -583,8 +583,11 @@ def test_calibration_text_files(tmp_path):
             read_pose(path) if "short" in path.name else read_camera(path, (10, 10))
     with pytest.raises(Exception, match="no image size"):
         read_camera(pjlab)
-    with pytest.raises(Exception, match="outside the 960x600 photo"):  # a half-size photo
+    with pytest.raises(InputError, match="outside the middle half of the 960x600 photo"):  # a half-size photo
         read_camera(pjlab, (960, 600))
+    # KITTI's K on a Waymo-size photo: the principal point lies inside it, at 14 % of its height
+    with pytest.raises(InputError, match=r"\(at 48% of its width, 14% of its height\)"):
+        read_camera(kitti, (1242, 1280))
 
 
 # KITTI object detection, training/calib/000000.txt (the 2011_09_26 calibration), as shipped

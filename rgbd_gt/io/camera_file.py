@@ -162,11 +162,15 @@ def read_camera(path: str | os.PathLike,
             raise InputError("this camera file has no image size: give the photo too (export-depth: --image) or "
                              "write a camera YAML", path)
         cam = read(size() if callable(size) else size)
-        # the photo's size is taken on trust here: a principal point outside it gives a resized
-        # or another camera's photo away
-        if not (0 < cam.cx < cam.width and 0 < cam.cy < cam.height):
-            raise InputError(f"the principal point ({cam.cx:g}, {cam.cy:g}) lies outside the {cam.width}x{cam.height} "
-                             "photo: is this file for that photo (a resized photo needs K scaled)?", path)
+        # the photo's size is taken on trust here. Lenses put the principal point within a few
+        # percent of the centre, so one outside the middle half gives a resized photo or another
+        # camera's away (KITTI's K on a Waymo photo: cy at 14 % of its height)
+        at = np.array([cam.cx / cam.width, cam.cy / cam.height])
+        if np.abs(at - 0.5).max() >= 0.25:
+            raise InputError(f"the principal point ({cam.cx:g}, {cam.cy:g}) lies outside the middle half of the "
+                             f"{cam.width}x{cam.height} photo (at {at[0]:.0%} of its width, {at[1]:.0%} of its height): "
+                             "is this file for that photo (a resized photo needs K scaled)? A photo cropped off its "
+                             "centre needs a camera YAML with its size", path)
         return cam
 
     path = require_file(path)
