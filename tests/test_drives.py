@@ -454,6 +454,21 @@ def test_one_sweep_alone_is_warned_about(tmp_path):
     assert any("--pairs" in w for w in read_pose(out)[1]["warnings"])
 
 
+
+def test_another_drives_camera_file_is_refused(tmp_path):
+    """gt.json holds no image size, so the photo gives it: KITTI's K on a Waymo photo (its principal
+    point inside the photo, but at 14 % of its height) is one line of error, exit 2, and no output."""
+    from conftest import assert_one_line_error
+
+    kitti, waymo = DRIVES / "kitti_00", DRIVES / "waymo"
+    if not ((kitti / "gt.json").exists() and (waymo / "gt.json").exists()):
+        pytest.skip(f"needs {kitti} and {waymo} (../shared/data, see its README)")
+    out = tmp_path / "pose.yaml"
+    proc = run_cli("refine", "--scan", kitti / "pcd" / "000000.pcd", "--image", waymo / "img" / "00000.jpg",
+                   "--camera", kitti / "gt.json", "--init", kitti / "gt.json", "-o", out)
+    assert_one_line_error(proc, "gt.json", "middle half of the 1920x1280 photo")
+    assert not out.exists()
+
 def test_run_solves_a_drives_frames_as_one_rig(tmp_path):
     """`rgbd-gt run` on a site of 4 KITTI sweeps, a photo each, sharing the config's init (0.3
     deg and 5 cm off the reference) and camera: the sweeps are one rig's frames by default, so
