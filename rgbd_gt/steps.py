@@ -58,7 +58,7 @@ def open_photo(image: PathLike, camera: PathLike | Camera, mask: PathLike | None
     from rgbd_gt.io.image import read_image, read_mask
 
     photo = read_image(image, to_align=to_align)
-    cam = camera if isinstance(camera, Camera) else read_camera(camera, (photo.shape[1], photo.shape[0]))
+    cam = camera if isinstance(camera, Camera) else read_camera(camera, (photo.shape[1], photo.shape[0]), image)
     check_image_matches(cam, photo.shape, image, camera_path if isinstance(camera, Camera) else camera)
     ignore = read_mask(mask, photo.shape[:2]) if mask is not None else None
     return Photo(photo, cam, ignore)

@@ -226,7 +226,7 @@ def job_camera(job: ScanJob):
     from rgbd_gt.io import read_camera
     from rgbd_gt.io.image import read_image
 
-    return read_camera(job.camera, lambda: read_image(job.photos[0]).shape[1::-1])
+    return read_camera(job.camera, lambda: read_image(job.photos[0]).shape[1::-1], job.photos[0])
 
 
 def board_spec(b: BoardConfig):

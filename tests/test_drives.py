@@ -466,7 +466,7 @@ def test_another_drives_camera_file_is_refused(tmp_path):
     out = tmp_path / "pose.yaml"
     proc = run_cli("refine", "--scan", kitti / "pcd" / "000000.pcd", "--image", waymo / "img" / "00000.jpg",
                    "--camera", kitti / "gt.json", "--init", kitti / "gt.json", "-o", out)
-    assert_one_line_error(proc, "gt.json", "36% of the 1920x1280 photo's size from its centre")
+    assert_one_line_error(proc, "gt.json", "36% of the photo's size from the centre of the 1920x1280 photo", "00000.jpg")
     assert not out.exists()
 
 def test_run_solves_a_drives_frames_as_one_rig(tmp_path):

@@ -583,12 +583,12 @@ def test_calibration_text_files(tmp_path):
             read_pose(path) if "short" in path.name else read_camera(path, (10, 10))
     with pytest.raises(Exception, match="no image size"):
         read_camera(pjlab)
-    with pytest.raises(InputError, match="of the 960x600 photo's size from its centre"):  # a half-size photo
+    with pytest.raises(InputError, match="from the centre of the 960x600 photo"):  # a half-size photo
         read_camera(pjlab, (960, 600))
-    with pytest.raises(InputError, match="25% of the 3840x2400 photo's size"):  # enlarged twice: inside it, off its middle
+    with pytest.raises(InputError, match="25% of the photo's size from the centre of the 3840x2400 photo"):  # enlarged twice: inside it, off its middle
         read_camera(pjlab, (3840, 2400))
     # KITTI's K on a Waymo-size photo: the principal point lies inside it, at 14 % of its height
-    with pytest.raises(InputError, match=r"36% of the 1242x1280 photo's size from its centre \(at 48% of its width, 14% of its height"):
+    with pytest.raises(InputError, match=r"36% of the photo's size from the centre of the 1242x1280 photo \(at 48% of its width, 14% of its height"):
         read_camera(kitti, (1242, 1280))
 
 

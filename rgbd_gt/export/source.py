@@ -113,7 +113,7 @@ def _run_sources(folder: Path, record: dict, stale_missing: bool, file_keys: dic
                 raise stale
             if pose.is_file() and stale is None:
                 if camera is None:  # a calibration text or JSON file has no size: the photos' (as run's job_camera)
-                    camera = read_camera(camera_file, lambda: read_image(image).shape[1::-1])
+                    camera = read_camera(camera_file, lambda: read_image(image).shape[1::-1], image)
                 photos.append(_shot(image.stem, image, camera, "camera", pose, sigma))
             else:
                 missing[image.stem] = errors.get(image.name) or entry.get("error") or str(stale or "no refined pose")

@@ -144,7 +144,8 @@ def _read_livox(path: Path, camera: dict, size: tuple[int, int]) -> Camera:
 
 
 def read_camera(path: str | os.PathLike,
-                size: tuple[int, int] | Callable[[], tuple[int, int]] | None = None) -> Camera:
+                size: tuple[int, int] | Callable[[], tuple[int, int]] | None = None,
+                photo: str | os.PathLike | None = None) -> Camera:
     """Read a camera file: the project's YAML (width, height, fx, fy, cx, cy[, distortion]),
     ROS camera_info YAML (image_width, image_height, camera_matrix.data, distortion_coefficients.data),
     Kalibr's camchain YAML of one camera (cam0: intrinsics, resolution, distortion_coeffs), an
@@ -152,7 +153,7 @@ def read_camera(path: str | os.PathLike,
     Autoware's CameraMat, DistCoeff, ImageSize), or one without an image size: a calibration text file (`io.calib_txt`: K and D lines),
     koide3's calib.json (`io.calib_json`) or livox_camera_calib's calib.yaml (camera.camera_matrix,
     camera.dist_coeffs). size: the photo's (width, height), or a function that gives it, for the
-    files without one.
+    files without one; photo: that photo's file, named in the messages.
     """
     from rgbd_gt.io.calib_json import is_calib_json, read_json_camera
     from rgbd_gt.io.calib_txt import is_calib_txt, read_calib_camera
@@ -167,12 +168,13 @@ def read_camera(path: str | os.PathLike,
         # another camera's away (KITTI's K on a Waymo photo: 36 %; PJLab's on its photo enlarged
         # twice: 25 %)
         at = np.array([cam.cx / cam.width, cam.cy / cam.height])
-        if np.abs(at - 0.5).max() > 0.2:
-            raise InputError(f"the principal point ({cam.cx:g}, {cam.cy:g}) lies {np.abs(at - 0.5).max():.0%} of the "
-                             f"{cam.width}x{cam.height} photo's size from its centre (at {at[0]:.0%} of its width, "
-                             f"{at[1]:.0%} of its height; lenses keep it within 20 %): is this file for that photo (a "
-                             "resized photo needs K scaled)? A photo cropped off its centre needs a camera YAML with "
-                             "its size", path)
+        off = np.abs(at - 0.5).max()
+        if off > 0.2:
+            named = f"the {cam.width}x{cam.height} photo" + (f" {photo}" if photo else "")
+            raise InputError(f"the principal point ({cam.cx:g}, {cam.cy:g}) lies {off:.0%} of the photo's size from the "
+                             f"centre of {named} (at {at[0]:.0%} of its width, {at[1]:.0%} of its height; lenses keep "
+                             "it within 20 %): is this file for that photo (a resized photo needs K scaled)? A photo "
+                             "cropped off its centre needs a camera YAML with its size", path)
         return cam
 
     path = require_file(path)
