@@ -82,8 +82,11 @@ class SynthConfig:
         if not (2 <= self.board_cols <= 50 and 2 <= self.board_rows <= 50 and 0 < self.square_m <= 0.5
                 and self.texel_m > 0):
             raise ValueError("board_cols and board_rows 2..50, square_m in (0, 0.5], texel_m positive")
-        if self.range_noise_m < 0 or self.scan_margin_deg < 0 or self.max_layout_tries < 1 or not 0 <= self.scanner_color_blur_cells <= 10:
-            raise ValueError("range_noise_m and scan_margin_deg 0 or more, max_layout_tries at least 1, "
+        # a margin past 90 deg on every side adds nothing a scanner sees but grid rows and columns
+        # (1e12 deg asked for a grid no memory holds)
+        if self.range_noise_m < 0 or not 0 <= self.scan_margin_deg <= 90 or self.max_layout_tries < 1 \
+                or not 0 <= self.scanner_color_blur_cells <= 10:
+            raise ValueError("range_noise_m 0 or more, scan_margin_deg 0..90, max_layout_tries at least 1, "
                              "scanner_color_blur_cells 0..10")
         return self
 
