@@ -1,3 +1,6 @@
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -275,6 +278,20 @@ def test_kalibr_camchain(tmp_path):
     if scene.exists():  # without k3 the depth map differs from calib.txt's at the photo's border
         path.write_text(camchain())
         assert (_pjlab3_depth(tmp_path, "--camera", path, "--pose", path) > 0).sum() > 5000
+
+
+def test_a_matrix_without_its_cols_is_refused_before_opencv_reads_it(tmp_path):
+    """cv2 5.0 reads a matrix's data into a buffer of rows x cols before it compares the counts:
+    an extrinsic without its `cols` line (the fuzz's) corrupted the heap, and the process aborted
+    or segfaulted later, at random (at exit: 134 or 139). The counts are checked first now."""
+    path = tmp_path / "extrinsic.yaml"
+    path.write_text("%YAML:1.0\nExtrinsicMat: !!opencv-matrix\n  rows: 4\n  dt: d\n  data: " + str(list(range(16))) + "\n")
+    code = ("import sys, rgbd_gt.io\n"
+            "try:\n    rgbd_gt.io.read_pose(sys.argv[1])\n"
+            "except rgbd_gt.errors.InputError as exc:\n    print(exc)\n")
+    proc = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, (proc.returncode, proc.stderr)
+    assert proc.stdout.strip().endswith("not a readable OpenCV calibration file (a matrix lacks its rows or cols)")
 
 
 @pytest.mark.parametrize(

@@ -26,7 +26,8 @@ def is_opencv_file(path: Path, text: str) -> bool:
 # OpenCV's failed checks in reading a matrix, in words
 OPENCV_CHECKS = {"nelems": "a matrix's data does not hold rows x cols values",
                  "sizes_node": "a matrix lacks its rows or cols",
-                 "readRawData": "a matrix's data is not a list of numbers"}
+                 "readRawData": "a matrix's data is not a list of numbers",
+                 "dt.empty": "a matrix lacks its dt (the type of its values)"}
 
 
 def opencv_nodes(path: Path, names: tuple[str, ...]) -> dict[str, np.ndarray | float | str | None]:
@@ -35,9 +36,21 @@ def opencv_nodes(path: Path, names: tuple[str, ...]) -> dict[str, np.ndarray | f
     or of another kind; OpenCV's errors as one InputError."""
     import cv2
 
+    def matrix(node):
+        # counted before node.mat(): cv2 5.0 writes a matrix's data into a buffer of rows x cols
+        # before it compares the counts, so a matrix without its cols corrupted the heap (an abort
+        # or a segfault later, at random: the fuzz's "line 4 removed (cols)")
+        rows, cols, dt, data = (node.getNode(k) for k in ("rows", "cols", "dt", "data"))
+        if not (rows.isInt() and cols.isInt() and rows.real() >= 1 and cols.real() >= 1):
+            raise InputError(f"not a readable OpenCV calibration file ({OPENCV_CHECKS['sizes_node']})", path)
+        channels = int(re.match(r"\d*", dt.string() if dt.isString() else "").group() or 1)
+        if not data.isSeq() or data.size() != rows.real() * cols.real() * channels:
+            raise InputError(f"not a readable OpenCV calibration file ({OPENCV_CHECKS['nelems']})", path)
+        return node.mat()
+
     def value(node):
         if node.isMap():  # an !!opencv-matrix
-            return node.mat()
+            return matrix(node)
         if node.isSeq():  # Autoware's ImageSize: [w, h]
             items = [node.at(i) for i in range(node.size())]
             return np.array([i.real() for i in items]) if all(i.isReal() or i.isInt() for i in items) else None
