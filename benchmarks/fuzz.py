@@ -496,10 +496,21 @@ def templates(seeds: dict[str, Path]) -> list[dict]:
     return t
 
 
+PHOTOS = ("photo", "jpg", "kitti_png", "board_jpg")  # the seeds that are photos
 READ_BY_EXPORT = {"run.json", "bundle.json", "pose.yaml", "init.yaml", "rig.yaml", "camera.yaml", "intrinsics.json"}  # of a run's files
 NEVER_VALID = ("nan", "inf", "-inf", "abc", "", "0x10", "1,2")  # of ODD_ARGS, what no option takes
 UNBOUNDED = ("--max-depth",)  # a distance with no upper bound: 1e20 m means no limit, as 0 does
 ODD_ARGS = ["nan", "inf", "-inf", "-1", "0", "abc", "", "1e308", "-0", "99999999999999999999", "0x10", "1,2"]
+
+
+def other_photos(seeds: dict[str, Path], photo: Path) -> list[Path]:
+    """The seeds' photos of another size than `photo`."""
+    import cv2
+
+    def size(p: Path):
+        return cv2.imread(str(p), cv2.IMREAD_UNCHANGED).shape[:2]
+
+    return [p for k, p in seeds.items() if k in PHOTOS and p != photo and size(p) != size(photo)]
 
 
 def make_trial(k: int, tpls: list[dict], seeds: dict[str, Path], root: Path, rng: random.Random) -> Trial:
@@ -521,7 +532,16 @@ def make_trial(k: int, tpls: list[dict], seeds: dict[str, Path], root: Path, rng
         i = rng.choice(tpl["slots"])
         src = Path(argv[i])
         dst = folder / ("in_" + src.name)
-        if src.is_dir():  # a finished run: a copy with one of the files export reads mutated
+        others = other_photos(seeds, src) if argv[i - 1] == "--image" else []
+        if others and rng.random() < 0.25:
+            # a real photo of another size: the camera file is not for it (a sized one by its size;
+            # KITTI's and PJLab's K, which have none, put the principal point 35 % or more of
+            # another of these photos' size from its centre)
+            other = rng.choice(others)
+            dst = folder / ("in_" + other.name)
+            shutil.copyfile(other, dst)
+            how, change, invalid = "another photo", f"{other.name} instead", True
+        elif src.is_dir():  # a finished run: a copy with one of the files export reads mutated
             shutil.copytree(src, dst)
             files = sorted(p for p in dst.rglob("*") if p.is_file() and (p.name in READ_BY_EXPORT or {"cameras", ".scan-cache"} & set(p.parts)))
             target = rng.choice(files)
@@ -726,7 +746,9 @@ def fuzz(trials: int, seed: int, root: Path, data: Path | None, log: Callable[[s
     import cv2  # noqa: F401
     import torch  # noqa: F401
 
-    root = root.resolve()  # each trial runs in its own folder: relative paths would break there
+    # each trial runs in its own folder: relative paths would break there (make bench's
+    # ../shared/data made every real file "not found", and its trials tested only that)
+    root, data = root.resolve(), data.resolve() if data is not None else None
     shutil.rmtree(root / "trials", ignore_errors=True)
     # the seeds are made in a child too: this process must not start torch's or OpenMP's thread
     # pools, which a forked child would inherit locked
@@ -797,7 +819,8 @@ def write_report(path: Path, results: list[Result], seed: int, seconds: float) -
               "`export` of a finished `run` and of that bundle's output, on a copy of the folder with one file export reads "
               "mutated, its scan cache included) with one change: a file mutated (truncated, bytes changed, emptied, random "
               "or another format's bytes, a number, a header count or an E57 XML value replaced with its page checksum "
-              "made right, a YAML value of another type, a line removed), an odd argument (NaN, inf, negative, huge, "
+              "made right, a YAML value of another type, a line removed; or a photo swapped for a real photo of another size, "
+              "for which the camera file is not), an odd argument (NaN, inf, negative, huge, "
               "not a number, an unknown or a missing option, an unknown command) or an odd output path (an existing "
               "folder, under a file, in a folder that does not exist, another suffix, an input, another output). "
               "'Certainly invalid' trials must end with exit 2; the others may end either way but never crash, "
