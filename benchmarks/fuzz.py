@@ -506,13 +506,15 @@ ODD_ARGS = ["nan", "inf", "-inf", "-1", "0", "abc", "", "1e308", "-0", "99999999
 
 
 def other_photos(seeds: dict[str, Path], photo: Path) -> list[Path]:
-    """The seeds' photos of another size than `photo`."""
-    import cv2
+    """The seeds' photos of another size than `photo` (their headers' sizes: nothing decoded)."""
+    from PIL import Image
 
-    def size(p: Path):
-        return cv2.imread(str(p), cv2.IMREAD_UNCHANGED).shape[:2]
+    def size(p: Path) -> tuple[int, int]:
+        with Image.open(p) as im:
+            return im.size
 
-    return [p for k, p in seeds.items() if k in PHOTOS and p != photo and size(p) != size(photo)]
+    own = size(photo)
+    return [p for k, p in seeds.items() if k in PHOTOS and p != photo and size(p) != own]
 
 
 def make_trial(k: int, tpls: list[dict], seeds: dict[str, Path], root: Path, rng: random.Random) -> Trial:
