@@ -36,16 +36,19 @@ def opencv_nodes(path: Path, names: tuple[str, ...]) -> dict[str, np.ndarray | f
     or of another kind; OpenCV's errors as one InputError."""
     import cv2
 
+    def unreadable(why: str) -> InputError:
+        return InputError(f"not a readable OpenCV calibration file ({why})", path)
+
     def matrix(node):
         # counted before node.mat(): cv2 5.0 writes a matrix's data into a buffer of rows x cols
         # before it compares the counts, so a matrix without its cols corrupted the heap (an abort
         # or a segfault later, at random: the fuzz's "line 4 removed (cols)")
         rows, cols, dt, data = (node.getNode(k) for k in ("rows", "cols", "dt", "data"))
         if not (rows.isInt() and cols.isInt() and rows.real() >= 1 and cols.real() >= 1):
-            raise InputError(f"not a readable OpenCV calibration file ({OPENCV_CHECKS['sizes_node']})", path)
+            raise unreadable(OPENCV_CHECKS["sizes_node"])
         channels = int(re.match(r"\d*", dt.string() if dt.isString() else "").group() or 1)
         if not data.isSeq() or data.size() != rows.real() * cols.real() * channels:
-            raise InputError(f"not a readable OpenCV calibration file ({OPENCV_CHECKS['nelems']})", path)
+            raise unreadable(OPENCV_CHECKS["nelems"])
         return node.mat()
 
     def value(node):
@@ -67,9 +70,9 @@ def opencv_nodes(path: Path, names: tuple[str, ...]) -> dict[str, np.ndarray | f
     except cv2.error as exc:  # its text names OpenCV's own source file; the check that failed says more
         err = exc.err or "unreadable"
         why = next((words for check, words in OPENCV_CHECKS.items() if check in err), err)
-        raise InputError(f"not a readable OpenCV calibration file ({why})", path) from None
+        raise unreadable(why) from None
     except SystemError:  # a truncated file ends in SystemError inside the binding, which says only that
-        raise InputError("not a readable OpenCV calibration file (truncated or corrupt)", path) from None
+        raise unreadable("truncated or corrupt") from None
 
 
 # OpenCV's calibration sample's node names, then livox_camera_calib's camera.yaml's (ORB-SLAM's
