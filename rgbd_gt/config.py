@@ -47,6 +47,12 @@ def from_dict(cls: type[T], data: dict[str, Any], where: str = "") -> T:
     return cls(**values)
 
 
+def require(ok: bool, key: str, rule: str, value: Any) -> None:
+    """A config's range check: ValueError naming the one key that breaks its rule, and its value."""
+    if not ok:
+        raise ValueError(f"{key} must be {rule}, got {value}")
+
+
 def _name(value: Any) -> str:
     return "null" if value is None else f"{type(value).__name__} {value!r}"[:60]
 
@@ -101,7 +107,7 @@ def load_config(cls: type[T], path: str | os.PathLike | None, default_name: str 
             return cls()
     path = Path(path)
     if not path.is_file():
-        raise InputError("config file not found", path)
+        raise InputError("is a folder, not a config file" if path.is_dir() else "config file not found", path)
     data = read_yaml(path)
     try:
         cfg = from_dict(cls, {} if data is None else data)

@@ -86,7 +86,7 @@ def test_values_are_checked_where_they_are_read(scene, tmp_path):
         (tmp_path / "c.yaml").write_text(text)
         assert_one_line_error(run_cli(*refine, "--config", tmp_path / "c.yaml"), "c.yaml", needle)
     assert_one_line_error(run_cli(*refine, "--beta-max", "nan"), "--beta-max must be a finite number")
-    assert_one_line_error(run_cli(*refine, "--levels", "13"), "levels at most 12", "(options given: --levels 13)")
+    assert_one_line_error(run_cli(*refine, "--levels", "13"), "levels must be 1..12 or 'auto', got 13", "(options given: --levels 13)")
     (tmp_path / "c.yaml").write_bytes(bytes(range(256)) * 4)
     assert_one_line_error(run_cli(*refine, "--config", tmp_path / "c.yaml"), "invalid YAML")
     run_cfg = tmp_path / "run.yaml"

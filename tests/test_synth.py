@@ -130,7 +130,7 @@ def test_bad_size_and_config(tmp_path):
     assert_one_line_error(run_cli("synth", tmp_path / "o", "--config", tmp_path / "c.yaml"), "c.yaml", "board_colz")
     # the fuzz's 1e12 deg margin asked for a grid no memory holds: exit 1 and "out of memory" before
     (tmp_path / "m.yaml").write_text("scan_margin_deg: 1000000000000.0\n")
-    assert_one_line_error(run_cli("synth", tmp_path / "o", "--config", tmp_path / "m.yaml"), "m.yaml", "scan_margin_deg 0..90")
+    assert_one_line_error(run_cli("synth", tmp_path / "o", "--config", tmp_path / "m.yaml"), "m.yaml", "scan_margin_deg must be 0..90, got 1000000000000.0")
     assert not (tmp_path / "o").exists()
 
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
 
+from rgbd_gt.config import require
+
 OBJECTIVES = ("auto", "photometric", "nid")
 # align/color_models.py's, named here so that reading a config does not import torch
 MODELS = ("quadratic", "quadratic_rgb", "linear", "none", "gray", "gray_affine")
@@ -85,18 +87,23 @@ class VerifyConfig:
             v = getattr(self, f.name)
             if not isinstance(v, bool) and not (v == v and abs(v) != float("inf")):
                 raise ValueError(f"verify.{f.name} must be a finite number, got {v}")
-        if self.camera_iterations < 1:
-            raise ValueError("verify.camera_iterations must be at least 1")
-        if self.repeats < 0 or self.repeat_iterations < 1 or self.repeat_finest < 0 or self.sharpness_level < 0 or self.repeat_coarsest < self.repeat_finest:
-            raise ValueError("verify: repeats >= 0, repeat_iterations >= 1 and 0 <= repeat_finest <= repeat_coarsest")
-        if self.repeats > 64 or self.repeat_iterations > 1_000 or self.repeat_coarsest > 12 or self.sharpness_level > 12:
-            raise ValueError("verify: repeats at most 64, repeat_iterations at most 1000, levels at most 12")
-        if not 0 <= self.folds <= 64 or not 0 <= self.fold_finest <= self.fold_coarsest <= 12 or self.fold_ok_px < 0:
-            raise ValueError("verify: folds 0 to 64, 0 <= fold_finest <= fold_coarsest <= 12, fold_ok_px >= 0")
-        if self.edge_max_side > 8192 or self.min_edge_pixels < 0:
-            raise ValueError("verify: edge_max_side at most 8192, min_edge_pixels 0 or more")
-        if self.edge_max_side < 64 or self.edge_shift_px < 1 or self.sharpness_step_px <= 0 or self.start_floor_px < 0:
-            raise ValueError("verify: edge_max_side >= 64, edge_shift_px >= 1, sharpness_step_px > 0, start_floor_px >= 0")
+        at = "verify."
+        require(self.camera_iterations >= 1, at + "camera_iterations", "at least 1", self.camera_iterations)
+        # beyond these a verdict would take days: a typo
+        require(0 <= self.repeats <= 64, at + "repeats", "0..64", self.repeats)
+        require(1 <= self.repeat_iterations <= 1_000, at + "repeat_iterations", "1..1000", self.repeat_iterations)
+        require(0 <= self.repeat_finest, at + "repeat_finest", "0 or more", self.repeat_finest)
+        require(self.repeat_finest <= self.repeat_coarsest <= 12, at + "repeat_coarsest", "repeat_finest..12", self.repeat_coarsest)
+        require(0 <= self.sharpness_level <= 12, at + "sharpness_level", "0..12", self.sharpness_level)
+        require(0 <= self.folds <= 64, at + "folds", "0..64", self.folds)
+        require(0 <= self.fold_finest, at + "fold_finest", "0 or more", self.fold_finest)
+        require(self.fold_finest <= self.fold_coarsest <= 12, at + "fold_coarsest", "fold_finest..12", self.fold_coarsest)
+        require(self.fold_ok_px >= 0, at + "fold_ok_px", "0 or more", self.fold_ok_px)
+        require(64 <= self.edge_max_side <= 8192, at + "edge_max_side", "64..8192", self.edge_max_side)
+        require(self.min_edge_pixels >= 0, at + "min_edge_pixels", "0 or more", self.min_edge_pixels)
+        require(self.edge_shift_px >= 1, at + "edge_shift_px", "at least 1", self.edge_shift_px)
+        require(self.sharpness_step_px > 0, at + "sharpness_step_px", "positive", self.sharpness_step_px)
+        require(self.start_floor_px >= 0, at + "start_floor_px", "0 or more", self.start_floor_px)
         return self
 
 
@@ -165,9 +172,8 @@ class RefineConfig:
             raise ValueError(f"optimizer must be 'lm' or 'adam', got {self.optimizer!r}")
         if self.objective not in OBJECTIVES:
             raise ValueError(f"objective must be one of {', '.join(OBJECTIVES)}, got {self.objective!r}")
-        if (self.nid_bins < 6 or self.search_starts < 0 or self.search_iterations < 1 or self.search_keep < 1
-                or self.max_depth < 0):
-            raise ValueError("nid_bins >= 6, search_starts >= 0, search_iterations >= 1, search_keep >= 1 and max_depth >= 0")
+        for name, least in (("nid_bins", 6), ("search_starts", 0), ("search_iterations", 1), ("search_keep", 1), ("max_depth", 0)):
+            require(getattr(self, name) >= least, name, f"at least {least}", getattr(self, name))
         from rgbd_gt.camera import INTRINSICS  # torch-free: a command's config is checked before torch is imported
 
         if self.refine_intrinsics not in INTRINSICS:
@@ -177,10 +183,10 @@ class RefineConfig:
         if isinstance(self.levels, str) and self.levels != "auto":
             raise ValueError(f"levels must be a number or 'auto', got {self.levels!r}")
         levels = 1 if self.levels == "auto" else self.levels
-        if levels < 1 or self.iterations < 1 or self.max_points < 10 or self.upsample < 1:
-            raise ValueError("levels, upsample, iterations and max_points must be positive")
-        if levels > 12 or self.upsample > 8:
-            raise ValueError(f"levels at most 12 and upsample at most 8, got {self.levels} and {self.upsample}")
+        require(1 <= levels <= 12, "levels", "1..12 or 'auto'", self.levels)
+        require(1 <= self.upsample <= 8, "upsample", "1..8", self.upsample)
+        require(self.iterations >= 1, "iterations", "at least 1", self.iterations)
+        require(self.max_points >= 10, "max_points", "at least 10", self.max_points)
         for name, most in (("iterations", 10_000), ("adam_iterations", 100_000), ("search_starts", 1_000), ("search_keep", 1_000),
                            ("search_iterations", 10_000), ("max_points", 100_000_000), ("min_points", 100_000_000),
                            ("nid_bins", 256)):  # beyond these a run would take days: a typo

@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from rgbd_gt.camera import Camera, lens_reach, project
+from rgbd_gt.config import require
 from rgbd_gt.errors import InputError
 from rgbd_gt.io import atomic_output, save_scan, write_camera, write_pose
 from rgbd_gt.scan import Scan
@@ -65,29 +66,30 @@ class SynthConfig:
 
     def check(self) -> "SynthConfig":
         for name, p in self.sizes.items():
-            if not (32 <= p.width <= 8192 and 32 <= p.height <= 8192 and 0.01 <= p.scan_step_deg <= 5
-                    and 16 <= p.texture_px <= 8192 and 1 <= p.supersample <= 8):
-                raise ValueError(f"sizes.{name}: width and height 32..8192, scan_step_deg 0.01..5, texture_px 16..8192, "
-                                 "supersample 1..8")
+            at = f"sizes.{name}."
+            require(32 <= p.width <= 8192, at + "width", "32..8192", p.width)
+            require(32 <= p.height <= 8192, at + "height", "32..8192", p.height)
+            require(0.01 <= p.scan_step_deg <= 5, at + "scan_step_deg", "0.01..5", p.scan_step_deg)
+            require(16 <= p.texture_px <= 8192, at + "texture_px", "16..8192", p.texture_px)
+            require(1 <= p.supersample <= 8, at + "supersample", "1..8", p.supersample)
             fov = p.scan_fov_deg
-            if fov is not None and not (len(fov) == 2 and 1 <= fov[0] <= 360 and 1 <= fov[1] <= 180):
-                raise ValueError(f"sizes.{name}.scan_fov_deg: [horizontal 1..360, vertical 1..180], got {fov}")
+            require(fov is None or (len(fov) == 2 and 1 <= fov[0] <= 360 and 1 <= fov[1] <= 180), at + "scan_fov_deg",
+                    "[horizontal 1..360, vertical 1..180]", fov)
         for name in ("hfov_deg", "board_distance_m", "scanner_distance_m", "init_translation_m", "init_rotation_deg"):
             lo_hi = getattr(self, name)
-            if len(lo_hi) != 2 or not 0 <= lo_hi[0] <= lo_hi[1]:
-                raise ValueError(f"{name} must be [low, high] with 0 <= low <= high, got {lo_hi}")
-        if not (1 <= self.hfov_deg[0] and self.hfov_deg[1] < 170):
-            raise ValueError(f"hfov_deg must lie in 1..170, got {self.hfov_deg}")
+            require(len(lo_hi) == 2 and 0 <= lo_hi[0] <= lo_hi[1], name, "[low, high] with 0 <= low <= high", lo_hi)
+        require(1 <= self.hfov_deg[0] and self.hfov_deg[1] < 170, "hfov_deg", "within 1..170", self.hfov_deg)
         # the board must fit in the photo from 1.8-2.6 m (the generator tries layouts until it does)
-        if not (2 <= self.board_cols <= 50 and 2 <= self.board_rows <= 50 and 0 < self.square_m <= 0.5
-                and self.texel_m > 0):
-            raise ValueError("board_cols and board_rows 2..50, square_m in (0, 0.5], texel_m positive")
+        require(2 <= self.board_cols <= 50, "board_cols", "2..50", self.board_cols)
+        require(2 <= self.board_rows <= 50, "board_rows", "2..50", self.board_rows)
+        require(0 < self.square_m <= 0.5, "square_m", "in (0, 0.5]", self.square_m)
+        require(self.texel_m > 0, "texel_m", "positive", self.texel_m)
+        require(self.range_noise_m >= 0, "range_noise_m", "0 or more", self.range_noise_m)
         # a margin past 90 deg on every side adds nothing a scanner sees but grid rows and columns
         # (1e12 deg asked for a grid no memory holds)
-        if self.range_noise_m < 0 or not 0 <= self.scan_margin_deg <= 90 or self.max_layout_tries < 1 \
-                or not 0 <= self.scanner_color_blur_cells <= 10:
-            raise ValueError("range_noise_m 0 or more, scan_margin_deg 0..90, max_layout_tries at least 1, "
-                             "scanner_color_blur_cells 0..10")
+        require(0 <= self.scan_margin_deg <= 90, "scan_margin_deg", "0..90", self.scan_margin_deg)
+        require(self.max_layout_tries >= 1, "max_layout_tries", "at least 1", self.max_layout_tries)
+        require(0 <= self.scanner_color_blur_cells <= 10, "scanner_color_blur_cells", "0..10", self.scanner_color_blur_cells)
         return self
 
 
