@@ -391,9 +391,56 @@ def reason_counts(records: list[dict]) -> list[str]:
             *[f"- {n} x {key}" for key, n in sorted(reasons.items(), key=lambda kv: -kv[1])]]
 
 
-def write_markdown(path: Path, records: list[dict], picks: list[dict] = (), drives: list[dict] = ()) -> None:
+DRIVES_HEADING, PICKS_HEADING = "## KITTI and Waymo", "## Picked pairs"
+
+
+def page_section(path: Path, heading: str | None, ends: tuple[str, ...]) -> list[str]:
+    """The lines of the page at `path` from the line that starts with `heading` (None: the page's
+    start) to the first that starts with one of `ends`, blank lines at either end dropped; [] when
+    the page or the heading is missing. Rows whose records a run has not (bench_out/ is not kept)
+    are kept as the page shows them."""
+    lines = path.read_text().splitlines() if path.exists() else []
+    starts = [0] if heading is None else [i for i, line in enumerate(lines) if line.startswith(heading)]
+    if not starts:
+        return []
+    stop = next((j for j in range(starts[0] + 1, len(lines)) if lines[j].startswith(ends)), len(lines))
+    part = lines[starts[0]:stop]
+    while part and not part[-1].strip():
+        part.pop()
+    return part
+
+
+def write_markdown(path: Path, records: list[dict] | None, picks: list[dict] | None = None,
+                   drives: list[dict] | None = None) -> None:
+    """docs/lidar.md: the PJLab table from `records`, the drives' and picked pairs' sections, then
+    docs/lidar-method.md. A part given None is kept from the page as it stands."""
     from rgbd_gt.io.atomic import atomic_output
 
+    method = path.parent / "lidar-method.md"
+    method_text = method.read_text().rstrip() if method.exists() else ""
+    method_heading = method_text.splitlines()[0] if method_text else "\0"
+    if records is None:
+        lines = page_section(path, None, (DRIVES_HEADING, PICKS_HEADING, method_heading))
+    else:
+        lines = cases_markdown(records)
+    if drives is None:
+        kept = page_section(path, DRIVES_HEADING, (PICKS_HEADING, method_heading))
+        lines += ["", *kept] if kept else []
+    elif drives:
+        lines += drives_markdown(drives)
+    if picks is None:
+        kept = page_section(path, PICKS_HEADING, (method_heading,))
+        lines += ["", *kept] if kept else []
+    elif picks:
+        lines += picks_markdown(picks)
+    if method_text:
+        lines += ["", method_text]
+    with atomic_output(path) as tmp:
+        tmp.write_text("\n".join(lines) + "\n")
+
+
+def cases_markdown(records: list[dict]) -> list[str]:
+    """The head of docs/lidar.md: the PJLab scenes' table."""
     keys = sorted({(r["objective"], r["scenes"], r["size"]) for r in records},
                   key=lambda k: (" + " in k[1], k[1], k[2], list(OBJECTIVES).index(k[0])))
     lines = [
@@ -429,15 +476,7 @@ def write_markdown(path: Path, records: list[dict], picks: list[dict] = (), driv
             f"| {s['worst_deg']:.2f} deg, {s['worst_cm']:.1f} cm | {s['spread'][0]:.3f} deg, {s['spread'][1]:.1f} cm "
             f"| {s['seconds']:.2f} / {s['max_seconds']:.2f} | {s['worse']} | {v['ok']} / {v['suspect']} / {v['failed']} | **{s['worse_ok']}** "
             f"| {s['kept'][0]} / {s['kept'][1]} |")
-    if drives:
-        lines += drives_markdown(list(drives))
-    if picks:
-        lines += picks_markdown(list(picks))
-    method = path.parent / "lidar-method.md"
-    if method.exists():
-        lines += ["", method.read_text().rstrip()]
-    with atomic_output(path) as tmp:
-        tmp.write_text("\n".join(lines) + "\n")
+    return lines
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -450,7 +489,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--inits", type=int, default=10)
     ap.add_argument("--rewrite", action="store_true", help="only re-write docs/lidar.md from --work/cases.json and picks.json")
     ap.add_argument("--picks-only", action="store_true", help="run the picked-pairs rows only (the refine rows from --work/cases.json)")
-    ap.add_argument("--drives-only", action="store_true", help="run the KITTI and Waymo rows only (the others from --work)")
+    ap.add_argument("--drives-only", action="store_true", help="run the KITTI and Waymo rows only (the others from --work, or as docs/lidar.md shows them)")
     ap.add_argument("--drives", nargs="+", choices=list(DRIVES), default=list(DRIVES),
                     help="with --drives-only: run these drives' rows (the others' from --work/drives.json)")
     ap.add_argument("--solves", nargs="+", choices=("single", "joint"), default=["single", "joint"],
@@ -485,9 +524,10 @@ def main(argv: list[str] | None = None) -> None:
         if not args.drives_only:
             t = time.perf_counter()
             save(picks, collect_picks(pjlab_scenes(args.data / "lidar_camera")), t)
-    write_markdown(args.out / "lidar.md", json.loads(cases.read_text()),
-                   json.loads(picks.read_text()) if picks.exists() else [],
-                   json.loads(drives.read_text()) if drives.exists() else [])
+    def records(path: Path) -> list[dict] | None:
+        return json.loads(path.read_text()) if path.exists() else None
+
+    write_markdown(args.out / "lidar.md", records(cases), records(picks), records(drives))
 
 
 if __name__ == "__main__":
