@@ -203,6 +203,17 @@ def make_seeds(folder: Path, data: Path | None) -> dict[str, Path]:
                 "kitti_pcd": data / "lidar_camera/kitti_00/pcd/000000.pcd", "kitti_png": data / "lidar_camera/kitti_00/img/000000.png",
                 "kitti_json": data / "lidar_camera/kitti_00/gt.json"}
         seeds.update({k: p for k, p in real.items() if p.is_file()})
+    if "kitti_json" in seeds:  # a drive: two KITTI frames of one rig, solved together
+        kitti = data / "lidar_camera/kitti_00"
+        frames = [(kitti / f"pcd/{n}.pcd", kitti / f"img/{n}.png") for n in ("000000", "000185")]
+        drive_rig = folder / "drive_rig.yaml"
+        drive_rig.write_text(yaml.safe_dump({"pairs": [{"scan": str(a), "image": str(b)} for a, b in frames]}))
+        drive = folder / "drive.yaml"
+        drive.write_text(yaml.safe_dump({
+            "camera": str(seeds["kitti_json"]), "init": str(seeds["kitti_json"]), "output": "drive_out", "device": "cpu",
+            "refine": {**fast, "search_starts": 1}, "scans": [{"scan": str(a), "photos": [str(b)]} for a, b in frames]},
+            sort_keys=False))
+        seeds.update(drive_rig=drive_rig, drive_cfg=drive)
     if "calib_txt" in seeds:  # the same rig as livox_camera_calib writes it
         from rgbd_gt.io import read_pose
         from rgbd_gt.pose import invert
@@ -490,6 +501,11 @@ def templates(seeds: dict[str, Path]) -> list[dict]:
     if "kitti_json" in s:
         t.append(dict(argv=["overlay", "--scan", s["kitti_pcd"], "--image", s["kitti_png"], "--camera", s["kitti_json"],
                             "--pose", s["kitti_json"], "-o", "{out}/ov.png"], outs=["ov.png", "ov_blend.png", "ov_points.png"]))
+    if "drive_cfg" in s:
+        t += [dict(argv=["run", s["drive_cfg"]], outs=["drive_out"], slow=True, own_config=True),
+              dict(argv=["refine", "--pairs", s["drive_rig"], "--camera", s["kitti_json"], "--init", s["kitti_json"],
+                         "--config", s["refine_cfg"], "--search-starts", "1", "--device", "cpu", "-o", "{out}/rig.yaml"],
+                   outs=["rig.yaml"], slow=True)]
     seed_paths = {str(v) for v in seeds.values()}
     for tpl in t:
         tpl["slots"] = [k for k, a in enumerate(tpl["argv"]) if a in seed_paths]
@@ -818,8 +834,9 @@ def write_report(path: Path, results: list[Result], seed: int, seconds: float) -
               "small real files of ../shared/data: a PJLab LiDAR frame with its calibration text and photo, a KITTI frame "
               "(a binary_compressed sweep, gt.json as camera and pose), two E57 "
               "files, a checkerboard photo; `run` on a config of one scan and on a site of two, the synthetic scan with its board "
-              "and the LiDAR frame with its rig's extrinsic, a bundle file, and one scan whose camera is refined over its photos, each "
-              "trial on its own copy; `refine --bundle` on a stereo rig's shot; "
+              "and the LiDAR frame with its rig's extrinsic, a bundle file, one scan whose camera is refined over its photos, and "
+              "a drive of two KITTI frames of one rig, each trial on its own copy; `refine --bundle` on a stereo rig's shot; "
+              "`refine --pairs` on a PJLab frame and on those two KITTI frames; "
               "`export` of a finished `run` and of that bundle's output, on a copy of the folder with one file export reads "
               "mutated, its scan cache included) with one change: a file mutated (truncated, bytes changed, emptied, random "
               "or another format's bytes, a number, a header count or an E57 XML value replaced with its page checksum "

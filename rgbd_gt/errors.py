@@ -19,8 +19,11 @@ class InputError(Exception):
 
 
 def require_file(path: str | os.PathLike) -> Path:
-    """`path` as a Path; InputError "file not found" unless it names an existing file."""
+    """`path` as a Path; InputError "file not found" (or "is a folder") unless it names an
+    existing file."""
     path = Path(path)
+    if path.is_dir():  # a path cut short or left empty in a config names its folder
+        raise InputError("is a folder, not a file", path)
     if not path.is_file():
         raise InputError("file not found", path)
     return path

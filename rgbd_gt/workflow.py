@@ -167,6 +167,10 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[list[ScanJob], Path]:
         found: dict[Path, None] = {}  # in order, once each: patterns may overlap
         for pattern in patterns:
             hits = sorted(glob.glob(str(at(pattern))))
+            if hits and not any(os.path.isfile(h) for h in hits):
+                raise InputError(f"photos: '{pattern}' names a folder, not photos (a pattern such as 'folder/*.png' takes "
+                                 "its photos)", config_path)
+            hits = [h for h in hits if os.path.isfile(h)]
             if not hits:
                 raise InputError(f"no photo matches '{pattern}'", config_path)
             found.update((Path(h), None) for h in hits)
@@ -182,7 +186,8 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[list[ScanJob], Path]:
         """The config's file `path`, checked before any scan is prepared."""
         found = at(path)
         if not found.is_file():
-            raise InputError(f"{key}: no {kind} file {found}", config_path)
+            raise InputError(f"{key}: {found} is a folder, not a {kind} file" if found.is_dir() else
+                             f"{key}: no {kind} file {found}", config_path)
         return found
 
     def init_of(path: str | None) -> Path | None:

@@ -65,6 +65,7 @@ def test_ingest_spherical_pinhole_camera_file(e57_dir, tmp_path):
 
 def test_ingest_bad_inputs(e57_dir, tmp_path):
     assert_one_line_error(run_cli("ingest", tmp_path / "nope.e57", "-o", tmp_path / "o.ply"), "nope.e57", "not found")
+    assert_one_line_error(run_cli("ingest", tmp_path, "-o", tmp_path / "o.ply"), str(tmp_path), "is a folder, not a file")
     assert_one_line_error(run_cli("ingest", e57_dir / "pumpA.e57", "-o", tmp_path / "o.ply", "--crop", "1,2,3"), "--crop")
     assert_one_line_error(run_cli("ingest", e57_dir / "pumpA.e57", "-o", tmp_path / "o.ply", "--crop", "5,5,5,6,6,6"), "no points")
     assert_one_line_error(run_cli("ingest", e57_dir / "pumpA.e57", "-o", tmp_path / "o.txt"), ".ply")

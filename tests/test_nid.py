@@ -517,6 +517,8 @@ def test_pairs_and_scan_arguments_are_checked(tmp_path):
     pose.write_text(yaml.safe_dump({"T_cam_from_scan": np.eye(4).tolist()}))
     base = ("refine", "--camera", cam, "--init", pose, "-o", tmp_path / "out.yaml")
     assert_one_line_error(run_cli(*base, "--pairs", tmp_path / "bad.yaml"), "pair 1", "scan and image")
+    (tmp_path / "empty.yaml").write_text("pairs: [{scan: a.pcd, image: a.png}, {scan: '', image: a.png}]\n")
+    assert_one_line_error(run_cli(*base, "--pairs", tmp_path / "empty.yaml"), "pair 2", "scan and image")  # not the folder
     assert_one_line_error(run_cli(*base, "--scan", tmp_path / "a.pcd"), "--scan and --image")
     assert_one_line_error(run_cli(*base), "--pairs")
     assert_one_line_error(run_cli(*base, "--scan", "a.pcd", "--image", "a.png", "--objective", "mi"), "objective")

@@ -124,6 +124,10 @@ def test_run_bad_config(tmp_path):
     (tmp_path / "x.ply").write_bytes(b"")  # read only when its scan is prepared
     (tmp_path / "nophotos.yaml").write_text("scan: x.ply\ncamera: c.yaml\nphotos: [none*.png]\n")
     assert_one_line_error(run_cli("run", tmp_path / "nophotos.yaml"), "no photo matches")
+    (tmp_path / "folder.yaml").write_text(f"scan: x.ply\ncamera: c.yaml\nphotos: ['{tmp_path}/']\n")  # a path cut short
+    assert_one_line_error(run_cli("run", tmp_path / "folder.yaml"), "folder.yaml", "names a folder, not photos")
+    (tmp_path / "scandir.yaml").write_text("scan: .\ncamera: c.yaml\nphotos: [a.png]\n")
+    assert_one_line_error(run_cli("run", tmp_path / "scandir.yaml"), "scandir.yaml", "scan:", "is a folder, not a scan file")
     (tmp_path / "a.png").write_bytes(b"")
     (tmp_path / "noinit.yaml").write_text("scan: x.ply\ncamera: c.yaml\nphotos: [a.png]\ninit: rig.yaml\n")
     assert_one_line_error(run_cli("run", tmp_path / "noinit.yaml"), "noinit.yaml", "init: no pose file", "rig.yaml")

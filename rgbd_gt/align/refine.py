@@ -90,9 +90,9 @@ def read_pairs(path: Path, camera: Path) -> list[dict[str, Path]]:
         raise InputError("needs `pairs:`, a list of {scan, image[, camera]}", path)
     out = []
     for k, item in enumerate(items, 1):
-        if not isinstance(item, dict) or not all(isinstance(item.get(key), str) for key in ("scan", "image")):
+        if not isinstance(item, dict) or not all(isinstance(item.get(key), str) and item[key].strip() for key in ("scan", "image")):
             raise InputError(f"pair {k}: needs scan and image paths", path)
-        if "camera" in item and not isinstance(item["camera"], str):
+        if "camera" in item and not (isinstance(item["camera"], str) and item["camera"].strip()):
             raise InputError(f"pair {k}: camera must be a path", path)
         out.append({key: path.parent / os.path.expanduser(item[key]) for key in ("scan", "image", "camera") if key in item})
         out[-1].setdefault("camera", Path(camera))
