@@ -460,10 +460,12 @@ def test_a_pose_is_a_batch_of_one(tmp_path, synth_scene):
         np.testing.assert_allclose(both.H[b], alone.H[0], rtol=1e-4, atol=1e-6 * np.abs(alone.H[0]).max())
         np.testing.assert_allclose(objective.trial(1, [Ts[1 - b]], q, alone), objective.trial(1, Ts[::-1], q, both)[b:b + 1],
                                    rtol=1e-5)
-    refined = [aligner.refine(T).T_cam_from_scan for T in (inputs.T_init, other)]
-    for T_many, T_one in zip(aligner.refine_many([inputs.T_init, other]), refined):
-        # float32 sums in another order can end a level one update earlier or later: within two
-        # of the smallest updates that go on (measured 0.5 and 14 um, 7e-6 and 2.3e-4 deg apart)
-        cfg = RefineConfig()
-        assert translation_error_m(T_many, T_one) < 2 * cfg.stop_translation_m
-        assert rotation_error_deg(T_many, T_one) < 2 * cfg.stop_rotation_deg
+    refined = [aligner.refine(T) for T in (inputs.T_init, other)]
+    for T_many, one in zip(aligner.refine_many([inputs.T_init, other]), refined):
+        # float32 sums in another order can end a level one update earlier or later, and a level
+        # that runs to its iteration cap somewhere else: apart by less than the result's own
+        # 1-sigma (measured 0.05-14 um and 3e-8 to 2.3e-4 deg; 57 um and 6.8e-4 deg on a CPU where
+        # the init's level 2 ran to its cap, against 1-sigma 78 um and 1.4e-3 deg)
+        sigma = np.sqrt(np.diag(one.covariance))
+        assert translation_error_m(T_many, one.T_cam_from_scan) < np.linalg.norm(sigma[3:])
+        assert rotation_error_deg(T_many, one.T_cam_from_scan) < np.rad2deg(np.linalg.norm(sigma[:3]))
