@@ -394,12 +394,10 @@ def reason_counts(records: list[dict]) -> list[str]:
 DRIVES_HEADING, PICKS_HEADING = "## KITTI and Waymo", "## Picked pairs"
 
 
-def page_section(path: Path, heading: str | None, ends: tuple[str, ...]) -> list[str]:
-    """The lines of the page at `path` from the line that starts with `heading` (None: the page's
-    start) to the first that starts with one of `ends`, blank lines at either end dropped; [] when
-    the page or the heading is missing. Rows whose records a run has not (bench_out/ is not kept)
-    are kept as the page shows them."""
-    lines = path.read_text().splitlines() if path.exists() else []
+def page_section(lines: list[str], heading: str | None, ends: tuple[str, ...]) -> list[str]:
+    """Of a page's lines, those from the line that starts with `heading` (None: the page's start)
+    to the first that starts with one of `ends`, blank lines at the end dropped; [] when the
+    heading is missing."""
     starts = [0] if heading is None else [i for i, line in enumerate(lines) if line.startswith(heading)]
     if not starts:
         return []
@@ -413,23 +411,25 @@ def page_section(path: Path, heading: str | None, ends: tuple[str, ...]) -> list
 def write_markdown(path: Path, records: list[dict] | None, picks: list[dict] | None = None,
                    drives: list[dict] | None = None) -> None:
     """docs/lidar.md: the PJLab table from `records`, the drives' and picked pairs' sections, then
-    docs/lidar-method.md. A part given None is kept from the page as it stands."""
+    docs/lidar-method.md. A part given None is kept from the page as it stands: rows whose
+    records a run has not (bench_out/ is not kept)."""
     from rgbd_gt.io.atomic import atomic_output
 
+    page = path.read_text().splitlines() if path.exists() else []
     method = path.parent / "lidar-method.md"
     method_text = method.read_text().rstrip() if method.exists() else ""
     method_heading = method_text.splitlines()[0] if method_text else "\0"
     if records is None:
-        lines = page_section(path, None, (DRIVES_HEADING, PICKS_HEADING, method_heading))
+        lines = page_section(page, None, (DRIVES_HEADING, PICKS_HEADING, method_heading))
     else:
         lines = cases_markdown(records)
     if drives is None:
-        kept = page_section(path, DRIVES_HEADING, (PICKS_HEADING, method_heading))
+        kept = page_section(page, DRIVES_HEADING, (PICKS_HEADING, method_heading))
         lines += ["", *kept] if kept else []
     elif drives:
         lines += drives_markdown(drives)
     if picks is None:
-        kept = page_section(path, PICKS_HEADING, (method_heading,))
+        kept = page_section(page, PICKS_HEADING, (method_heading,))
         lines += ["", *kept] if kept else []
     elif picks:
         lines += picks_markdown(picks)

@@ -12,7 +12,7 @@ import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
-from rgbd_gt.errors import InputError, read_yaml
+from rgbd_gt.errors import InputError, read_yaml, require_file
 
 T = TypeVar("T")
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
@@ -105,9 +105,7 @@ def load_config(cls: type[T], path: str | os.PathLike | None, default_name: str 
         path = CONFIG_DIR / default_name
         if not path.is_file():  # installed without the configs folder: built-in defaults
             return cls()
-    path = Path(path)
-    if not path.is_file():
-        raise InputError("is a folder, not a config file" if path.is_dir() else "config file not found", path)
+    path = require_file(path, "config file")
     data = read_yaml(path)
     try:
         cfg = from_dict(cls, {} if data is None else data)

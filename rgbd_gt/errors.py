@@ -18,14 +18,14 @@ class InputError(Exception):
         super().__init__(f"{path}: {message}" if path is not None else message)
 
 
-def require_file(path: str | os.PathLike) -> Path:
-    """`path` as a Path; InputError "file not found" (or "is a folder") unless it names an
-    existing file."""
+def require_file(path: str | os.PathLike, what: str = "file") -> Path:
+    """`path` as a Path; InputError "<what> not found" (or "is a folder, not a <what>") unless
+    it names an existing file."""
     path = Path(path)
     if path.is_dir():  # a path cut short or left empty in a config names its folder
-        raise InputError("is a folder, not a file", path)
+        raise InputError(f"is a folder, not a {what}", path)
     if not path.is_file():
-        raise InputError("file not found", path)
+        raise InputError(f"{what} not found", path)
     return path
 
 

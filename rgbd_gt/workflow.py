@@ -167,13 +167,13 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[list[ScanJob], Path]:
         found: dict[Path, None] = {}  # in order, once each: patterns may overlap
         for pattern in patterns:
             hits = sorted(glob.glob(str(at(pattern))))
-            if hits and not any(os.path.isfile(h) for h in hits):
+            files = [h for h in hits if os.path.isfile(h)]
+            if hits and not files:
                 raise InputError(f"photos: '{pattern}' names a folder, not photos (a pattern such as 'folder/*.png' takes "
                                  "its photos)", config_path)
-            hits = [h for h in hits if os.path.isfile(h)]
-            if not hits:
+            if not files:
                 raise InputError(f"no photo matches '{pattern}'", config_path)
-            found.update((Path(h), None) for h in hits)
+            found.update((Path(h), None) for h in files)
         stems: dict[str, Path] = {}
         for photo in found:  # a photo's outputs are OUTPUT/<stem>/: a second one there would resume the first's pose
             if photo.stem in stems:
