@@ -5,6 +5,10 @@ from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as the CLI runs (rgbd_gt/cli.py says why)
 
+from rgbd_gt.heap import keep_freed_memory  # noqa: E402
+
+keep_freed_memory()  # as the CLI runs (rgbd_gt/heap.py)
+
 
 def write_keeping(path: Path, text: str, marker: str = "\n## ") -> None:
     """Write a benchmark's document (atomically), keeping what a person wrote below it in the

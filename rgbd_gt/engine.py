@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Callable
 
 from rgbd_gt.errors import InputError
+from rgbd_gt.heap import keep_freed_memory
 from rgbd_gt.threads import size_thread_pools
 from rgbd_gt.workflow import PhotoResult, RunConfig, ScanJob
 
@@ -119,6 +120,7 @@ def photo_task(task: PhotoTask, progress: Callable[[str], None] = lambda step: N
     from rgbd_gt.prepared import open_prepared
     from rgbd_gt.workflow import run_photo
 
+    keep_freed_memory()  # a worker's or Ray task's process, as the CLI's (rgbd_gt/heap.py)
     if task.threads:
         import torch
 

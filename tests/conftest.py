@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 
+from rgbd_gt.heap import keep_freed_memory
 from rgbd_gt.threads import size_thread_pools
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -22,6 +23,7 @@ def _share_the_cores() -> None:
 
 
 _share_the_cores()
+keep_freed_memory()  # as the CLI runs (rgbd_gt/heap.py)
 
 
 def _need(sub: str) -> Path:

@@ -310,3 +310,32 @@ def test_a_view_without_the_cache_has_the_cached_normals_and_mesh(tmp_path):
     np.testing.assert_array_equal(plain.xyz[a], cached.xyz[b])
     np.testing.assert_allclose(plain.normals[a], cached.normals[b], atol=1e-6)
     np.testing.assert_array_equal(plain.cell_bits[a], cached.cell_bits[b])
+
+
+def test_big_temporaries_reuse_the_heap_instead_of_fresh_pages():
+    """A 40 MB tensor made and freed over and over (as the aligner's windows at every
+    evaluation): with `keep_freed_memory` the kernel maps and zeroes its pages a few times while
+    the heap settles, then never; by default every time. Each case in a fresh interpreter, whose
+    heap nothing else has shaped. (torch's, not numpy's: numpy asks for huge pages, which fault
+    in 2 MB at a time.)"""
+    if not sys.platform.startswith("linux"):
+        pytest.skip("glibc's malloc settings: Linux only")
+    # the heap settles within 7 such blocks here: each asks a little more than the hole the last
+    # one left (torch aligns them) until the holes have merged
+    code = ("import resource, sys, torch\n"
+            "from rgbd_gt.heap import keep_freed_memory\n"
+            "kept = keep_freed_memory() if sys.argv[1] == 'keep' else None\n"
+            "for k in range(30):\n"
+            "    if k == 20:\n"
+            "        before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt\n"
+            "    torch.ones(5_000_000, dtype=torch.float64)\n"
+            "print(kept, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)\n")
+    faults = {}
+    for case in ("keep", "default"):
+        proc = subprocess.run([sys.executable, "-c", code, case], capture_output=True, text=True, cwd=Path(__file__).parents[1])
+        assert proc.returncode == 0, proc.stderr
+        kept, faults[case] = proc.stdout.split()
+        if case == "keep" and kept != "True":
+            pytest.skip("this C library is not glibc: nothing to set")
+    # the last 10 blocks: about 100k pages of 4 KB faulted in afresh by default, none when kept
+    assert int(faults["default"]) > 50_000 and int(faults["keep"]) < 1_000, faults
