@@ -12,7 +12,7 @@ in 82 s; with the blocks kept, 0.3 million and 1.6 s. `rgbd-gt run` on those fra
 from __future__ import annotations
 
 import ctypes
-import platform
+import sys
 
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc's malloc.h
 
@@ -22,7 +22,9 @@ def keep_freed_memory(largest: int = 128 << 20, kept: int = 256 << 20) -> bool:
     `kept` bytes freed at the heap's top, for this process (and the processes it forks). Blocks
     larger than that (a 40-million-point scan's arrays) are mapped and returned as before.
     Returns whether it was set: False where the C library is not glibc (nothing changes)."""
-    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+    if sys.platform != "linux":
         return False
-    mallopt = ctypes.CDLL(None).mallopt
-    return bool(mallopt(_M_MMAP_THRESHOLD, largest)) and bool(mallopt(_M_TRIM_THRESHOLD, kept))
+    libc = ctypes.CDLL(None)
+    if not hasattr(libc, "gnu_get_libc_version"):  # musl has a mallopt that does nothing
+        return False
+    return bool(libc.mallopt(_M_MMAP_THRESHOLD, largest)) and bool(libc.mallopt(_M_TRIM_THRESHOLD, kept))
