@@ -792,8 +792,9 @@ def export_dataset(
     start = time.perf_counter()
     chosen = [f.strip() for f in ",".join(formats).split(",") if f.strip()]
     verdicts = ("ok", *[v for v in include if v != "ok"])
-    if any(v not in ("suspect", "failed") for v in verdicts[1:]):
-        raise InputError(f"--include takes suspect or failed, got {', '.join(verdicts[1:])}")
+    bad = [v for v in verdicts[1:] if v not in ("suspect", "failed")]
+    if bad:  # quoted: an empty value reads as one
+        raise InputError(f"--include takes suspect or failed, got {', '.join(map(repr, bad))}")
     sources = read_run(run_dir)
     if output.resolve() == run_dir.resolve():
         raise InputError("-o: is the run's own folder (its report.html would be replaced); give another", output)
