@@ -166,6 +166,8 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[list[ScanJob], Path]:
     def photos_of(patterns: list[str]) -> list[Path]:
         found: dict[Path, None] = {}  # in order, once each: patterns may overlap
         for pattern in patterns:
+            if not pattern.strip():  # would name the config's own folder
+                raise InputError("photos: an empty path; give photo files or a pattern such as 'folder/*.png'", config_path)
             hits = sorted(glob.glob(str(at(pattern))))
             files = [h for h in hits if os.path.isfile(h)]
             if hits and not files:

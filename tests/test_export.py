@@ -261,6 +261,11 @@ def test_export_errors(rig_run, tmp_path, synth_scene):
     for bad in (b"\x92\x00garbage", b"- 1\n- 2\n", yaml.safe_dump(nan).encode()):
         (broken / "rig.yaml").write_bytes(bad)
         assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(broken / "rig.yaml"))
+    for bad, said in (("relative: null", "relative: not a mapping of cameras (None)"),
+                      ("relative: {right: [1, 2]}", "relative.right: not a relative pose with its sigma ([1, 2])")):
+        (broken / "rig.yaml").write_text(f"cameras: [left, right]\n{bad}\n")
+        assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(broken / "rig.yaml"),
+                              "not a rig record rgbd-gt wrote", said)
     (broken / "rig.yaml").write_text(rig)
     camera = broken / "cameras" / "right.yaml"
     keys = yaml.safe_load(camera.read_text())

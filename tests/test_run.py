@@ -126,6 +126,8 @@ def test_run_bad_config(tmp_path):
     assert_one_line_error(run_cli("run", tmp_path / "nophotos.yaml"), "no photo matches")
     (tmp_path / "folder.yaml").write_text(f"scan: x.ply\ncamera: c.yaml\nphotos: ['{tmp_path}/']\n")  # a path cut short
     assert_one_line_error(run_cli("run", tmp_path / "folder.yaml"), "folder.yaml", "names a folder, not photos")
+    (tmp_path / "empty.yaml").write_text("scan: x.ply\ncamera: c.yaml\nphotos: ['']\n")  # cut to nothing
+    assert_one_line_error(run_cli("run", tmp_path / "empty.yaml"), "empty.yaml", "photos: an empty path")
     (tmp_path / "scandir.yaml").write_text("scan: .\ncamera: c.yaml\nphotos: [a.png]\n")
     assert_one_line_error(run_cli("run", tmp_path / "scandir.yaml"), "scandir.yaml", "scan:", "is a folder, not a scan file")
     (tmp_path / "a.png").write_bytes(b"")

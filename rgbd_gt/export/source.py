@@ -201,8 +201,15 @@ def _rig(path: Path) -> dict:
         cameras = rig["cameras"]
         if not isinstance(cameras, list) or not all(isinstance(c, str) for c in cameras):
             raise TypeError(f"cameras: not a list of names ({cameras!r})")
+        relative = rig["relative"] if len(cameras) > 1 else {}
+        if not isinstance(relative, dict):
+            raise TypeError(f"relative: not a mapping of cameras ({relative!r:.40})")
         for c in cameras[1:]:
-            mm = ((rig["relative"][c] or {}).get("sigma") or {}).get("translation_mm", [0, 0, 0])
+            entry = relative[c] or {}
+            sigma = (entry.get("sigma") if isinstance(entry, dict) else None) or {}
+            if not isinstance(entry, dict) or not isinstance(sigma, dict):
+                raise TypeError(f"relative.{c}: not a relative pose with its sigma ({entry!r:.40})")
+            mm = sigma.get("translation_mm", [0, 0, 0])
             if not (isinstance(mm, list) and len(mm) == 3 and all(_nonnegative(v) for v in mm)):
                 raise TypeError(f"relative.{c}.sigma.translation_mm: not 3 numbers ({mm!r})")
     except (KeyError, TypeError, AttributeError) as exc:
