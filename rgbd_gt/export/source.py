@@ -206,8 +206,8 @@ def _rig(path: Path) -> dict:
             raise TypeError(f"relative: not a mapping of cameras ({relative!r:.40})")
         for c in cameras[1:]:
             entry = relative[c] or {}
-            sigma = (entry.get("sigma") if isinstance(entry, dict) else None) or {}
-            if not isinstance(entry, dict) or not isinstance(sigma, dict):
+            sigma = (entry.get("sigma") or {}) if isinstance(entry, dict) else None
+            if not isinstance(sigma, dict):
                 raise TypeError(f"relative.{c}: not a relative pose with its sigma ({entry!r:.40})")
             mm = sigma.get("translation_mm", [0, 0, 0])
             if not (isinstance(mm, list) and len(mm) == 3 and all(_nonnegative(v) for v in mm)):
