@@ -53,6 +53,9 @@ def require(ok: bool, key: str, rule: str, value: Any) -> None:
         raise ValueError(f"{key} must be {rule}, got {value}")
 
 
+_KINDS = {int: "a whole number", float: "a number", str: "a string", bool: "true or false"}
+
+
 def _name(value: Any) -> str:
     return "null" if value is None else f"{type(value).__name__} {value!r}"[:60]
 
@@ -67,12 +70,15 @@ def _typed(value: Any, hint: Any, where: str) -> Any:
         if value is None and type(None) in args:
             return None
         inner = [a for a in args if a is not type(None)]
-        for alt in inner[:-1]:  # e.g. `int | str`: a number, or a word such as "auto"
+        if len(inner) == 1:
+            return _typed(value, inner[0], where)
+        for alt in inner:  # e.g. `int | str`: a number, or a word such as "auto"
             try:
                 return _typed(value, alt, where)
             except InputError:
                 pass
-        return _typed(value, inner[-1], where)
+        # named after all of them: the last one's own message ("expected a string") would hide the others
+        raise InputError(f"{where}: expected {' or '.join(_KINDS.get(a, str(a)) for a in inner)}, got {_name(value)}")
     if origin is list:
         if not isinstance(value, list):
             raise InputError(f"{where}: expected a list, got {_name(value)}")

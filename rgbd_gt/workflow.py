@@ -186,6 +186,8 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[list[ScanJob], Path]:
 
     def existing(path: str, key: str, kind: str) -> Path:
         """The config's file `path`, checked before any scan is prepared."""
+        if not path.strip():  # would name the config's own folder
+            raise InputError(f"{key}: an empty path; give a {kind} file", config_path)
         found = at(path)
         if not found.is_file():
             raise InputError(f"{key}: {found} is a folder, not a {kind} file" if found.is_dir() else

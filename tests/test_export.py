@@ -271,6 +271,11 @@ def test_export_errors(rig_run, tmp_path, synth_scene):
     keys = yaml.safe_load(camera.read_text())
     camera.write_text(yaml.safe_dump({**keys, "sigma": {"focal_px": "many"}}))
     assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(camera), "sigma")
+    record = (broken / "bundle.json").read_text()
+    # a damaged SHA-1 is the record's fault, not a changed scan's (fuzz seed 9: "the scan then had SHA-1 ):")
+    (broken / "bundle.json").write_text(json.dumps({**json.loads(record), "scan_sha1": ""}))
+    assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(broken / "bundle.json"),
+                          "scan_sha1: not a SHA-1 ('')")
     (broken / "bundle.json").write_text("{")
     assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(broken / "bundle.json"))
     assert_one_line_error(run_cli("export", bout, "-o", bout / "photo" / "pose.yaml", "-f", "plain"), "-o")

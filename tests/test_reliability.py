@@ -80,7 +80,8 @@ def test_outputs_are_checked_before_work_and_committed_together(scene, tmp_path)
 def test_values_are_checked_where_they_are_read(scene, tmp_path):
     refine = ["refine", "--scan", scene / "scan.ply", "--image", scene / "photo.png", "--camera", scene / "camera.yaml",
               "--init", scene / "init_pose.yaml", "-o", tmp_path / "pose.yaml"]
-    for text, needle in [("iterations: five\n", "iterations: expected a whole number"), ("levels: five\n", "levels must be a number or 'auto'"), ("nu: -1\n", "nu must be positive"),
+    for text, needle in [("iterations: five\n", "iterations: expected a whole number"), ("levels: five\n", "levels must be a number or 'auto'"), ("levels: .inf\n", "levels: expected a whole number or a string, got float inf"),
+                         ("nu: -1\n", "nu must be positive"),
                          ("beta_max: .nan\n", "beta_max: must be a finite number"), ("verify: [1]\n", "verify: expected a mapping"),
                          ("max_depth: -1\n", "max_depth")]:
         (tmp_path / "c.yaml").write_text(text)

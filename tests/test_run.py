@@ -131,6 +131,8 @@ def test_run_bad_config(tmp_path):
     (tmp_path / "scandir.yaml").write_text("scan: .\ncamera: c.yaml\nphotos: [a.png]\n")
     assert_one_line_error(run_cli("run", tmp_path / "scandir.yaml"), "scandir.yaml", "scan:", "is a folder, not a scan file")
     (tmp_path / "a.png").write_bytes(b"")
+    (tmp_path / "emptyinit.yaml").write_text("scan: x.ply\ncamera: c.yaml\nphotos: [a.png]\ninit: ''\n")  # fuzz seed 9
+    assert_one_line_error(run_cli("run", tmp_path / "emptyinit.yaml"), "emptyinit.yaml", "init: an empty path; give a pose file")
     (tmp_path / "noinit.yaml").write_text("scan: x.ply\ncamera: c.yaml\nphotos: [a.png]\ninit: rig.yaml\n")
     assert_one_line_error(run_cli("run", tmp_path / "noinit.yaml"), "noinit.yaml", "init: no pose file", "rig.yaml")
     (tmp_path / "nocorners.yaml").write_text("scan: x.ply\ncamera: c.yaml\nphotos: [a.png]\nboard:\n  points: corners.csv\n")
@@ -211,6 +213,13 @@ def test_run_refines_one_camera_for_all_photos(tmp_path, synth_scene):
     with pytest.raises(InputError, match="changed since photo"):
         read_run(tmp_path / "out", known={scan: {**key, "sha1": "0" * 40}})
     assert read_run(tmp_path / "out", known={scan: {**key, "sha1": "0" * 40, "mtime_ns": 1}})[0].scan_key == key
+    # a damaged record is named as such: the scan did not change
+    made_file = tmp_path / "out" / "photo" / "init.yaml"
+    text = made_file.read_text()
+    made_file.write_text(text.replace(f"scan_sha1: {key['sha1']}", "scan_sha1: 12", 1))
+    with pytest.raises(InputError, match=rf"^{made_file}: scan_sha1: not a SHA-1 \(12\)$"):
+        read_run(tmp_path / "out")
+    made_file.write_text(text)
     # the camera calibrated again: the shared camera is not reused but refined again, from photos
     # whose folders were made with the old one, which say so (remove them to redo them)
     (scene / "camera_off.yaml").write_text((scene / "camera_off.yaml").read_text() + "# calibrated again\n")

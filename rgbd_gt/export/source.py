@@ -5,6 +5,7 @@ covariances and verdicts, and a rig's relative poses. Two kinds of folder: a `ru
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -108,7 +109,8 @@ def _run_sources(folder: Path, record: dict, stale_missing: bool, file_keys: dic
             keys = read_yaml(made) if pose.is_file() and made.is_file() else {}
             if not isinstance(keys, dict):
                 raise InputError("not a pose file rgbd-gt wrote (no keys)", made)
-            stale = _changed(keys, image.stem, {"photo": image, "camera": Path(entry["camera"]), "scan": Path(entry["scan"])}, file_keys)
+            stale = _changed(keys, image.stem, {"photo": image, "camera": Path(entry["camera"]), "scan": Path(entry["scan"])},
+                             file_keys, made)
             if stale is not None and not stale_missing:
                 raise stale
             if pose.is_file() and stale is None:
@@ -122,15 +124,20 @@ def _run_sources(folder: Path, record: dict, stale_missing: bool, file_keys: dic
     return sources
 
 
-def _changed(keys: dict, photo: str, files: dict[str, Path], file_keys: dict[Path, dict]) -> InputError | None:
+def _changed(keys: dict, photo: str, files: dict[str, Path], file_keys: dict[Path, dict], record: Path) -> InputError | None:
     """The error when one of `files` ({kind: path}) is not the file that photo's pose was solved
-    from: the SHA-1 recorded beside it (keys' KIND_sha1: `steps.made_from` in a run photo's
-    init.yaml, bundle.json's) differs, so that a camera file calibrated again, a photo or a scan
-    replaced, is not exported with a pose solved for the old one; else None. file_keys: the
-    files' `file_key`s taken so far, shared by the photos (and the scan's by its preparation)."""
+    from: the SHA-1 recorded beside it (keys' KIND_sha1 in `record`: `steps.made_from` in a run
+    photo's init.yaml, bundle.json's) differs, so that a camera file calibrated again, a photo or
+    a scan replaced, is not exported with a pose solved for the old one; else None. file_keys:
+    the files' `file_key`s taken so far, shared by the photos (and the scan's by its preparation)."""
     from rgbd_gt.prepared import file_key
     from rgbd_gt.steps import made_from_other
 
+    for kind in files:
+        sha1 = keys.get(f"{kind}_sha1")
+        if sha1 is not None and not (isinstance(sha1, str) and re.fullmatch("[0-9a-f]{40}", sha1)):
+            # a damaged record, not a changed file: saying the file changed would send the user the wrong way
+            raise InputError(f"{kind}_sha1: not a SHA-1 ({sha1!r:.50})", record)
     for kind, path in files.items():
         if keys.get(f"{kind}_sha1") is not None and path not in file_keys:
             try:
@@ -165,7 +172,7 @@ def _bundle_source(folder: Path, bundle: Path, name: str = "bundle", errors: dic
     for entry in spec.photos:
         pose = folder / entry.image.stem / "pose.yaml"
         keys = {"scan_sha1": record.get("scan_sha1"), **by_pose.get(f"{entry.image.stem}/pose.yaml", {})}
-        stale = _changed(keys, entry.image.stem, {"photo": entry.image, "scan": spec.scan}, file_keys)
+        stale = _changed(keys, entry.image.stem, {"photo": entry.image, "scan": spec.scan}, file_keys, folder / "bundle.json")
         if stale is not None and not stale_missing:
             raise stale
         if stale is not None or (errors is not None and not pose.is_file()):
