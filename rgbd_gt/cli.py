@@ -252,7 +252,7 @@ def init_pose(
     """Coarse pose of a photo from a checkerboard seen in both the photo and the scan (PnP), or
     from hand-picked correspondences (RANSAC PnP)."""
     from rgbd_gt.init.detect import MAX_SQUARE_M, BoardSpec
-    from rgbd_gt.init.run import read_csv_rows, write_report
+    from rgbd_gt.init.run import read_board_corners, write_report
     from rgbd_gt.io import write_pose
     from rgbd_gt.io.outputs import Outputs
     from rgbd_gt.prepared import prepare_scan
@@ -278,7 +278,7 @@ def init_pose(
     if estimate_focal and correspondences is None:
         raise InputError("--estimate-focal needs --correspondences")
     opened = open_photo(image, camera)
-    corners = read_csv_rows(board_points, "x,y,z") if board_points and correspondences is None else None
+    corners = read_board_corners(board_points) if board_points and correspondences is None else None
     with _progress() as bar:
         bar.add_task("init-pose", total=None)
         prepared = prepare_scan(scan, cache)

@@ -422,9 +422,9 @@ def initial_pose(photo: Path, image: np.ndarray, prepared, camera, job: ScanJob,
 
 def board_corners(board: BoardConfig) -> np.ndarray | None:
     """The board's corners (k, 3) in the scan as the config's board.points file gives them, or None."""
-    from rgbd_gt.init.run import read_csv_rows
+    from rgbd_gt.init.run import read_board_corners
 
-    return read_csv_rows(Path(board.points), "x,y,z") if board.points else None
+    return read_board_corners(Path(board.points)) if board.points else None
 
 
 RIG_FILE = "rig.yaml"  # under the run's output folder: the pose of a rig's frames

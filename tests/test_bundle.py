@@ -139,6 +139,8 @@ def test_bundle_file_errors(synth_scene, tmp_path):
          "camera must name one of a"),
         ("scan: scan.ply\ncameras: {a: camera.yaml}\nrig: {cameras: [a]}\nphotos: [{image: photo.png, init: init_pose.yaml}]",
          "rig.cameras must list two or more"),
+        ("scan: scan.ply\ncameras: {a: camera.yaml, b: camera.yaml}\nrig: {cameras: ['', b]}\n"
+         "photos: [{image: photo.png, camera: a, shot: 0, init: init_pose.yaml}]", "('' not among them)"),
         ("scan: scan.ply\ncameras: {a: camera.yaml}\nphotos: [{image: photo.png, init: init_pose.yaml}, "
          "{image: sub/photo.png, init: init_pose.yaml}]", "two photos named photo"),
         ("scan: scan.ply\ncameras: {a: camera.yaml}\nphotos: [{image: missing.png, init: init_pose.yaml}]", "missing.png"),

@@ -154,7 +154,11 @@ def test_non_finite_and_degenerate_input(scene, tmp_path):
     np.savetxt(tmp_path / "nan.csv", bad, delimiter=",")
     assert_one_line_error(run_cli(*init, "--board-points", tmp_path / "nan.csv"), "nan.csv", "row 4")
     np.savetxt(tmp_path / "same.csv", np.repeat(corners[:1], len(corners), 0), delimiter=",")
-    assert_one_line_error(run_cli(*init, "--board-points", tmp_path / "same.csv"), "distinct")
+    assert_one_line_error(run_cli(*init, "--board-points", tmp_path / "same.csv"), "same.csv", "at one point, not on a board")
+    far = corners.copy()
+    far[5, 2] = 1e12  # the file names the fault, not PnP later (fuzz seed 10)
+    np.savetxt(tmp_path / "far.csv", far, delimiter=",")
+    assert_one_line_error(run_cli(*init, "--board-points", tmp_path / "far.csv"), "far.csv", "lie on one line")
     # the scan with a non-finite coordinate: ingest does not write it on
     scan_xyz = np.random.default_rng(1).uniform(-1, 1, (100, 3))
     scan_xyz[7, 2] = np.inf

@@ -146,6 +146,18 @@ def read_csv_rows(path: Path, fields: str) -> np.ndarray:
     return data
 
 
+def read_board_corners(path: Path) -> np.ndarray:
+    """The board's inner corners (n, 3) (scan frame, metres) from a CSV of x,y,z rows (--board-points,
+    a run's board.points); InputError naming the file when they do not span a plane, which PnP
+    would report later without it."""
+    corners = read_csv_rows(path, "x,y,z")
+    if len(corners) >= 3:  # fewer: the count against the board's is the clearer error (`board_in_scan`)
+        s = np.linalg.svd(corners - corners.mean(axis=0), compute_uv=False)
+        if s[1] <= 1e-3 * s[0]:
+            raise InputError("the corners lie on one line or at one point, not on a board", path)
+    return corners
+
+
 @dataclass
 class Picks:
     """Hand-picked correspondences: photo pixels img (n, 2) (distorted, as in the photo), scan

@@ -104,7 +104,8 @@ def read_bundle(path: str | os.PathLike) -> BundleSpec:
         rig = [str(c) for c in r["cameras"]]
         unknown = [c for c in rig if c not in cameras]
         if unknown or len(set(rig)) != len(rig):
-            raise InputError(f"rig.cameras must name distinct cameras of `cameras:` ({', '.join(unknown) or 'a repeat'})", path)
+            detail = f"{', '.join(map(repr, unknown))} not among them" if unknown else "a repeat"
+            raise InputError(f"rig.cameras must name distinct cameras of `cameras:` ({detail})", path)
         if not isinstance(r.get("prior") or {}, dict):
             raise InputError("rig.prior must map rig cameras after the first to {pose, sigma_rotation_deg, "
                              "sigma_translation_mm}", path)
