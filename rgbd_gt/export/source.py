@@ -129,18 +129,19 @@ def _changed(keys: dict, photo: str, files: dict[str, Path], file_keys: dict[Pat
     from: the SHA-1 recorded beside it (keys' KIND_sha1 in `record`: `steps.made_from` in a run
     photo's init.yaml, bundle.json's) differs, so that a camera file calibrated again, a photo or
     a scan replaced, is not exported with a pose solved for the old one (or one naming a damaged
-    record, whose SHA-1 is none); else None. file_keys:
-    the files' `file_key`s taken so far, shared by the photos (and the scan's by its preparation)."""
+    record, whose SHA-1 is none); else None. file_keys: the files' `file_key`s taken so far,
+    shared by the photos (and the scan's by its preparation)."""
     from rgbd_gt.prepared import file_key
     from rgbd_gt.steps import made_from_other
 
-    for kind in files:
+    for kind, path in files.items():
         sha1 = keys.get(f"{kind}_sha1")
-        if sha1 is not None and not (isinstance(sha1, str) and re.fullmatch("[0-9a-f]{40}", sha1)):
+        if sha1 is None:
+            continue
+        if not (isinstance(sha1, str) and re.fullmatch("[0-9a-f]{40}", sha1)):
             # a damaged record, not a changed file: saying the file changed would send the user the wrong way
             return InputError(f"{kind}_sha1: not a SHA-1 ({sha1!r:.50})", record)
-    for kind, path in files.items():
-        if keys.get(f"{kind}_sha1") is not None and path not in file_keys:
+        if path not in file_keys:
             try:
                 file_keys[path] = file_key(path)
             except OSError as exc:

@@ -51,6 +51,12 @@ def pose_uncertainty(T: np.ndarray, obj: np.ndarray, img: np.ndarray, camera: Ca
     return out
 
 
+def on_one_line(pts: np.ndarray) -> bool:
+    """Whether points (n, d) lie on one line (or at one point), within 1e-3 of their extent."""
+    s = np.linalg.svd(pts - pts.mean(axis=0), compute_uv=False)
+    return len(s) < 2 or s[1] <= 1e-3 * s[0]
+
+
 def check_spread(obj: np.ndarray, img: np.ndarray, what: str, minimum: int = 4) -> None:
     """InputError unless `minimum` pairs have distinct scan points and pixels and neither set lies
     on one line: PnP solvers divide by that spread (cv2 asserts, numpy raises LinAlgError).
@@ -61,8 +67,7 @@ def check_spread(obj: np.ndarray, img: np.ndarray, what: str, minimum: int = 4) 
         distinct = np.unique(np.round(pts / tol), axis=0)
         if len(distinct) < minimum:
             raise InputError(f"{what}: only {len(distinct)} distinct {unit}; {minimum} or more are needed")
-        s = np.linalg.svd(pts - pts.mean(axis=0), compute_uv=False)
-        if s[1] < 1e-3 * s[0]:
+        if on_one_line(pts):
             raise InputError(f"{what}: the {unit} lie on one line; the pose is undetermined")
 
 

@@ -12,7 +12,7 @@ import numpy as np
 from rgbd_gt.camera import Camera, project
 from rgbd_gt.errors import InputError, require_file
 from rgbd_gt.init.detect import BoardSpec, detect_corners
-from rgbd_gt.init.pnp import board_pose, check_spread, estimate_focal, pnp_ransac, pose_uncertainty, reprojection_rms
+from rgbd_gt.init.pnp import board_pose, check_spread, estimate_focal, on_one_line, pnp_ransac, pose_uncertainty, reprojection_rms
 from rgbd_gt.init.scan_board import ScanBoard, find_board_in_scan, in_convex_polygon, scan_step
 from rgbd_gt.scan import Scan, colors_to_gray, scan_colors
 from rgbd_gt.pose import transform_points
@@ -151,10 +151,9 @@ def read_board_corners(path: Path) -> np.ndarray:
     a run's board.points); InputError naming the file when they do not span a plane, which PnP
     would report later without it."""
     corners = read_csv_rows(path, "x,y,z")
-    if len(corners) >= 3:  # fewer: the count against the board's is the clearer error (`board_in_scan`)
-        s = np.linalg.svd(corners - corners.mean(axis=0), compute_uv=False)
-        if s[1] <= 1e-3 * s[0]:
-            raise InputError("the corners lie on one line or at one point, not on a board", path)
+    # fewer than 3: the count against the board's is the clearer error (`board_in_scan`)
+    if len(corners) >= 3 and on_one_line(corners):
+        raise InputError("the corners lie on one line or at one point, not on a board", path)
     return corners
 
 
