@@ -200,6 +200,9 @@ def synth(
     outs = Outputs([config])
     staged = outs.folder(out_dir, "OUT_DIR")
     cfg = load_config(SynthConfig, config, "synth.yaml")
+    if size not in cfg.sizes:  # checked here too, to name the option and the config that lacks it
+        raise InputError(f"--size '{size}' is not among the sizes {config or 'configs/synth.yaml'} defines "
+                         f"({', '.join(cfg.sizes) or 'none'})")
     if photos < 1:
         raise InputError(f"--photos must be at least 1, got {photos}")
     if seed < 0:

@@ -258,9 +258,12 @@ def test_export_errors(rig_run, tmp_path, synth_scene):
     rig = (broken / "rig.yaml").read_text()
     nan = yaml.safe_load(rig)
     nan["relative"]["right"]["sigma"]["translation_mm"][0] = float("nan")
-    for bad in (b"\x92\x00garbage", b"- 1\n- 2\n", yaml.safe_dump(nan).encode()):
+    # fuzz seed 11: a rig.yaml of another format said "(string indices must be integers, not 'str')"
+    for bad, said in ((b"\x92\x00garbage", "invalid YAML"), (b"ply format ascii", "not a mapping of keys (str)"),
+                      (b"- 1\n- 2\n", "not a mapping of keys (list)"),
+                      (yaml.safe_dump(nan).encode(), "translation_mm: not 3 numbers")):
         (broken / "rig.yaml").write_bytes(bad)
-        assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(broken / "rig.yaml"))
+        assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(broken / "rig.yaml"), said)
     for bad, said in (("relative: null", "relative: not a mapping of cameras (None)"),
                       ("relative: {right: [1, 2]}", "relative.right: not a relative pose with its sigma ([1, 2])")):
         (broken / "rig.yaml").write_text(f"cameras: [left, right]\n{bad}\n")
@@ -276,8 +279,12 @@ def test_export_errors(rig_run, tmp_path, synth_scene):
     (broken / "bundle.json").write_text(json.dumps({**json.loads(record), "scan_sha1": ""}))
     assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(broken / "bundle.json"),
                           "scan_sha1: not a SHA-1 ('')")
-    (broken / "bundle.json").write_text("{")
-    assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(broken / "bundle.json"))
+    # fuzz seed 11: an empty record said "cannot read (Expecting value: line 1 column 1 (char 0))"
+    for bad, said in (("{", "invalid JSON (Expecting property name enclosed in double quotes, line 1)"),
+                      ("", "empty: not a record rgbd-gt wrote"), ("[1]", "(a JSON list, not an object)")):
+        (broken / "bundle.json").write_text(bad)
+        assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(broken / "bundle.json"),
+                              said)
     assert_one_line_error(run_cli("export", bout, "-o", bout / "photo" / "pose.yaml", "-f", "plain"), "-o")
     assert_one_line_error(run_cli("export", bout, "-o", bout, "-f", "plain"), "-o", "the run's own folder")
     assert not (tmp_path / "x").exists()

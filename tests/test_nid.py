@@ -523,15 +523,22 @@ def test_pairs_and_scan_arguments_are_checked(tmp_path):
     assert_one_line_error(run_cli(*base), "--pairs")
     assert_one_line_error(run_cli(*base, "--scan", "a.pcd", "--image", "a.png", "--objective", "mi"), "objective")
     assert not (tmp_path / "out.yaml").exists()
-    from pathlib import Path
-
     from rgbd_gt.align.refine import read_pairs  # paths relative to the file, `~` the user's home
 
-    (tmp_path / "rig.yaml").write_text("pairs: [{scan: a.pcd, image: ~/b.png, camera: ~/c.yaml}]\n")
+    (tmp_path / "rig.yaml").write_text("pairs: [{scan: a.pcd, image: ~/b.png, camera: ~/c.yaml}, {scan: a.pcd, image: d.png}]\n")
+    home = tmp_path / "home"
+    home.mkdir()
+    for name in ("a.pcd", "d.png", "home/b.png", "home/c.yaml"):
+        (tmp_path / name).touch()
     with pytest.MonkeyPatch.context() as env:
-        env.setenv("HOME", "/home/someone")
+        env.setenv("HOME", str(home))
         assert read_pairs(tmp_path / "rig.yaml", cam) == [
-            {"scan": tmp_path / "a.pcd", "image": Path("/home/someone/b.png"), "camera": Path("/home/someone/c.yaml")}]
+            {"scan": tmp_path / "a.pcd", "image": home / "b.png", "camera": home / "c.yaml"},
+            {"scan": tmp_path / "a.pcd", "image": tmp_path / "d.png", "camera": cam}]
+        # fuzz seed 11: a pair's missing photo was named without the list or the pair
+        (tmp_path / "d.png").unlink()
+        assert_one_line_error(run_cli(*base, "--pairs", tmp_path / "rig.yaml"), str(tmp_path / "rig.yaml"),
+                              f"pair 2: image {tmp_path / 'd.png'}: file not found")
 
 
 def test_nothing_to_align_by_is_an_input_error(tmp_path):

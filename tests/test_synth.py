@@ -5,8 +5,9 @@ import json
 import cv2
 import numpy as np
 import pytest
+import yaml
 
-from conftest import assert_one_line_error, run_cli
+from conftest import ROOT, assert_one_line_error, run_cli
 from rgbd_gt.camera import project
 from rgbd_gt.io import load_scan, read_camera, read_pose
 from rgbd_gt.pose import rotation_error_deg, transform_points, translation_error_m
@@ -125,7 +126,14 @@ def test_same_seed_same_files(scenes, tmp_path):
 
 
 def test_bad_size_and_config(tmp_path):
-    assert_one_line_error(run_cli("synth", tmp_path, "--size", "huge"), "unknown size")
+    assert_one_line_error(run_cli("synth", tmp_path, "--size", "huge"), "--size 'huge' is not among the sizes",
+                          "(default, small)")
+    # fuzz seed 11: a config cut short of its 'small' size said "unknown size 'small'", naming no file
+    config = yaml.safe_load((ROOT / "configs" / "synth.yaml").read_text())
+    config["sizes"].pop("small")
+    (tmp_path / "d.yaml").write_text(yaml.safe_dump(config))
+    assert_one_line_error(run_cli("synth", tmp_path / "o", "--size", "small", "--config", tmp_path / "d.yaml"),
+                          f"--size 'small' is not among the sizes {tmp_path / 'd.yaml'} defines (default)")
     (tmp_path / "c.yaml").write_text("board_colz: 9\n")
     assert_one_line_error(run_cli("synth", tmp_path / "o", "--config", tmp_path / "c.yaml"), "c.yaml", "board_colz")
     # the fuzz's 1e12 deg margin asked for a grid no memory holds: exit 1 and "out of memory" before

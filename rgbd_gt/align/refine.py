@@ -95,8 +95,11 @@ def read_pairs(path: Path, camera: Path) -> list[dict[str, Path]]:
         if "camera" in item and not (isinstance(item["camera"], str) and item["camera"].strip()):
             raise InputError(f"pair {k}: camera must be a path", path)
         out.append({key: path.parent / os.path.expanduser(item[key]) for key in ("scan", "image", "camera") if key in item})
-        out[-1].setdefault("camera", Path(camera))
-    return out
+    for k, paths in enumerate(out, 1):  # named with its pair: a mistake in the list is found in the list
+        for key, p in paths.items():
+            if not p.is_file():
+                raise InputError(f"pair {k}: {key} {p}: {'a folder, not a file' if p.is_dir() else 'file not found'}", path)
+    return [{"camera": Path(camera), **paths} for paths in out]
 
 
 def objective_of(cfg: RefineConfig, colors: np.ndarray) -> str:

@@ -67,7 +67,7 @@ def read_run(folder: Path, stale_missing: bool = False, known: dict[Path, dict] 
         raise InputError("not a finished run: it holds neither run.json (rgbd-gt run) nor bundle.json "
                          "(rgbd-gt refine --bundle)", folder)
     record = _json(folder / "run.json")
-    scans = record.get("scans") if isinstance(record, dict) else None
+    scans = record.get("scans")
     if (folder / "bundle.json").is_file() and not any(isinstance(e, dict) and "bundle" in e for e in scans or []):
         raise InputError("holds both run.json (rgbd-gt run) and bundle.json (rgbd-gt refine --bundle): two runs "
                          "wrote into one folder; give each its own", folder)
@@ -163,7 +163,6 @@ def _bundle_source(folder: Path, bundle: Path, name: str = "bundle", errors: dic
 
     spec = read_bundle(bundle)
     record = _json(folder / "bundle.json")
-    record = record if isinstance(record, dict) else {}
     solved = record.get("bundle_sha1")
     if solved is not None and solved != file_key(bundle)["sha1"]:  # its photos, cameras or shots may be others now
         raise InputError(f"changed since the photos in {folder} were solved from it (bundle.json holds another "
@@ -207,6 +206,8 @@ def _rig(path: Path) -> dict:
     order and each later camera's `relative` entry with its translation 1-sigma (mm, 3 numbers)."""
     rig = read_yaml(path)
     try:
+        if not isinstance(rig, dict):
+            raise TypeError(f"not a mapping of keys ({type(rig).__name__})")
         cameras = rig["cameras"]
         if not isinstance(cameras, list) or not all(isinstance(c, str) for c in cameras):
             raise TypeError(f"cameras: not a list of names ({cameras!r})")
@@ -288,8 +289,16 @@ def _errors(summary: Path) -> dict[str, str]:
 
 def _json(path: Path) -> dict:
     try:
-        return json.loads(Path(path).read_text())
+        text = Path(path).read_text(errors="replace")
     except FileNotFoundError:
         return {}
-    except (OSError, ValueError) as exc:
-        raise InputError(f"cannot read ({exc})", path) from None
+    except OSError as exc:
+        raise InputError(f"cannot read ({exc.strerror or exc})", path) from None
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InputError("empty: not a record rgbd-gt wrote" if not text.strip() else
+                         f"invalid JSON ({exc.msg}, line {exc.lineno})", path) from None
+    if not isinstance(data, dict):
+        raise InputError(f"not a record rgbd-gt wrote (a JSON {type(data).__name__}, not an object)", path)
+    return data
