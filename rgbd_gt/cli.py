@@ -197,7 +197,7 @@ def synth(
     from rgbd_gt.io.outputs import Outputs
     from rgbd_gt.synth.generate import FILES, SynthConfig, generate
 
-    outs = Outputs([config])
+    outs = Outputs({"--config": config})
     staged = outs.folder(out_dir, "OUT_DIR")
     cfg = load_config(SynthConfig, config, "synth.yaml")
     if size not in cfg.sizes:  # checked here too, to name the option and the config that lacks it
@@ -261,7 +261,8 @@ def init_pose(
     from rgbd_gt.prepared import prepare_scan
     from rgbd_gt.steps import init_step, made_from, open_photo
 
-    outs = Outputs([scan, image, camera, board_points, correspondences])
+    outs = Outputs({"--scan": scan, "--image": image, "--camera": camera, "--board-points": board_points,
+                    "--correspondences": correspondences})
     pose_out = outs.file(output, "-o", POSE_SUFFIXES)
     if camera_out is not None:
         if not estimate_focal:
@@ -349,7 +350,7 @@ def pick(
     from rgbd_gt.steps import open_photo
 
     # checked only: the page saves the file itself (atomically) each time it is asked to
-    outs = Outputs([scan, image, camera, init])
+    outs = Outputs({"--scan": scan, "--image": image, "--camera": camera, "--init": init})
     outs.file(output, "-o", (".csv",))
     outs.checked_folder(cache, "--cache")
     _check_ransac_px(ransac_px)
@@ -460,7 +461,9 @@ def refine(
     if scan is None and pairs is None:
         raise InputError("give --scan and --image, or --pairs")
     listed = read_pairs(pairs, camera) if pairs is not None else []
-    outs = Outputs([scan, image, camera, init, mask, check, config, pairs] + [p for pair in listed for p in pair.values()])
+    outs = Outputs({"--scan": scan, "--image": image, "--camera": camera, "--init": init, "--mask": mask, "--check": check,
+                    "--config": config, "--pairs": pairs,
+                    **{f"--pairs (pair {k}'s {key})": p for k, pair in enumerate(listed, 1) for key, p in pair.items()}})
     pose_out = outs.file(output, "-o", POSE_SUFFIXES)
     if camera_out is not None:
         if refine_intrinsics in (None, "none"):
@@ -636,7 +639,7 @@ def export_depth(
     from rgbd_gt.render.depth import back_facing_fraction, back_facing_warning
     from rgbd_gt.steps import depth_step, open_photo, write_depth
 
-    outs = Outputs([scan, camera, pose] + ([image] if image else []))
+    outs = Outputs({"--scan": scan, "--camera": camera, "--pose": pose, "--image": image})
     staged = {name: outs.file(p, option, suffixes) for name, p, option, suffixes in [
         ("exr", output, "-o", (".exr",)), ("png16", png16, "--png16", (".png",)),
         ("normals", normals, "--normals", (".exr",)), ("mask", mask, "--mask", (".png",))] if p is not None}
@@ -702,7 +705,7 @@ def qa_edges(
     from rgbd_gt.render.renders import Renders
     from rgbd_gt.steps import open_photo, qa_step
 
-    outs = Outputs([scan, image, camera, pose, before])
+    outs = Outputs({"--scan": scan, "--image": image, "--camera": camera, "--pose": pose, "--before": before})
     staged = outs.file(output, "-o", IMAGE_SUFFIXES)
     staged_json = outs.file(json_out, "--json", (".json",)) if json_out else None
     outs.checked_folder(cache, "--cache")
@@ -747,7 +750,7 @@ def overlay(
 
     start = time.perf_counter()
     paths = overlay_paths(output)
-    outs = Outputs([scan, image, camera, pose])
+    outs = Outputs({"--scan": scan, "--image": image, "--camera": camera, "--pose": pose})
     staged = {k: outs.file(p, "-o" if k == "checker" else f"-o (its {k})", (".png",)) for k, p in paths.items()}
     outs.checked_folder(cache, "--cache")
     if max_depth is not None and max_depth < 0:

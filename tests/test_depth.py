@@ -113,7 +113,9 @@ def test_export_depth_errors(icl_files):
     write_pose(d / "away.yaml", away)
     args = ["--scan", d / "scan.ply", "--camera", d / "camera.yaml", "-o", d / "o.exr"]
     assert_one_line_error(run_cli("export-depth", *args, "--pose", d / "away.yaml"), "away.yaml", "no scan points in view")
-    assert_one_line_error(run_cli("export-depth", *args, "--pose", d / "missing.yaml"), "missing.yaml", "not found")
+    # an input named with its option (fuzz seed 12: "error: inf: file not found" for `--before inf`)
+    assert_one_line_error(run_cli("export-depth", *args, "--pose", d / "missing.yaml"), f"{d / 'missing.yaml'}: --pose: file not found")
+    assert_one_line_error(run_cli("export-depth", *args, "--pose", d), f"{d}: --pose: is a folder, not a file")
     assert_one_line_error(run_cli("export-depth", "--scan", d / "scan.ply", "--camera", d / "camera.yaml",
                                   "--pose", d / "pose.yaml", "-o", d / "o.png"), ".exr")
     assert not (d / "o.exr").exists()

@@ -521,7 +521,11 @@ def test_pairs_and_scan_arguments_are_checked(tmp_path):
     assert_one_line_error(run_cli(*base, "--pairs", tmp_path / "empty.yaml"), "pair 2", "scan and image")  # not the folder
     assert_one_line_error(run_cli(*base, "--scan", tmp_path / "a.pcd"), "--scan and --image")
     assert_one_line_error(run_cli(*base), "--pairs")
-    assert_one_line_error(run_cli(*base, "--scan", "a.pcd", "--image", "a.png", "--objective", "mi"), "objective")
+    assert_one_line_error(run_cli(*base, "--scan", "a.pcd", "--image", "a.png"), "a.pcd: --scan: file not found")
+    (tmp_path / "a.pcd").touch()
+    (tmp_path / "a.png").touch()
+    assert_one_line_error(run_cli(*base, "--scan", tmp_path / "a.pcd", "--image", tmp_path / "a.png", "--objective", "mi"),
+                          "objective")
     assert not (tmp_path / "out.yaml").exists()
     from rgbd_gt.align.refine import read_pairs  # paths relative to the file, `~` the user's home
 

@@ -13,7 +13,7 @@ import shutil
 import tempfile
 import uuid
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Iterable, Mapping, Sequence
 
 from rgbd_gt.errors import InputError
 
@@ -31,14 +31,21 @@ def _existing_ancestor(path: Path, option: str) -> Path:
 class Outputs:
     """Plan, stage and commit a command's outputs.
 
-        outs = Outputs(inputs)
+        outs = Outputs({"--scan": scan, ...})  # inputs by option: checked to exist
         pose = outs.file(output, "-o", (".yaml", ".yml"))  # checked now, nothing made yet
         ...  # more checks
         with outs:  # makes the staging folders; commits when the block ends, discards on error
             write_pose(pose, ...)
     """
 
-    def __init__(self, inputs: Iterable[str | os.PathLike | None]):
+    def __init__(self, inputs: Mapping[str, str | os.PathLike | None] | Iterable[str | os.PathLike | None]):
+        """inputs: the paths no output may overwrite; given as {option: path}, each (but None) is
+        checked now to name an existing file, so that a wrong one is named with its option."""
+        if isinstance(inputs, Mapping):
+            for option, p in inputs.items():
+                if p is not None and not Path(p).is_file():
+                    raise InputError(f"{option}: {'is a folder, not a file' if Path(p).is_dir() else 'file not found'}", p)
+            inputs = inputs.values()
         self.inputs = [Path(p) for p in inputs if p is not None]
         self.staged: list[tuple[Path, Path, bool]] = []  # (staged path, target, is a folder)
         self._whole: set[Path] = set()  # staged folders whose entries replace the target's wholesale
