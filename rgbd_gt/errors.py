@@ -18,15 +18,21 @@ class InputError(Exception):
         super().__init__(f"{path}: {message}" if path is not None else message)
 
 
-def require_file(path: str | os.PathLike, what: str = "file") -> Path:
-    """`path` as a Path; InputError "<what> not found" (or "is a folder, not a <what>") unless
-    it names an existing file."""
+def file_problem(path: str | os.PathLike, what: str = "file") -> str | None:
+    """None when `path` names an existing file, else "<what> not found" or "is a folder, not a
+    <what>" (a path cut short or left empty in a config names its folder)."""
     path = Path(path)
-    if path.is_dir():  # a path cut short or left empty in a config names its folder
-        raise InputError(f"is a folder, not a {what}", path)
-    if not path.is_file():
-        raise InputError(f"{what} not found", path)
-    return path
+    if path.is_file():
+        return None
+    return f"is a folder, not a {what}" if path.is_dir() else f"{what} not found"
+
+
+def require_file(path: str | os.PathLike, what: str = "file") -> Path:
+    """`path` as a Path; InputError (`file_problem`) unless it names an existing file."""
+    problem = file_problem(path, what)
+    if problem is not None:
+        raise InputError(problem, path)
+    return Path(path)
 
 
 def read_yaml(path: str | os.PathLike, text: str | None = None):

@@ -15,7 +15,7 @@ from typing import Callable
 import numpy as np
 
 from rgbd_gt.align.config import RefineConfig
-from rgbd_gt.errors import InputError, read_yaml
+from rgbd_gt.errors import InputError, file_problem, read_yaml
 
 # of the photo's extent: the points the refined pose sees within it must be in the view (a render
 # near the border needs the triangles and splats a little beyond it)
@@ -189,9 +189,8 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[list[ScanJob], Path]:
         if not path.strip():  # would name the config's own folder
             raise InputError(f"{key}: an empty path; give a {kind} file", config_path)
         found = at(path)
-        if not found.is_file():
-            raise InputError(f"{key}: {found} is a folder, not a {kind} file" if found.is_dir() else
-                             f"{key}: no {kind} file {found}", config_path)
+        if problem := file_problem(found, f"{kind} file"):
+            raise InputError(f"{key}: {found}: {problem}", config_path)
         return found
 
     def init_of(path: str | None) -> Path | None:

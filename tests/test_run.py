@@ -120,7 +120,7 @@ def test_run_bad_config(tmp_path):
     (tmp_path / "bad.yaml").write_text("scan: x.ply\nphotos: [a.png]\ncamera: c.yaml\nwhatever: 1\n")
     assert_one_line_error(run_cli("run", tmp_path / "bad.yaml"), "bad.yaml", "whatever")
     (tmp_path / "noscan.yaml").write_text("scan: x.ply\ncamera: c.yaml\nphotos: [a.png]\n")
-    assert_one_line_error(run_cli("run", tmp_path / "noscan.yaml"), "noscan.yaml", "scan: no scan file", "x.ply")
+    assert_one_line_error(run_cli("run", tmp_path / "noscan.yaml"), "noscan.yaml", f"scan: {tmp_path / 'x.ply'}: scan file not found")
     (tmp_path / "x.ply").write_bytes(b"")  # read only when its scan is prepared
     (tmp_path / "nophotos.yaml").write_text("scan: x.ply\ncamera: c.yaml\nphotos: [none*.png]\n")
     assert_one_line_error(run_cli("run", tmp_path / "nophotos.yaml"), "no photo matches")
@@ -134,9 +134,9 @@ def test_run_bad_config(tmp_path):
     (tmp_path / "emptyinit.yaml").write_text("scan: x.ply\ncamera: c.yaml\nphotos: [a.png]\ninit: ''\n")  # fuzz seed 9
     assert_one_line_error(run_cli("run", tmp_path / "emptyinit.yaml"), "emptyinit.yaml", "init: an empty path; give a pose file")
     (tmp_path / "noinit.yaml").write_text("scan: x.ply\ncamera: c.yaml\nphotos: [a.png]\ninit: rig.yaml\n")
-    assert_one_line_error(run_cli("run", tmp_path / "noinit.yaml"), "noinit.yaml", "init: no pose file", "rig.yaml")
+    assert_one_line_error(run_cli("run", tmp_path / "noinit.yaml"), "noinit.yaml", f"init: {tmp_path / 'rig.yaml'}: pose file not found")
     (tmp_path / "nocorners.yaml").write_text("scan: x.ply\ncamera: c.yaml\nphotos: [a.png]\nboard:\n  points: corners.csv\n")
-    assert_one_line_error(run_cli("run", tmp_path / "nocorners.yaml"), "board.points: no corners file", "corners.csv")
+    assert_one_line_error(run_cli("run", tmp_path / "nocorners.yaml"), f"board.points: {tmp_path / 'corners.csv'}: corners file not found")
     import torch
 
     if not torch.cuda.is_available():  # one error before any work, not every photo failing on it

@@ -81,7 +81,7 @@ def read_pairs(path: Path, camera: Path) -> list[dict[str, Path]]:
     """The (scan, image, camera) paths of a --pairs YAML (`pairs:` a list of mappings with scan,
     image and optionally camera, which defaults to `camera`), relative to the file's folder (`~`:
     the user's home)."""
-    from rgbd_gt.errors import read_yaml, require_file
+    from rgbd_gt.errors import file_problem, read_yaml, require_file
 
     path = require_file(path)
     data = read_yaml(path)
@@ -97,8 +97,8 @@ def read_pairs(path: Path, camera: Path) -> list[dict[str, Path]]:
         out.append({key: path.parent / os.path.expanduser(item[key]) for key in ("scan", "image", "camera") if key in item})
     for k, paths in enumerate(out, 1):  # named with its pair: a mistake in the list is found in the list
         for key, p in paths.items():
-            if not p.is_file():
-                raise InputError(f"pair {k}: {key} {p}: {'a folder, not a file' if p.is_dir() else 'file not found'}", path)
+            if problem := file_problem(p):
+                raise InputError(f"pair {k}: {key} {p}: {problem}", path)
     return [{"camera": Path(camera), **paths} for paths in out]
 
 

@@ -15,7 +15,7 @@ import uuid
 from pathlib import Path
 from typing import Iterable, Mapping, Sequence
 
-from rgbd_gt.errors import InputError
+from rgbd_gt.errors import InputError, file_problem
 
 
 def _existing_ancestor(path: Path, option: str) -> Path:
@@ -43,8 +43,8 @@ class Outputs:
         checked now to name an existing file, so that a wrong one is named with its option."""
         if isinstance(inputs, Mapping):
             for option, p in inputs.items():
-                if p is not None and not Path(p).is_file():
-                    raise InputError(f"{option}: {'is a folder, not a file' if Path(p).is_dir() else 'file not found'}", p)
+                if p is not None and (problem := file_problem(p)):
+                    raise InputError(f"{option}: {problem}", p)
             inputs = inputs.values()
         self.inputs = [Path(p) for p in inputs if p is not None]
         self.staged: list[tuple[Path, Path, bool]] = []  # (staged path, target, is a folder)
