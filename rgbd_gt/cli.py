@@ -460,10 +460,11 @@ def refine(
         raise InputError("--scan and --image go together" + ("" if pairs else " (or list the pairs in --pairs)"))
     if scan is None and pairs is None:
         raise InputError("give --scan and --image, or --pairs")
+    named = {"--scan": scan, "--image": image, "--camera": camera, "--init": init, "--mask": mask, "--check": check,
+             "--config": config, "--pairs": pairs}
+    Outputs(named)  # each named file checked before the --pairs list is read
     listed = read_pairs(pairs, camera) if pairs is not None else []
-    outs = Outputs({"--scan": scan, "--image": image, "--camera": camera, "--init": init, "--mask": mask, "--check": check,
-                    "--config": config, "--pairs": pairs,
-                    **{f"--pairs (pair {k}'s {key})": p for k, pair in enumerate(listed, 1) for key, p in pair.items()}})
+    outs = Outputs({**named, **{f"--pairs (pair {k}'s {key})": p for k, pair in enumerate(listed, 1) for key, p in pair.items()}})
     pose_out = outs.file(output, "-o", POSE_SUFFIXES)
     if camera_out is not None:
         if refine_intrinsics in (None, "none"):

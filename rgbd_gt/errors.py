@@ -37,10 +37,14 @@ def require_file(path: str | os.PathLike, what: str = "file") -> Path:
 
 def read_yaml(path: str | os.PathLike, text: str | None = None):
     """The YAML document in file `path` (or in `text`, already read from it); InputError
-    "invalid YAML (why)" when it does not parse. Bytes that are not UTF-8 read as U+FFFD."""
+    "invalid YAML (line N: why)" when it does not parse. Bytes that are not UTF-8 read as U+FFFD."""
     import yaml
 
     try:
         return yaml.safe_load(Path(path).read_text(errors="replace") if text is None else text)
     except yaml.YAMLError as exc:
-        raise InputError(f"invalid YAML ({str(exc).splitlines()[0]})", path) from None
+        # the problem and its line: the first line of the text is often only the context
+        # ("while parsing a block mapping"), which names neither what is wrong nor where
+        problem, mark = getattr(exc, "problem", None), getattr(exc, "problem_mark", None)
+        why = f"line {mark.line + 1}: {problem}" if problem and mark else str(exc).splitlines()[0]
+        raise InputError(f"invalid YAML ({why})", path) from None

@@ -294,6 +294,18 @@ def test_a_matrix_without_its_cols_is_refused_before_opencv_reads_it(tmp_path):
     assert proc.stdout.strip().endswith("not a readable OpenCV calibration file (a matrix lacks its rows or cols)")
 
 
+def test_an_opencv_value_that_is_not_utf8_is_named(tmp_path):
+    """The fuzz's byte flip in `<image_height>480</image_height>` made a string node of bytes that
+    are not UTF-8; the binding raised UnicodeDecodeError (a traceback) when the value was read."""
+    path = tmp_path / "camera.xml"
+    path.write_bytes(b'<?xml version="1.0"?>\n<opencv_storage>\n<camera_matrix type_id="opencv-matrix">'
+                     b"<rows>3</rows><cols>3</cols><dt>d</dt><data>500. 0. 320. 0. 500. 240. 0. 0. 1.</data>"
+                     b"</camera_matrix>\n<image_width>640</image_width>\n<image_height>\xd380</image_height>\n"
+                     b"</opencv_storage>\n")
+    with pytest.raises(InputError, match=r"camera.xml: not a readable OpenCV calibration file \(a value that is not UTF-8 text\)"):
+        read_camera(path)
+
+
 @pytest.mark.parametrize(
     "text,needle",
     [

@@ -522,6 +522,8 @@ def test_pairs_and_scan_arguments_are_checked(tmp_path):
     assert_one_line_error(run_cli(*base, "--scan", tmp_path / "a.pcd"), "--scan and --image")
     assert_one_line_error(run_cli(*base), "--pairs")
     assert_one_line_error(run_cli(*base, "--scan", "a.pcd", "--image", "a.png"), "a.pcd: --scan: file not found")
+    # fuzz seed 13: the list itself missing said "inf: file not found", naming no option
+    assert_one_line_error(run_cli(*base, "--pairs", "inf"), "inf: --pairs: file not found")
     (tmp_path / "a.pcd").touch()
     (tmp_path / "a.png").touch()
     assert_one_line_error(run_cli(*base, "--scan", tmp_path / "a.pcd", "--image", tmp_path / "a.png", "--objective", "mi"),

@@ -90,6 +90,9 @@ def test_values_are_checked_where_they_are_read(scene, tmp_path):
     assert_one_line_error(run_cli(*refine, "--levels", "13"), "levels must be 1..12 or 'auto', got 13", "(options given: --levels 13)")
     (tmp_path / "c.yaml").write_bytes(bytes(range(256)) * 4)
     assert_one_line_error(run_cli(*refine, "--config", tmp_path / "c.yaml"), "invalid YAML")
+    # fuzz seed 13: a line removed said only "invalid YAML (while parsing a block mapping)"
+    (tmp_path / "c.yaml").write_text("verify:\n  repeats: 2\n folds: 3\n")
+    assert_one_line_error(run_cli(*refine, "--config", tmp_path / "c.yaml"), "c.yaml: invalid YAML (line 3: expected <block end>")
     run_cfg = tmp_path / "run.yaml"
     run_cfg.write_text(f"scan: {scene / 'scan.ply'}\ncamera: {scene / 'camera.yaml'}\nphotos: [1]\noutput: null\n")
     assert_one_line_error(run_cli("run", run_cfg), "expected a string")

@@ -73,6 +73,8 @@ def opencv_nodes(path: Path, names: tuple[str, ...]) -> dict[str, np.ndarray | f
         raise unreadable(why) from None
     except SystemError:  # a truncated file ends in SystemError inside the binding, which says only that
         raise unreadable("truncated or corrupt") from None
+    except UnicodeDecodeError:  # a string node's bytes; the binding decodes them only when asked
+        raise unreadable("a value that is not UTF-8 text") from None
 
 
 # OpenCV's calibration sample's node names, then livox_camera_calib's camera.yaml's (ORB-SLAM's
