@@ -36,9 +36,10 @@ class BoardConfig:
             raise ValueError(f"board: cols and rows are inner corners, 2..100 each, got {self.cols}x{self.rows}")
         from rgbd_gt.init.detect import MAX_SQUARE_M
 
-        if not 0 < self.square <= MAX_SQUARE_M or (self.marker is not None and not 0 < self.marker < self.square):
-            raise ValueError(f"board: square must lie between 0 and {MAX_SQUARE_M:g} m and marker between 0 and square, "
-                             f"got {self.square}, {self.marker}")
+        if not 0 < self.square <= MAX_SQUARE_M:
+            raise ValueError(f"board: square must lie between 0 and {MAX_SQUARE_M:g} m, got {self.square}")
+        if self.marker is not None and not 0 < self.marker < self.square:
+            raise ValueError(f"board: marker must lie between 0 and the square ({self.square} m), got {self.marker}")
         return self
 
 

@@ -96,6 +96,12 @@ def test_values_are_checked_where_they_are_read(scene, tmp_path):
     run_cfg = tmp_path / "run.yaml"
     run_cfg.write_text(f"scan: {scene / 'scan.ply'}\ncamera: {scene / 'camera.yaml'}\nphotos: [1]\noutput: null\n")
     assert_one_line_error(run_cli("run", run_cfg), "expected a string")
+    # fuzz seed 14: a square of 0 said "... and marker between 0 and square, got 0.0, None"
+    for board, needle in (("{square: 0.0}", "board: square must lie between 0 and 10 m, got 0.0"),
+                          ("{square: 0.05, marker: 0.06}", "board: marker must lie between 0 and the square (0.05 m), got 0.06")):
+        run_cfg.write_text(f"scan: {scene / 'scan.ply'}\ncamera: {scene / 'camera.yaml'}\nphotos: [{scene / 'photo.png'}]\n"
+                           f"board: {board}\n")
+        assert_one_line_error(run_cli("run", run_cfg), "run.yaml", needle)
     cam = yaml.safe_load((scene / "camera.yaml").read_text())
     for change, needle in [({"fx": 1e12}, "fx must lie between"), ({"distortion": "abc"}, "must be numbers"),
                            ({"distortion": [float("nan")] * 5}, "finite"), ({"width": 640.5}, "width must be a whole")]:
