@@ -219,7 +219,15 @@ def _current_meta(folder: Path, key: dict) -> dict | None:
         meta = json.loads((folder / "meta.json").read_text())
     except (OSError, ValueError):
         return None
-    return meta if isinstance(meta, dict) and meta.get("key") == key and meta.get("version") == CACHE_VERSION else None
+    return meta if isinstance(meta, dict) and meta.get("key") == key and meta.get("version") == CACHE_VERSION \
+        and meta.get("digest") == _digest(meta) else None
+
+
+def _digest(meta: dict) -> str:
+    """SHA-1 of meta.json's other entries: a number in it changed (its centre, a bit flipped on
+    disk) would move every point, so that a view found nothing, and is made again instead."""
+    rest = {k: v for k, v in meta.items() if k != "digest"}
+    return hashlib.sha1(json.dumps(rest, sort_keys=True).encode()).hexdigest()
 
 
 def storage_centre(scan: Scan) -> np.ndarray:
@@ -399,7 +407,7 @@ def _build(scan_path: Path, folder: Path, key: dict, progress: Callable[[str], N
         meta = {"seconds": seconds, "version": CACHE_VERSION, "key": key, "source": str(scan_path.absolute()),
                 "points": layout.points, "arrays": names, "centre": layout.centre.tolist(),
                 "origins": layout.origins.tolist(), "angular_step": layout.angular_step, "blocks": len(blocks)}
-        (stage / "meta.json").write_text(json.dumps(meta, indent=1))
+        (stage / "meta.json").write_text(json.dumps({**meta, "digest": _digest(meta)}, indent=1))
         # another run that prepared the same scan meanwhile has put an equal cache in place, which it
         # may be reading: keep that one
         if _current_meta(folder, key) is None:

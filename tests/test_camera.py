@@ -220,7 +220,9 @@ def test_autoware_calibration_file(tmp_path, pjlab3_depth):
     for name, text, needle in (("fisheye.yaml", _autoware_file(cam, invert(T), model="equidistant"), "DistModel 'equidistant'"),
                                ("size.yaml", _autoware_file(cam, invert(T), size=[cam.width]), r"ImageSize must be \[width, height\]"),
                                ("nosize.yaml", _autoware_file(cam, invert(T)).replace("ImageSize", "Size"), "or 'ImageSize'"),
-                               ("norows.yaml", _autoware_file(cam, invert(T)).replace("   rows: 3\n", ""), "lacks its rows or cols")):
+                               ("norows.yaml", _autoware_file(cam, invert(T)).replace("   rows: 3\n", ""), "lacks its rows or cols"),
+                               # fuzz seed 15: was "got np.float64(1e+30)"
+                               ("tall.yaml", _autoware_file(cam, invert(T), size=[cam.width, 1e30]), r"height .* got 1e\+30$")):
         (tmp_path / name).write_text(text)
         with pytest.raises(InputError, match=needle):
             read_camera(tmp_path / name)

@@ -33,7 +33,8 @@ def camera_from_values(path: Path, width, height, K: np.ndarray, dist) -> Camera
     for name, v in (("width", width), ("height", height)):
         if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not float(v).is_integer() \
                 or not 1 <= v <= 100_000:
-            raise InputError(f"{name} must be a whole number of pixels (1..100000), got {v!r}", path)
+            shown = v.item() if isinstance(v, np.generic) else v  # not numpy's repr: np.float64(1e+30)
+            raise InputError(f"{name} must be a whole number of pixels (1..100000), got {shown!r}", path)
         sizes.append(int(v))
     w, h = sizes
     cam = Camera(w, h, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), dist)
