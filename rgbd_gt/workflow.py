@@ -202,9 +202,10 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[list[ScanJob], Path]:
 
     output = at(cfg.output)
     if cfg.bundle is not None:
-        from rgbd_gt.io.bundle_file import read_bundle
+        from rgbd_gt.io.bundle_file import read_bundle, require_bundle_files
 
         spec = read_bundle(existing(cfg.bundle, "bundle", "bundle"))
+        require_bundle_files(spec, at(cfg.bundle))
         return [ScanJob(spec.scan.stem, spec.scan, spec.cameras[spec.photos[0].camera].file, [e.image for e in spec.photos],
                         output, board_of(cfg.board), bundle=at(cfg.bundle))], output
     if not cfg.scans:

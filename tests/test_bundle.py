@@ -144,6 +144,9 @@ def test_bundle_file_errors(synth_scene, tmp_path):
         ("scan: scan.ply\ncameras: {a: camera.yaml}\nphotos: [{image: photo.png, init: init_pose.yaml}, "
          "{image: sub/photo.png, init: init_pose.yaml}]", "two photos named photo"),
         ("scan: scan.ply\ncameras: {a: camera.yaml}\nphotos: [{image: missing.png, init: init_pose.yaml}]", "missing.png"),
+        # fuzz seed 16: a missing init was named without the bundle file or its photo
+        ("scan: scan.ply\ncameras: {a: camera.yaml}\nphotos: [{image: photo.png, init: init_pose.yaml}, "
+         "{image: photo_1.png, init: five}]", f"error: {d / 'b.yaml'}: photo 2: init {d / 'five'}: file not found"),
         ("scan: scan.ply\ncameras: {a: camera.yaml}\nphotos: [{image: photo.png, camera: [a], init: init_pose.yaml}]",
          "camera must name one of a"),
         ("scan: scan.ply\ncameras: {a: camera.yaml, b: camera.yaml}\nrig: {cameras: [a, b], prior: [b]}\n"
@@ -156,6 +159,11 @@ def test_bundle_file_errors(synth_scene, tmp_path):
         assert not (tmp_path / "out").exists()
     proc = run_cli("refine", "--bundle", d / "bundle.yaml", "--init", d / "init_pose.yaml", "-o", tmp_path / "out")
     assert proc.returncode == 2 and "leave out --init" in proc.stderr
+    assert_one_line_error(run_cli("refine", "--bundle", d / "none.yaml", "-o", tmp_path / "out"),
+                          f"{d / 'none.yaml'}: --bundle: file not found")
+    (d / "b.yaml").write_text("scan: scan.ply\ncameras: {a: camera.yaml}\nphotos: [{image: photo.png, init: five}]")
+    (d / "run.yaml").write_text(f"bundle: b.yaml\noutput: {tmp_path / 'out'}\n")
+    assert_one_line_error(run_cli("run", d / "run.yaml"), f"{d / 'b.yaml'}: photo 1: init {d / 'five'}: file not found")
     proc = run_cli("refine", "--scan", d / "scan.ply", "--image", d / "photo.png", "-o", tmp_path / "p.yaml")
     assert proc.returncode == 2 and "--camera is required" in proc.stderr
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from rgbd_gt.camera import INTRINSICS
-from rgbd_gt.errors import InputError, read_yaml, require_file
+from rgbd_gt.errors import InputError, file_problem, read_yaml, require_file
 
 MODES = tuple(INTRINSICS)
 
@@ -58,11 +58,24 @@ class BundleSpec:
     rig: list[str] = field(default_factory=list)
     priors: dict[str, RigPriorEntry] = field(default_factory=dict)
 
+    def named_files(self) -> dict[str, Path]:
+        """Every file the bundle names, by where the bundle file names it ("photo 2: init")."""
+        return {"scan": self.scan, **{f"cameras.{n}.file": c.file for n, c in self.cameras.items()},
+                **{f"photo {k}: {what}": p for k, e in enumerate(self.photos, 1)
+                   for what, p in (("image", e.image), ("init", e.init), ("mask", e.mask)) if p is not None},
+                **{f"rig.prior.{n}.pose": p.pose for n, p in self.priors.items()}}
+
     def files(self) -> list[Path]:
         """Every file the bundle names: the inputs that no output may overwrite."""
-        return ([self.scan] + [c.file for c in self.cameras.values()]
-                + [p for e in self.photos for p in (e.image, e.init, e.mask) if p is not None]
-                + [p.pose for p in self.priors.values()])
+        return list(self.named_files().values())
+
+
+def require_bundle_files(spec: BundleSpec, path: Path) -> None:
+    """InputError naming the bundle file `path` and its entry whose file is missing (a mistake in
+    the bundle is found in the bundle), before any work."""
+    for what, p in spec.named_files().items():
+        if problem := file_problem(p):
+            raise InputError(f"{what} {p}: {problem}", path)
 
 
 def _number(value, what: str, path: Path) -> float:
