@@ -168,6 +168,8 @@ def test_non_finite_and_degenerate_input(scene, tmp_path):
     far[5, 2] = 1e12  # the file names the fault, not PnP later (fuzz seed 10)
     np.savetxt(tmp_path / "far.csv", far, delimiter=",")
     assert_one_line_error(run_cli(*init, "--board-points", tmp_path / "far.csv"), "far.csv", "lie on one line")
+    (tmp_path / "empty.csv").write_text("x,y,z\n")  # fuzz seed 17: an empty file had "got 1 values per row"
+    assert_one_line_error(run_cli(*init, "--board-points", tmp_path / "empty.csv"), "empty.csv: holds no x,y,z rows")
     # the scan with a non-finite coordinate: ingest does not write it on
     scan_xyz = np.random.default_rng(1).uniform(-1, 1, (100, 3))
     scan_xyz[7, 2] = np.inf

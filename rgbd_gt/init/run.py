@@ -138,6 +138,8 @@ def read_csv_rows(path: Path, fields: str) -> np.ndarray:
         data = np.loadtxt(path, delimiter=",", ndmin=2, skiprows=int(header))
     except ValueError as exc:
         raise InputError(f"not a CSV of {fields} rows ({exc})", path) from None
+    if data.size == 0:  # loadtxt gives an empty file one column
+        raise InputError(f"holds no {fields} rows", path)
     if data.shape[1] != len(fields.split(",")):
         raise InputError(f"expected {fields} rows, got {data.shape[1]} values per row", path)
     bad = np.flatnonzero(~np.isfinite(data).all(axis=1))
