@@ -144,6 +144,11 @@ def test_bundle_file_errors(synth_scene, tmp_path):
         ("scan: scan.ply\ncameras: {a: camera.yaml}\nphotos: [{image: photo.png, init: init_pose.yaml}, "
          "{image: sub/photo.png, init: init_pose.yaml}]", "two photos named photo"),
         ("scan: scan.ply\ncameras: {a: camera.yaml}\nphotos: [{image: missing.png, init: init_pose.yaml}]", "missing.png"),
+        # fuzz seed 18: said without the bundle file, and only once the photos were read
+        ("scan: scan.ply\ncameras: {a: camera.yaml, b: camera.yaml}\nrig: {cameras: [a, b]}\n"
+         "photos: [{image: photo.png, camera: a, shot: 0, init: init_pose.yaml}, "
+         "{image: photo_1.png, camera: b, shot: 1, init: init_pose.yaml}]",
+         f"error: {d / 'b.yaml'}: rig camera b: no shot has photos of it and of a (the rig's first camera)"),
         # fuzz seed 16: a missing init was named without the bundle file or its photo
         ("scan: scan.ply\ncameras: {a: camera.yaml}\nphotos: [{image: photo.png, init: init_pose.yaml}, "
          "{image: photo_1.png, init: five}]", f"error: {d / 'b.yaml'}: photo 2: init {d / 'five'}: file not found"),

@@ -151,6 +151,10 @@ def read_bundle(path: str | os.PathLike) -> BundleSpec:
             shot = None
         photos.append(BundleEntry(at(item.get("image"), f"photo {k}: image"), str(camera), at(item.get("init"), f"photo {k}: init"),
                                   shot, at(item["mask"], f"photo {k}: mask") if item.get("mask") is not None else None))
+    for cam in rig[1:]:  # the rig's relative pose comes from a shot of both cameras, or from its prior
+        if cam not in priors and not any((shot, rig[0]) in taken for shot, c in taken if c == cam):
+            raise InputError(f"rig camera {cam}: no shot has photos of it and of {rig[0]} (the rig's first camera), "
+                             "and rig.prior gives none for it", path)
     stems = [p.image.stem for p in photos]
     twins = sorted({s for s in stems if stems.count(s) > 1})
     if twins:
