@@ -31,7 +31,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from rgbd_gt import __version__
-from rgbd_gt.errors import InputError
+from rgbd_gt.errors import InputError, require_listed
 
 app = typer.Typer(
     add_completion=False,
@@ -571,13 +571,13 @@ def refine(
 
 def _refine_bundle(bundle: Path, output: Path, cfg, device: str, cache: Optional[Path], strict: bool, start: float) -> None:
     """refine --bundle: the photos solved together (`steps.bundle_step`), their files into the folder `output`."""
-    from rgbd_gt.io.bundle_file import read_bundle, require_bundle_files
+    from rgbd_gt.io.bundle_file import read_bundle
     from rgbd_gt.io.outputs import Outputs
     from rgbd_gt.steps import bundle_step, write_bundled
 
     Outputs({"--bundle": bundle})  # checked before it is read, as its files are before any work
     spec = read_bundle(bundle)
-    require_bundle_files(spec, bundle)
+    require_listed(spec.named_files(), bundle)  # here, not in read_bundle: export reads it without its inits
     outs = Outputs([bundle] + spec.files())
     staged = outs.folder(output, "-o", whole=True)  # each photo's folder and cameras/ replaced, not mixed in
     outs.checked_folder(cache, "--cache")

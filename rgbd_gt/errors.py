@@ -2,6 +2,7 @@
 
 import os
 from pathlib import Path
+from typing import Mapping
 
 
 # NID and the L-BFGS driver: a pose (or every start of a level) that no longer sees the scan
@@ -33,6 +34,15 @@ def require_file(path: str | os.PathLike, what: str = "file") -> Path:
     if problem is not None:
         raise InputError(problem, path)
     return Path(path)
+
+
+def require_listed(files: Mapping[str, str | os.PathLike], listing: str | os.PathLike) -> None:
+    """InputError naming the file `listing` and the entry ("pair 2: image") of the first of
+    `files` ({entry: path}) that is not an existing file (`file_problem`): a mistake in a list of
+    files (a --pairs list, a bundle file) is found in the list, before any work."""
+    for entry, p in files.items():
+        if problem := file_problem(p):
+            raise InputError(f"{entry} {p}: {problem}", listing)
 
 
 def read_yaml(path: str | os.PathLike, text: str | None = None):

@@ -15,7 +15,7 @@ from typing import Callable
 import numpy as np
 
 from rgbd_gt.align.config import RefineConfig
-from rgbd_gt.errors import InputError, file_problem, read_yaml
+from rgbd_gt.errors import InputError, file_problem, read_yaml, require_listed
 
 # of the photo's extent: the points the refined pose sees within it must be in the view (a render
 # near the border needs the triangles and splats a little beyond it)
@@ -202,12 +202,13 @@ def resolve(config_path: Path, cfg: RunConfig) -> tuple[list[ScanJob], Path]:
 
     output = at(cfg.output)
     if cfg.bundle is not None:
-        from rgbd_gt.io.bundle_file import read_bundle, require_bundle_files
+        from rgbd_gt.io.bundle_file import read_bundle
 
-        spec = read_bundle(existing(cfg.bundle, "bundle", "bundle"))
-        require_bundle_files(spec, at(cfg.bundle))
+        bundle = existing(cfg.bundle, "bundle", "bundle")
+        spec = read_bundle(bundle)
+        require_listed(spec.named_files(), bundle)
         return [ScanJob(spec.scan.stem, spec.scan, spec.cameras[spec.photos[0].camera].file, [e.image for e in spec.photos],
-                        output, board_of(cfg.board), bundle=at(cfg.bundle))], output
+                        output, board_of(cfg.board), bundle=bundle)], output
     if not cfg.scans:
         if not cfg.scan or not cfg.camera or not cfg.photos:
             raise InputError("the config needs scan, camera and photos (or scans: a list of them)", config_path)

@@ -81,7 +81,7 @@ def read_pairs(path: Path, camera: Path) -> list[dict[str, Path]]:
     """The (scan, image, camera) paths of a --pairs YAML (`pairs:` a list of mappings with scan,
     image and optionally camera, which defaults to `camera`), relative to the file's folder (`~`:
     the user's home)."""
-    from rgbd_gt.errors import file_problem, read_yaml, require_file
+    from rgbd_gt.errors import read_yaml, require_file, require_listed
 
     path = require_file(path)
     data = read_yaml(path)
@@ -95,10 +95,7 @@ def read_pairs(path: Path, camera: Path) -> list[dict[str, Path]]:
         if "camera" in item and not (isinstance(item["camera"], str) and item["camera"].strip()):
             raise InputError(f"pair {k}: camera must be a path", path)
         out.append({key: path.parent / os.path.expanduser(item[key]) for key in ("scan", "image", "camera") if key in item})
-    for k, paths in enumerate(out, 1):  # named with its pair: a mistake in the list is found in the list
-        for key, p in paths.items():
-            if problem := file_problem(p):
-                raise InputError(f"pair {k}: {key} {p}: {problem}", path)
+    require_listed({f"pair {k}: {key}": p for k, paths in enumerate(out, 1) for key, p in paths.items()}, path)
     return [{"camera": Path(camera), **paths} for paths in out]
 
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from rgbd_gt.camera import INTRINSICS
-from rgbd_gt.errors import InputError, file_problem, read_yaml, require_file
+from rgbd_gt.errors import InputError, read_yaml, require_file
 
 MODES = tuple(INTRINSICS)
 
@@ -68,14 +68,6 @@ class BundleSpec:
     def files(self) -> list[Path]:
         """Every file the bundle names: the inputs that no output may overwrite."""
         return list(self.named_files().values())
-
-
-def require_bundle_files(spec: BundleSpec, path: Path) -> None:
-    """InputError naming the bundle file `path` and its entry whose file is missing (a mistake in
-    the bundle is found in the bundle), before any work."""
-    for what, p in spec.named_files().items():
-        if problem := file_problem(p):
-            raise InputError(f"{what} {p}: {problem}", path)
 
 
 def _number(value, what: str, path: Path) -> float:
