@@ -247,6 +247,10 @@ def test_export_errors(rig_run, tmp_path, synth_scene):
     # at a line's end can (one run's digits put a third of the file just after "edges:")
     pose.write_text(text[:text.rfind(",", 0, len(text) // 3)])
     assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(pose))
+    # cut at a line's end after the verdict: it read as whole YAML, and was exported as exact
+    pose.write_text(text[:text.index("\nevidence:") + 1])
+    assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(pose),
+                          "states a verdict but no uncertainty")
     pose.write_text(re.sub(r"(covariance:\n- \[)[^,]+", r"\1.nan", text))
     assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(pose), "covariance: not finite")
     for bad, said in ((text.replace("\nverdict: ok\n", "\nverdict: <b>ok</b>\n", 1), "verdict"),

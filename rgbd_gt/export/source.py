@@ -242,10 +242,16 @@ def _shot(name: str, image: Path, camera: Camera, camera_name: str, pose_file: P
     if not isinstance(reasons, list) or not all(isinstance(r, str) for r in reasons):
         raise InputError(f"reasons: not a list of text ({reasons!r:.40})", pose_file)
     try:
-        if not isinstance(stated_uncertainty(evidence), dict):
+        stated = stated_uncertainty(evidence)
+        if not isinstance(stated, dict):
             raise AttributeError("uncertainty")
     except AttributeError as exc:
         raise InputError(f"evidence: not as refine writes it ({exc})", pose_file) from None
+    # refine writes a verdict with its uncertainty: a file cut short after the verdict would be
+    # exported with none (a zero covariance), as if the pose were exact
+    if "verdict" in keys and not stated and "covariance" not in keys:
+        raise InputError("states a verdict but no uncertainty (no evidence or covariance): cut short, not as refine "
+                         "writes it", pose_file)
     try:
         cov = pose_covariance(keys)
     except (TypeError, ValueError) as exc:
