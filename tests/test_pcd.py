@@ -67,6 +67,12 @@ def test_broken_pcd_files(tmp_path):
     (tmp_path / "width.pcd").write_text(ascii_header.replace("WIDTH 2", "WIDTH -5") + "1 2 3\n4 5 6\n")
     with pytest.raises(InputError, match="WIDTH x HEIGHT"):
         load_scan(tmp_path / "width.pcd")
+    # fuzz seed 19: said "POINTS must be 0 or more, SIZE 1, 2, 4 or 8 and COUNT 1 or more" of any one
+    for old, new, said in (("SIZE 4 4 4", "SIZE 4 99999999999999999999 4", "SIZE must be 1, 2, 4 or 8, got 99999999999999999999"),
+                           ("COUNT 1 1 1", "COUNT 1 1 0", "COUNT must be 1 or more, got 0")):
+        (tmp_path / "field.pcd").write_text(ascii_header.replace(old, new) + "1 2 3\n4 5 6\n")
+        with pytest.raises(InputError, match=f"PCD header: {said}$"):
+            load_scan(tmp_path / "field.pcd")
     (tmp_path / "nan.pcd").write_text(ascii_header + "1 2 3\nnan nan nan\n")  # PCL's 'no return'
     assert len(load_scan(tmp_path / "nan.pcd")) == 1
     with_i = ascii_header.replace("x y z", "x y z intensity").replace("4 4 4", "4 4 4 4").replace("F F F", "F F F F")

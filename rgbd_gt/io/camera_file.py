@@ -146,7 +146,8 @@ def _read_kalibr(path: Path, cam: dict) -> Camera:
         fx, fy, cx, cy = (float(v) for v in cam.get("intrinsics"))
         w, h = cam.get("resolution")
     except (TypeError, ValueError):
-        raise InputError("intrinsics must be [fu, fv, pu, pv] and resolution [width, height]", path) from None
+        raise InputError("intrinsics must be [fu, fv, pu, pv] and resolution [width, height], got "
+                         f"{cam.get('intrinsics')!r:.60} and {cam.get('resolution')!r:.40}", path) from None
     K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
     return camera_from_values(path, w, h, K, cam.get("distortion_coeffs") if distortion == "radtan" else None)
 
@@ -190,7 +191,7 @@ def read_camera(path: str | os.PathLike,
         if off > 0.2:
             named = f"the {cam.width}x{cam.height} photo" + (f" {photo}" if photo else "")
             raise InputError(f"the principal point ({cam.cx:g}, {cam.cy:g}) lies {off:.0%} of the photo's size from the "
-                             f"centre of {named} (at {at[0]:.0%} of its width, {at[1]:.0%} of its height; lenses keep "
+                             f"centre of {named} (at {round(100 * float(at[0]))}% of its width, {round(100 * float(at[1]))}% of its height; lenses keep "
                              "it within 20 %): is this file for that photo (a resized photo needs K scaled)? A photo "
                              "cropped off its centre needs a camera YAML with its size", path)
         return cam

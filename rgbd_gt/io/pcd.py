@@ -75,8 +75,11 @@ def _check_sizes(path: Path, header: dict[str, list[str]], data_offset: int) -> 
         raise InputError(f"PCD header: WIDTH x HEIGHT ({shape[0]} x {shape[1]}) is not POINTS ({points})", path)
     if len(sizes) != n_fields or len(counts) != n_fields or len(header.get("TYPE", ["F"] * n_fields)) != n_fields:
         raise InputError("PCD header: FIELDS, SIZE, TYPE and COUNT differ in length", path)
-    if points < 0 or any(s not in (1, 2, 4, 8) for s in sizes) or any(c < 1 for c in counts):
-        raise InputError("PCD header: POINTS must be 0 or more, SIZE 1, 2, 4 or 8 and COUNT 1 or more", path)
+    bad = ([f"POINTS must be 0 or more, got {points}"] * (points < 0)
+           + [f"SIZE must be 1, 2, 4 or 8, got {s}" for s in sizes if s not in (1, 2, 4, 8)]
+           + [f"COUNT must be 1 or more, got {c}" for c in counts if c < 1])
+    if bad:
+        raise InputError(f"PCD header: {bad[0]}", path)
     row = sum(s * c for s, c in zip(sizes, counts))
     left = path.stat().st_size - data_offset
     kind = header["DATA"][0]
