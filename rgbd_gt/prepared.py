@@ -154,7 +154,7 @@ class PreparedScan:
         else:
             xyz = np.asarray(self.arrays["xyz"])  # local float32: the search needs no float64 copy
             colors = scan_colors(Scan(xyz=xyz, rgb=self.arrays.get("rgb"), intensity=self.arrays.get("intensity")), scan_path)
-            sb = find_board_in_scan(xyz, colors, self.origins[0] - self.centre, spec, self.angular_step)
+            sb = find_board_in_scan(xyz, colors, self.origins[0] - self.centre, spec, self.angular_step, scan_path)
             sb.corners = sb.corners + self.centre
             sb.view.origin = sb.view.origin + self.centre
             pad = 2 * spec.square + 0.02

@@ -141,6 +141,9 @@ def test_bundle_file_errors(synth_scene, tmp_path):
          "rig.cameras must list two or more"),
         ("scan: scan.ply\ncameras: {a: camera.yaml, b: camera.yaml}\nrig: {cameras: ['', b]}\n"
          "photos: [{image: photo.png, camera: a, shot: 0, init: init_pose.yaml}]", "('' not among them)"),
+        # said "('[1, 2]' not among them)" of a list where a name belongs
+        ("scan: scan.ply\ncameras: {a: camera.yaml, b: camera.yaml}\nrig: {cameras: [a, [1, 2]]}\n"
+         "photos: [{image: photo.png, camera: a, shot: 0, init: init_pose.yaml}]", "rig.cameras must list camera names, got [1, 2]"),
         ("scan: scan.ply\ncameras: {a: camera.yaml}\nphotos: [{image: photo.png, init: init_pose.yaml}, "
          "{image: sub/photo.png, init: init_pose.yaml}]", "two photos named photo"),
         ("scan: scan.ply\ncameras: {a: camera.yaml}\nphotos: [{image: missing.png, init: init_pose.yaml}]", "missing.png"),

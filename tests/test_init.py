@@ -176,7 +176,7 @@ def test_no_board_in_photo_or_scan(scenes, tmp_path):
     far = np.linalg.norm(scan.xyz - corners.mean(0), axis=1) > 0.6
     save_scan(tmp_path / "noboard.ply", scan.subset(far))
     assert_one_line_error(run_cli("init-pose", "--scan", tmp_path / "noboard.ply", "--image", d / "photo.png",
-                                  "--camera", d / "camera.yaml", "-o", tmp_path / "o.yaml"), "no 9x6 board found in the scan")
+                                  "--camera", d / "camera.yaml", "-o", tmp_path / "o.yaml"), "noboard.ply", "no 9x6 board found in the scan")
     assert_one_line_error(run_cli("init-pose", "--scan", d / "scan.ply", "--image", d / "photo.png", "--camera",
                                   d / "camera.yaml", "-o", tmp_path / "o.yaml", "--board", "9by6"), "--board")
     assert not (tmp_path / "o.yaml").exists()

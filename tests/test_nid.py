@@ -605,6 +605,10 @@ def test_calibration_text_files(tmp_path):
     # KITTI's K on a Waymo-size photo: the principal point lies inside it, at 14 % of its height
     with pytest.raises(InputError, match=r"36% of the photo's size from the centre of the 1242x1280 photo \(at 48% of its width, 14% of its height"):
         read_camera(kitti, (1242, 1280))
+    # a principal point just left of the photo is at 0 % of its width, not "-0%"
+    (tmp_path / "left.txt").write_text("P2: 700 0 -0.4 0 0 700 180 0 0 0 1 0\n")
+    with pytest.raises(InputError, match=r"\(at 0% of its width, 48% of its height"):
+        read_camera(tmp_path / "left.txt", (1242, 375))
 
 
 # KITTI object detection, training/calib/000000.txt (the 2011_09_26 calibration), as shipped

@@ -92,7 +92,7 @@ def board_in_scan(scan: Scan, spec: BoardSpec, board_points: np.ndarray | None =
         if len(scan.origins) == 0:
             raise InputError("the scan records no scanner position to render views from; give --board-points", scan_path)
         origin = scan.origins[0]
-        sb = find_board_in_scan(scan.xyz, colors, origin, spec, scan_step(scan))
+        sb = find_board_in_scan(scan.xyz, colors, origin, spec, scan_step(scan), scan_path)
         corners, ids, method = sb.corners, sb.ids, "board found in the scan's virtual views"
     near = board_neighbourhood(scan, corners, spec.square)
     return BoardInScan(corners, ids, scan.xyz[near], colors_to_gray(colors[near]), method,

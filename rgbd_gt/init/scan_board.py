@@ -159,9 +159,10 @@ COARSE_SIDE = 1024  # pixels: views wider than this are searched at a reduced sc
 
 
 def find_board_in_scan(points: np.ndarray, colors: np.ndarray, origin: np.ndarray, spec: BoardSpec,
-                       step_rad: float) -> ScanBoard:
+                       step_rad: float, source=None) -> ScanBoard:
     """Search the virtual views (most populated first) for the board; lift the corners of the
-    detection that lies farthest inside its view.
+    detection that lies farthest inside its view (InputError naming the scan file `source` when
+    none holds it).
 
     A dense scan (views over COARSE_SIDE pixels wide) is searched in views k times coarser made
     from every k^2-th point (the board detector's cost grows with the pixels, the rendering's
@@ -184,7 +185,7 @@ def find_board_in_scan(points: np.ndarray, colors: np.ndarray, origin: np.ndarra
         if margin > 0.1 * w:
             break
     if best is None:
-        raise InputError(f"no {spec.cols}x{spec.rows} board found in the scan's virtual views")
+        raise InputError(f"no {spec.cols}x{spec.rows} board found in the scan's virtual views", source)
     _, view, px, ids, az, el = best
     if k > 1:
         view, px, ids = _detect_again(points, gray, origin, az, el, step_rad, view, px, ids, spec)

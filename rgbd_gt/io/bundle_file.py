@@ -106,6 +106,9 @@ def read_bundle(path: str | os.PathLike) -> BundleSpec:
         r = data["rig"]
         if not isinstance(r, dict) or not isinstance(r.get("cameras"), list) or len(r["cameras"]) < 2:
             raise InputError("rig.cameras must list two or more of the cameras, the reference first", path)
+        odd = [c for c in r["cameras"] if not isinstance(c, (str, int)) or isinstance(c, bool)]
+        if odd:
+            raise InputError(f"rig.cameras must list camera names, got {odd[0]!r}", path)
         rig = [str(c) for c in r["cameras"]]
         unknown = [c for c in rig if c not in cameras]
         if unknown or len(set(rig)) != len(rig):
