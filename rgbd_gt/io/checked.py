@@ -40,7 +40,7 @@ def camera_from_values(path: Path, width, height, K: np.ndarray, dist) -> Camera
     cam = Camera(w, h, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), dist)
     for name, f in (("fx", cam.fx), ("fy", cam.fy)):
         if not 1 <= f <= 1000 * max(w, h):
-            raise InputError(f"{name} must lie between 1 and 1000 x the image size, got {f}", path)
+            raise InputError(f"{name} must lie between 1 and 1000 x the image size ({w}x{h}: up to {1000 * max(w, h)}), got {f}", path)
     if not (-w < cam.cx < 2 * w and -h < cam.cy < 2 * h):
         raise InputError(f"the principal point ({cam.cx}, {cam.cy}) is far outside the {w}x{h} image", path)
     reach, corner = lens_reach(cam)
