@@ -9,7 +9,9 @@ import yaml
 
 from conftest import assert_one_line_error, run_cli
 from rgbd_gt.camera import project, without_distortion
+from rgbd_gt.errors import InputError
 from rgbd_gt.init.detect import BoardSpec, detect_corners
+from rgbd_gt.init.run import read_board_corners, read_correspondences
 from rgbd_gt.io import load_scan, read_camera, read_pose, save_scan
 from rgbd_gt.pose import rotation_error_deg, transform_points, translation_error_m
 
@@ -161,6 +163,12 @@ def test_labelled_picks_report_each_pair(scenes, tmp_path):
         assert_one_line_error(run_cli(*args, "-o", tmp_path / "c.yaml", *bad), what)
     (tmp_path / "bad.csv").write_text("u,v,x,y\n1,2,3,4\n")
     assert_one_line_error(run_cli(*args[:-1], tmp_path / "bad.csv", "-o", tmp_path / "c.yaml"), "bad.csv", "no column z")
+    (tmp_path / "one.csv").write_text("7\n1,2\n")  # fuzz seed 20: said "got 1 values per row"
+    with pytest.raises(InputError, match=r"one.csv: expected u,v,x,y,z\[,label\] rows, got 1 value in the first$"):
+        read_correspondences(tmp_path / "one.csv")
+    (tmp_path / "two.csv").write_text("1,2\n3,4\n")
+    with pytest.raises(InputError, match=r"two.csv: expected x,y,z rows, got 2 values per row$"):
+        read_board_corners(tmp_path / "two.csv")
     (tmp_path / "same.csv").write_text("u,v,x,y,z\n" + "100,200,1.0,2.0,1.0\n" * 7)  # one pair pasted seven times
     assert_one_line_error(run_cli(*args[:-1], tmp_path / "same.csv", "-o", tmp_path / "c.yaml"), "same.csv", "distinct")
     assert not (tmp_path / "c.yaml").exists()

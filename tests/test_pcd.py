@@ -69,7 +69,8 @@ def test_broken_pcd_files(tmp_path):
         load_scan(tmp_path / "width.pcd")
     # fuzz seed 19: said "POINTS must be 0 or more, SIZE 1, 2, 4 or 8 and COUNT 1 or more" of any one
     for old, new, said in (("SIZE 4 4 4", "SIZE 4 99999999999999999999 4", "SIZE must be 1, 2, 4 or 8, got 99999999999999999999"),
-                           ("COUNT 1 1 1", "COUNT 1 1 0", "COUNT must be 1 or more, got 0")):
+                           ("COUNT 1 1 1", "COUNT 1 1 0", "COUNT must be 1 or more, got 0"),
+                           ("SIZE 4 4 4", "SIZE 4 4", r"FIELDS, SIZE, TYPE and COUNT differ in length \(FIELDS 3, SIZE 2, TYPE 3, COUNT 3\)")):
         (tmp_path / "field.pcd").write_text(ascii_header.replace(old, new) + "1 2 3\n4 5 6\n")
         with pytest.raises(InputError, match=f"PCD header: {said}$"):
             load_scan(tmp_path / "field.pcd")

@@ -141,11 +141,15 @@ def read_csv_rows(path: Path, fields: str) -> np.ndarray:
     if data.size == 0:  # loadtxt gives an empty file one column
         raise InputError(f"holds no {fields} rows", path)
     if data.shape[1] != len(fields.split(",")):
-        raise InputError(f"expected {fields} rows, got {data.shape[1]} values per row", path)
+        raise InputError(f"expected {fields} rows, got {_values(data.shape[1])} per row", path)
     bad = np.flatnonzero(~np.isfinite(data).all(axis=1))
     if len(bad):
         raise InputError(f"row {bad[0] + 1} has a value that is not a finite number", path)
     return data
+
+
+def _values(n: int) -> str:
+    return f"{n} value{'' if n == 1 else 's'}"
 
 
 def read_board_corners(path: Path) -> np.ndarray:
@@ -190,7 +194,7 @@ def read_correspondences(path: Path, minimum: int = 6) -> Picks:
             raise InputError(f"the header names no column {', '.join(missing)} (expected u,v,x,y,z[,label])", path)
         order = [names.index(c) if c in names else -1 for c in PICK_COLUMNS]
     elif rows and len(rows[0]) not in (5, 6):
-        raise InputError(f"expected u,v,x,y,z[,label] rows, got {len(rows[0])} values per row", path)
+        raise InputError(f"expected u,v,x,y,z[,label] rows, got {_values(len(rows[0]))} in the first", path)
     values, labels = [], []
     for k, r in enumerate(rows, 1):
         if max(order[:5]) >= len(r) or not all(_is_number(r[j]) for j in order[:5]):

@@ -73,8 +73,10 @@ def _check_sizes(path: Path, header: dict[str, list[str]], data_offset: int) -> 
         raise InputError("PCD header: POINTS, WIDTH, HEIGHT, SIZE and COUNT must be whole numbers", path) from None
     if len(shape) == 2 and (min(shape) < 0 or shape[0] * shape[1] != points):
         raise InputError(f"PCD header: WIDTH x HEIGHT ({shape[0]} x {shape[1]}) is not POINTS ({points})", path)
-    if len(sizes) != n_fields or len(counts) != n_fields or len(header.get("TYPE", ["F"] * n_fields)) != n_fields:
-        raise InputError("PCD header: FIELDS, SIZE, TYPE and COUNT differ in length", path)
+    lengths = {"FIELDS": n_fields, "SIZE": len(sizes), "TYPE": len(header.get("TYPE", ["F"] * n_fields)), "COUNT": len(counts)}
+    if len(set(lengths.values())) > 1:
+        raise InputError("PCD header: FIELDS, SIZE, TYPE and COUNT differ in length ("
+                         + ", ".join(f"{k} {v}" for k, v in lengths.items()) + ")", path)
     bad = ([f"POINTS must be 0 or more, got {points}"] * (points < 0)
            + [f"SIZE must be 1, 2, 4 or 8, got {s}" for s in sizes if s not in (1, 2, 4, 8)]
            + [f"COUNT must be 1 or more, got {c}" for c in counts if c < 1])
