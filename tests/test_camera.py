@@ -317,6 +317,10 @@ def test_an_opencv_value_that_is_not_utf8_is_named(tmp_path):
         # fuzz seed 20: a resolution cut to [1, 2] said only "... 1000 x the image size, got 2152.8"
         ("width: 1\nheight: 2\nfx: 2152.8\nfy: 2152.8\ncx: 0.5\ncy: 1\n", r"image size \(1x2: up to 2000\), got 2152.8$"),
         ("width: [640\n", "invalid YAML"),
+        # fuzz seed 22: said "fx, fy, cx, cy and distortion must be numbers", naming none
+        ("width: 640\nheight: 480\nfx: 500\nfy: 500\ncx: 320\ncy: 240\ndistortion: [0.1, abc, 0, 0]\n",
+         r"distortion must be numbers, got \[0.1, 'abc', 0, 0\]$"),
+        ("width: 640\nheight: 480\nfx: 500\nfy: [500]\ncx: 320\ncy: 240\n", r"fy must be a number, got \[500\]$"),
         # a model that turns back 39 deg off the axis, short of the corners (45 deg): they would have no ray
         ("width: 640\nheight: 480\nfx: 400\nfy: 400\ncx: 320\ncy: 240\ndistortion: [-0.6, 0.1, 0, 0]\n",
          r"the lens model turns back inside the 640x480 image .*corners lie at 1\.00"),

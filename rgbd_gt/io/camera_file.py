@@ -217,9 +217,9 @@ def read_camera(path: str | os.PathLike,
     missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy") if k not in data]
     if missing:
         raise InputError(f"camera file lacks {', '.join(missing)}", path)
-    values = [data[k] for k in ("fx", "fy", "cx", "cy")]
-    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
-        raise InputError("fx, fy, cx, cy must be numbers", path)
+    bad = [k for k in ("fx", "fy", "cx", "cy") if isinstance(data[k], bool) or not isinstance(data[k], (int, float))]
+    if bad:
+        raise InputError(f"{bad[0]} must be a number, got {data[bad[0]]!r:.40}", path)
     K = np.array([[data["fx"], 0, data["cx"]], [0, data["fy"], data["cy"]], [0, 0, 1]], float)
     return camera_from_values(path, data["width"], data["height"], K, data.get("distortion"))
 

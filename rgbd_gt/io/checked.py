@@ -17,10 +17,13 @@ def camera_from_values(path: Path, width, height, K: np.ndarray, dist) -> Camera
     """A Camera from a file's values, each checked: whole positive sizes, finite numbers, a focal
     length between 1 px and 1000 x the image size, the principal point near the image."""
     try:
-        dist = tuple(float(d) for d in np.asarray(dist if dist is not None else [], float).ravel())
         K = np.asarray(K, float)
     except (TypeError, ValueError):
-        raise InputError("fx, fy, cx, cy and distortion must be numbers", path) from None
+        raise InputError(f"fx, fy, cx and cy must be numbers, got {K!r:.80}", path) from None
+    try:
+        dist = tuple(float(d) for d in np.asarray(dist if dist is not None else [], float).ravel())
+    except (TypeError, ValueError):
+        raise InputError(f"distortion must be numbers, got {dist!r:.80}", path) from None
     if len(dist) not in VALID_DISTORTION_LENGTHS:
         raise InputError(f"distortion must have 4, 5, 8, 12 or 14 coefficients, got {len(dist)}", path)
     if not (np.isfinite(dist).all() and np.isfinite(K).all()):
