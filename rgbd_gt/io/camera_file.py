@@ -190,8 +190,9 @@ def read_camera(path: str | os.PathLike,
         off = np.abs(at - 0.5).max()
         if off > 0.2:
             named = f"the {cam.width}x{cam.height} photo" + (f" {photo}" if photo else "")
+            x, y = (round(100 * float(v)) for v in at)  # whole percents: never "-0%"
             raise InputError(f"the principal point ({cam.cx:g}, {cam.cy:g}) lies {off:.0%} of the photo's size from the "
-                             f"centre of {named} (at {round(100 * float(at[0]))}% of its width, {round(100 * float(at[1]))}% of its height; lenses keep "
+                             f"centre of {named} (at {x}% of its width, {y}% of its height; lenses keep "
                              "it within 20 %): is this file for that photo (a resized photo needs K scaled)? A photo "
                              "cropped off its centre needs a camera YAML with its size", path)
         return cam
