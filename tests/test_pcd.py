@@ -52,8 +52,13 @@ def test_broken_pcd_files(tmp_path):
         load_scan(tmp_path / "junk.pcd")
     header = "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 100\nHEIGHT 1\nPOINTS 100\nDATA binary\n"
     (tmp_path / "short.pcd").write_bytes(header.encode() + np.zeros(30, np.float32).tobytes())  # 10 of 100 points
-    with pytest.raises(InputError):
+    with pytest.raises(InputError, match=r"declares 100 points of 12 bytes each \(SIZE x COUNT\) but the file cannot hold them"):
         load_scan(tmp_path / "short.pcd")
+    # fuzz seed 23: a COUNT of 10^12 said only that the file cannot hold its points
+    (tmp_path / "count.pcd").write_bytes(header.replace("COUNT 1 1 1", "COUNT 1 1000000000000 1").encode()
+                                         + np.zeros(300, np.float32).tobytes())
+    with pytest.raises(InputError, match=r"declares 100 points of 4,000,000,000,008 bytes each \(SIZE x COUNT\)"):
+        load_scan(tmp_path / "count.pcd")
     (tmp_path / "noxyz.pcd").write_text(header.replace("FIELDS x y z", "FIELDS a b c"))
     with pytest.raises(InputError, match="no x y z"):
         load_scan(tmp_path / "noxyz.pcd")

@@ -87,7 +87,8 @@ def _check_sizes(path: Path, header: dict[str, list[str]], data_offset: int) -> 
     kind = header["DATA"][0]
     room = left // row if kind == "binary" else (left + 1) // 2 if kind == "ascii" else (2**32 - 1) // row
     if points > room:
-        raise InputError(f"PCD declares {points:,} points but the file cannot hold them (truncated?)", path)
+        each = f" of {row:,} bytes each (SIZE x COUNT)" if kind != "ascii" else ""
+        raise InputError(f"PCD declares {points:,} points{each} but the file cannot hold them (truncated?)", path)
     if kind == "ascii":
         _check_ascii(path, data_offset, points * sum(counts))
 
