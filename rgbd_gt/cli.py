@@ -39,8 +39,9 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
     help="Ground-truth RGB-D data from a terrestrial laser scan and photos.",
 )
-out = Console()
-err = Console(stderr=True)
+# a message is one line however long (logs and tools read them by line); tables wrap their cells
+out = Console(soft_wrap=True)
+err = Console(stderr=True, soft_wrap=True)
 CACHE_HELP = ("Prepare the scan once into this folder (or reuse it: `run` keeps its own in OUTPUT/.scan-cache) and read "
               "only what this view needs: seconds instead of reading a large scan file again.")
 
@@ -84,7 +85,7 @@ def _progress(*extra_columns) -> Progress:
 
 
 def _warn(message: str) -> None:
-    err.print(f"warning: {message}", markup=False, highlight=False, soft_wrap=True)
+    err.print(f"warning: {message}", markup=False, highlight=False)
 
 
 def _summary(title: str, rows: list[tuple[str, str]], output: Path, report: Optional[Path]) -> None:
@@ -382,7 +383,7 @@ def pick(
     session = PickSession(the_scan, photo, clicks, output, cam, estimate_focal, ransac_px, pairs)
 
     def ready(url: str) -> None:
-        out.print(f"serving the pick page on {url} (Ctrl-C to stop)", soft_wrap=True)
+        out.print(f"serving the pick page on {url} (Ctrl-C to stop)")
         sys.stdout.flush()
         if not no_browser:
             import webbrowser
@@ -828,15 +829,15 @@ def export_dataset(
         if "valid" in e:
             s = e["depth_sigma_mm"]
             table.add_row(name, _verdict_text(e["verdict"]), f"{e['valid'] / e['pixels']:.1%}", f"{e['near_edge'] / e['pixels']:.2%}",
-                          f"{s['p50']:.3f} / {s['p90']:.3f} / {s['p99']:.3f} mm")
+                          f"{s['p50']:.3f} / {s['p90']:.3f} / {s['p99']:.3f} mm" if s else "unknown (no pixel valid)")
         else:
             table.add_row(name, _verdict_text(e["verdict"]), "-", "-", "-")
     out.print(table)
     for key, p in done.pairs.items():
         d = p["disparity_px"] or [0, 0]
+        sigma = f"{p['disparity_sigma_px']['p50']:.4f} px median" if p["disparity_sigma_px"] else "unknown (no pixel valid)"
         out.print(f"pair {key} ({p['left']} | {p['right']}): baseline {p['baseline_m'] * 1e3:.2f} mm, disparity "
-                  f"{d[0]:.1f}..{d[1]:.1f} px, 1-sigma {p['disparity_sigma_px']['p50']:.4f} px median, "
-                  f"{p['occluded'] / max(p['valid'], 1):.1%} occluded")
+                  f"{d[0]:.1f}..{d[1]:.1f} px, 1-sigma {sigma}, {p['occluded'] / max(p['valid'], 1):.1%} occluded")
     for name, why in done.left_out.items():
         out.print(f"left out {name}: {why}")
     earlier = [f for f in FORMATS if f not in chosen and (output / f).is_dir()]
@@ -922,7 +923,7 @@ def run_workflow(
             if p.unreadable:  # bad input of the run, not of its photos: one error, as every command gives
                 raise InputError(p.error)
             if p.error:
-                err.print(f"{p.job.scan}: failed: {p.error}", markup=False, highlight=False)
+                err.print(f"{p.job.name}: failed: {p.error}", markup=False, highlight=False)
             else:
                 out.print(f"{p.job.name}: {p.points:,} points {'reopened from the cache' if p.cached else 'prepared'} "
                           f"in {p.seconds:.1f} s", highlight=False)
@@ -1007,7 +1008,7 @@ def run_workflow(
     out.print(table)
     for r in results:  # below the table, where a cell would wrap a long line into a column
         if r.error:
-            out.print(f"{name(r)}: failed: {r.error}", markup=False, highlight=False, soft_wrap=True)
+            out.print(f"{name(r)}: failed: {r.error}", markup=False, highlight=False)
         if r.reasons:
             out.print(f"{name(r)}: {r.verdict}: {r.reasons}", markup=False, highlight=False)
         if r.skipped:
@@ -1103,7 +1104,7 @@ def _command(args: list[str]) -> None:
             if debug:
                 raise
             more = f" ({len(held)} warning(s) before it: --debug shows them)" if held and "NaN or inf" in str(exc) else ""
-            err.print(f"error: {exc}{more}", markup=False, highlight=False, soft_wrap=True)
+            err.print(f"error: {exc}{more}", markup=False, highlight=False)
             sys.exit(2)
         except click_error as exc:
             exc.show()

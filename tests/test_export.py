@@ -15,7 +15,7 @@ import yaml
 from benchmarks.export import disparity_errors, truth_pose
 from conftest import assert_one_line_error, run_cli
 from rgbd_gt.camera import Camera
-from rgbd_gt.io import read_camera, read_pose
+from rgbd_gt.io import read_camera, read_pose, write_pose
 from rgbd_gt.io.depth_file import read_depth_exr, read_exr, read_pfm, read_png16, write_pfm
 from rgbd_gt.io.image import read_image
 
@@ -206,6 +206,39 @@ def test_pixel_sigma_against_finite_differences():
     np.testing.assert_allclose(sf.depth, expect, rtol=2e-3, atol=1e-7)
 
 
+def test_pose_covariance_of_a_pose_file():
+    """A pose file's covariance as written; else its stated uncertainty on every axis; a file that
+    states none (written by hand, read as failed) is unknown, never exact."""
+    from rgbd_gt.export.source import pose_covariance
+
+    cov = np.diag(np.arange(1.0, 7.0))
+    np.testing.assert_array_equal(pose_covariance({"covariance": cov.tolist()}), cov)
+    stated = pose_covariance({"evidence": {"uncertainty": {"rotation_deg": 0.1, "translation_mm": 2.0}}})
+    np.testing.assert_allclose(np.diag(stated), [np.radians(0.1) ** 2] * 3 + [0.002 ** 2] * 3)
+    assert np.isposinf(np.diag(pose_covariance({}))).all()
+    assert np.isposinf(np.diag(pose_covariance({"verdict": "failed", "evidence": {}}))).all()
+
+
+def test_export_a_pose_of_unknown_uncertainty(rig_run, tmp_path):
+    """A pose file written by hand (no verdict, no uncertainty) is exported only with --include
+    failed, with no pixel valid; export.json stays strict JSON (null, not NaN)."""
+    _, bout = rig_run
+    run = tmp_path / "run"
+    shutil.copytree(bout, run)
+    write_pose(run / "right" / "pose.yaml", read_pose(bout / "right" / "pose.yaml")[0])
+    proc = run_cli("export", run, "-o", tmp_path / "ds", "-f", "plain,middlebury", "--include", "failed")
+    assert proc.returncode == 0, proc.stderr
+
+    def strict(constant):
+        raise AssertionError(f"export.json holds {constant}")
+
+    photos = json.loads((tmp_path / "ds" / "export.json").read_text(), parse_constant=strict)["photos"]
+    assert photos["right"]["verdict"] == "failed" and photos["right"]["valid"] == 0 and photos["right"]["depth_sigma_mm"] is None
+    assert photos["photo"]["valid"] > 0 and photos["photo"]["depth_sigma_mm"]["p50"] > 0
+    assert not read_image(tmp_path / "ds" / "plain" / "right" / "valid.png").any()
+    assert "unknown (no pixel valid)" in proc.stdout
+
+
 def test_export_again_replaces_its_formats(rig_run, tmp_path):
     """An export into the folder of an earlier one replaces each format's folder wholesale: no
     photo of the earlier data set stays among the new (a training loader globs the folders);
@@ -283,6 +316,10 @@ def test_export_errors(rig_run, tmp_path, synth_scene):
     (broken / "bundle.json").write_text(json.dumps({**json.loads(record), "scan_sha1": ""}))
     assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(broken / "bundle.json"),
                           "scan_sha1: not a SHA-1 ('')")
+    # fuzz seed 24: a damaged bundle_sha1 said the bundle file had changed since the solve
+    (broken / "bundle.json").write_text(json.dumps({**json.loads(record), "bundle_sha1": "378e-inf"}))
+    assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(broken / "bundle.json"),
+                          "bundle_sha1: not a SHA-1 ('378e-inf')")
     # fuzz seed 11: an empty record said "cannot read (Expecting value: line 1 column 1 (char 0))"
     for bad, said in (("{", "invalid JSON (Expecting property name enclosed in double quotes, line 1)"),
                       ("", "empty: not a record rgbd-gt wrote"), ("[1]", "(a JSON list, not an object)")):

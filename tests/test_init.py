@@ -185,6 +185,13 @@ def test_no_board_in_photo_or_scan(scenes, tmp_path):
     save_scan(tmp_path / "noboard.ply", scan.subset(far))
     assert_one_line_error(run_cli("init-pose", "--scan", tmp_path / "noboard.ply", "--image", d / "photo.png",
                                   "--camera", d / "camera.yaml", "-o", tmp_path / "o.yaml"), "noboard.ply", "no 9x6 board found in the scan")
+    # run: the scan's line names its job, then the error that names the file (once)
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump({"scan": str(tmp_path / "noboard.ply"), "camera": str(d / "camera.yaml"),
+                                                       "photos": [str(d / "photo.png")], "output": str(tmp_path / "out")}))
+    proc = run_cli("run", tmp_path / "run.yaml")
+    assert proc.returncode == 1, proc.stderr  # every photo failed
+    line = next(x for x in proc.stderr.splitlines() if x.startswith("noboard: failed: "))
+    assert line == f"noboard: failed: {tmp_path / 'noboard.ply'}: no 9x6 board found in the scan's virtual views", line
     assert_one_line_error(run_cli("init-pose", "--scan", d / "scan.ply", "--image", d / "photo.png", "--camera",
                                   d / "camera.yaml", "-o", tmp_path / "o.yaml", "--board", "9by6"), "--board")
     assert not (tmp_path / "o.yaml").exists()

@@ -290,15 +290,15 @@ def _write_photo(out: Path, formats: list[str], name: str, shot: Shot, p: DepthP
 
 def _figures(p: DepthProducts) -> dict:
     s = p.sigma.depth[p.valid]
-    q = np.percentile(s, [50, 90, 99]) if len(s) else [float("nan")] * 3
+    # none valid (a pose of unknown uncertainty): null, as strict JSON readers take it (not NaN)
+    q = dict(zip(("p50", "p90", "p99"), np.percentile(s, [50, 90, 99]) * 1e3)) if len(s) else None
     return {"method": p.depth.method, "pixels": int(p.z.size), "with_depth": int((p.z > 0).sum()), "valid": int(p.valid.sum()),
-            "near_edge": int(p.near.sum()), "depth_sigma_mm": {"p50": float(q[0]) * 1e3, "p90": float(q[1]) * 1e3,
-                                                               "p99": float(q[2]) * 1e3}}
+            "near_edge": int(p.near.sum()), "depth_sigma_mm": q and {k: float(v) for k, v in q.items()}}
 
 
 def _pair_figures(s: StereoProducts) -> dict:
     v = s.left.valid
-    q = np.percentile(s.disp_sigma[v], [50, 90]) if v.any() else [float("nan")] * 2
+    q = np.percentile(s.disp_sigma[v], [50, 90]) if v.any() else None
     return {"valid": int(v.sum()), "occluded": int((v & s.occluded).sum()),
             "disparity_px": [float(s.disp[v].min()), float(s.disp[v].max())] if v.any() else None,
-            "disparity_sigma_px": {"p50": float(q[0]), "p90": float(q[1])}}
+            "disparity_sigma_px": {"p50": float(q[0]), "p90": float(q[1])} if q is not None else None}

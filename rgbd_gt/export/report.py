@@ -150,9 +150,10 @@ def _photo_section(name: str, s, scan: str | None, assets: Path, folder: Path | 
     cam = ", ".join(f"{k} {v:.3g}" for k, v in s.camera_sigma.items()) or "as its file (not refined)"
     exported = ""
     if "valid" in figures:
+        q = figures["depth_sigma_mm"]
         exported = (f"<p>exported: {figures['valid'] / figures['pixels']:.1%} of pixels valid, "
-                    f"{figures['near_edge'] / figures['pixels']:.2%} near a depth edge; depth 1-sigma median "
-                    f"{figures['depth_sigma_mm']['p50']:.3f} mm, 90% {figures['depth_sigma_mm']['p90']:.3f} mm</p>")
+                    f"{figures['near_edge'] / figures['pixels']:.2%} near a depth edge; depth 1-sigma "
+                    + (f"median {q['p50']:.3f} mm, 90% {q['p90']:.3f} mm</p>" if q else "unknown (no pixel valid)</p>"))
     imgs = "".join(f'<img src="{html.escape(src)}" alt="{html.escape(label)}" title="{html.escape(label)}">'
                    for label, src in pictures)
     reasons = "".join(f"<li>{html.escape(r)}</li>" for r in s.reasons) or "<li>none</li>"

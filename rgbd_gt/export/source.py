@@ -124,6 +124,10 @@ def _run_sources(folder: Path, record: dict, stale_missing: bool, file_keys: dic
     return sources
 
 
+def _is_sha1(value) -> bool:
+    return isinstance(value, str) and re.fullmatch("[0-9a-f]{40}", value) is not None
+
+
 def _changed(keys: dict, photo: str, files: dict[str, Path], file_keys: dict[Path, dict], record: Path) -> InputError | None:
     """The error when one of `files` ({kind: path}) is not the file that photo's pose was solved
     from: the SHA-1 recorded beside it (keys' KIND_sha1 in `record`: `steps.made_from` in a run
@@ -138,7 +142,7 @@ def _changed(keys: dict, photo: str, files: dict[str, Path], file_keys: dict[Pat
         sha1 = keys.get(f"{kind}_sha1")
         if sha1 is None:
             continue
-        if not (isinstance(sha1, str) and re.fullmatch("[0-9a-f]{40}", sha1)):
+        if not _is_sha1(sha1):
             # a damaged record, not a changed file: saying the file changed would send the user the wrong way
             return InputError(f"{kind}_sha1: not a SHA-1 ({sha1!r:.50})", record)
         if path not in file_keys:
@@ -164,6 +168,8 @@ def _bundle_source(folder: Path, bundle: Path, name: str = "bundle", errors: dic
     spec = read_bundle(bundle)
     record = _json(folder / "bundle.json")
     solved = record.get("bundle_sha1")
+    if solved is not None and not _is_sha1(solved):  # damaged, not changed (as `_changed`)
+        raise InputError(f"bundle_sha1: not a SHA-1 ({solved!r:.50})", folder / "bundle.json")
     if solved is not None and solved != file_key(bundle)["sha1"]:  # its photos, cameras or shots may be others now
         raise InputError(f"changed since the photos in {folder} were solved from it (bundle.json holds another "
                          "SHA-1): solve them again", bundle)
@@ -273,11 +279,13 @@ def stated_uncertainty(evidence: dict) -> dict:
 def pose_covariance(keys: dict) -> np.ndarray:
     """(6, 6) the pose file's `covariance`; from a file without one, the worst-direction 1-sigmas
     of its evidence (`uncertainty`) on every axis (larger than the covariance says; inf where the
-    pose is undetermined)."""
+    pose is undetermined or its file states no uncertainty)."""
     if "covariance" in keys:
         return np.asarray(keys["covariance"], np.float64).reshape(6, 6)
     u = stated_uncertainty(keys.get("evidence") or {})
-    rot, trans = np.radians(float(u.get("rotation_deg", 0.0))), float(u.get("translation_mm", 0.0)) / 1e3
+    # a pose written by hand (read as failed, exported with --include failed) states no
+    # uncertainty: unknown, not exact
+    rot, trans = np.radians(float(u.get("rotation_deg", np.inf))), float(u.get("translation_mm", np.inf)) / 1e3
     return np.diag([rot ** 2] * 3 + [trans ** 2] * 3)
 
 
