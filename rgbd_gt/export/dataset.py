@@ -291,9 +291,10 @@ def _write_photo(out: Path, formats: list[str], name: str, shot: Shot, p: DepthP
 def _figures(p: DepthProducts) -> dict:
     s = p.sigma.depth[p.valid]
     # none valid (a pose of unknown uncertainty): null, as strict JSON readers take it (not NaN)
-    q = dict(zip(("p50", "p90", "p99"), np.percentile(s, [50, 90, 99]) * 1e3)) if len(s) else None
+    q = np.percentile(s, [50, 90, 99]) * 1e3 if len(s) else None
     return {"method": p.depth.method, "pixels": int(p.z.size), "with_depth": int((p.z > 0).sum()), "valid": int(p.valid.sum()),
-            "near_edge": int(p.near.sum()), "depth_sigma_mm": q and {k: float(v) for k, v in q.items()}}
+            "near_edge": int(p.near.sum()),
+            "depth_sigma_mm": dict(zip(("p50", "p90", "p99"), map(float, q))) if q is not None else None}
 
 
 def _pair_figures(s: StereoProducts) -> dict:
