@@ -12,7 +12,7 @@ import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
-from rgbd_gt.errors import InputError, read_yaml, require_file
+from rgbd_gt.errors import InputError, read_yaml, require_file, yaml_number
 
 T = TypeVar("T")
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
@@ -87,6 +87,8 @@ def _typed(value: Any, hint: Any, where: str) -> Any:
         if not isinstance(value, bool):
             raise InputError(f"{where}: expected true or false, got {_name(value)}")
         return value
+    if hint in (int, float):
+        value = yaml_number(value)
     if hint is int:
         if isinstance(value, bool) or not (isinstance(value, int) or (isinstance(value, float) and value.is_integer())):
             raise InputError(f"{where}: expected a whole number, got {_name(value)}")

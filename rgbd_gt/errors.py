@@ -1,6 +1,7 @@
 """The one exception type that the CLI turns into a single `error: ...` line and exit code 2."""
 
 import os
+import re
 from pathlib import Path
 from typing import Mapping
 
@@ -58,3 +59,14 @@ def read_yaml(path: str | os.PathLike, text: str | None = None):
         problem, mark = getattr(exc, "problem", None), getattr(exc, "problem_mark", None)
         why = f"line {mark.line + 1}: {problem}" if problem and mark else str(exc).splitlines()[0]
         raise InputError(f"invalid YAML ({why})", path) from None
+
+
+# YAML 1.2's numbers that PyYAML (YAML 1.1) reads as text: an exponent without a dot (1e-3, 5e2)
+_NUMBER_TEXT = re.compile(r"[-+]?(\.[0-9]+|[0-9]+(\.[0-9]*)?)[eE][-+]?[0-9]+")
+
+
+def yaml_number(value: object) -> object:
+    """`value` as a float where it is text YAML 1.2 reads as a number (`1e-3`, which PyYAML leaves
+    a string), else unchanged: read where a file's key must hold a number, never for the whole
+    file (a SHA-1 of digits and one e would become a float)."""
+    return float(value) if isinstance(value, str) and _NUMBER_TEXT.fullmatch(value) else value

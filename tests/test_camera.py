@@ -335,6 +335,24 @@ def test_bad_camera_files(tmp_path, text, needle):
         read_camera(tmp_path / "c.yaml")
 
 
+def test_numbers_with_an_exponent(tmp_path):
+    """YAML 1.2 reads 5e2 and 1e-3 as numbers, PyYAML as text: where a number is due (a camera
+    file's, a config's) they are taken as numbers (fuzz seed 25: "expected a number, got str
+    '1e12'"); text that is no number is still named."""
+    from rgbd_gt.align.config import RefineConfig
+    from rgbd_gt.config import load_config
+
+    (tmp_path / "c.yaml").write_text("width: 640\nheight: 480\nfx: 5e2\nfy: 5.0E+2\ncx: 320\ncy: 24e1\n")
+    cam = read_camera(tmp_path / "c.yaml")
+    assert (cam.fx, cam.fy, cam.cy) == (500.0, 500.0, 240.0)
+    (tmp_path / "r.yaml").write_text("iterations: 1e2\nverify:\n  edge_ratio_ok: 12e-1\n")
+    cfg = load_config(RefineConfig, tmp_path / "r.yaml")
+    assert cfg.iterations == 100 and cfg.verify.edge_ratio_ok == 1.2
+    (tmp_path / "r.yaml").write_text("verify:\n  edge_ratio_ok: 1e\n")
+    with pytest.raises(InputError, match=r"r.yaml: verify.edge_ratio_ok: expected a number, got str '1e'$"):
+        load_config(RefineConfig, tmp_path / "r.yaml")
+
+
 def test_image_size_must_match():
     check_image_matches(CAM, (480, 640, 3), "p.png", "c.yaml")
     with pytest.raises(InputError, match="image is 800x600 but camera file c.yaml is for 640x480$"):

@@ -269,7 +269,15 @@ def test_export_errors(rig_run, tmp_path, synth_scene):
     norig = tmp_path / "norig"
     shutil.copytree(bout, norig)
     (norig / "rig.yaml").unlink()
-    assert_one_line_error(run_cli("export", norig, "-o", tmp_path / "x", "-f", "middlebury"), "stereo pairs")
+    assert_one_line_error(run_cli("export", norig, "-o", tmp_path / "x", "-f", "middlebury"), "stereo pairs",
+                          "this run has no solved rig")
+    # fuzz seed 25: a rig whose right photos are all left out said only what pairs need
+    unpaired = tmp_path / "unpaired"
+    shutil.copytree(bout, unpaired)
+    for name in ("right", "right_1"):
+        write_pose(unpaired / name / "pose.yaml", read_pose(bout / name / "pose.yaml")[0])  # no verdict: failed
+    assert_one_line_error(run_cli("export", unpaired, "-o", tmp_path / "x", "-f", "middlebury"), "no shot has both of its "
+                          "photos exported (left out: right (verdict failed), right_1 (verdict failed); see --include)")
     assert not (tmp_path / "x").exists()  # nothing half-written
     # broken files of the run: each named
     broken = tmp_path / "broken"

@@ -180,8 +180,12 @@ def export_run(run: Path, out: Path, formats: list[str], include: tuple[str, ...
     if not result.photos:
         raise InputError(f"no photo of the run has a verdict in {', '.join(include)} (use --include suspect)", run)
     if set(STEREO) & set(formats) and not result.pairs:
-        raise InputError("middlebury and kitti need stereo pairs: a refine --bundle output with a rig, both photos of a "
-                         "shot exported", run)
+        if not any(len((s.rig or {}).get("cameras", [])) >= 2 for s in sources):
+            why = "this run has no solved rig"
+        else:  # say which photos the verdicts kept out, the likely cause
+            left = ", ".join(f"{k} ({v.split(':')[0]})" for k, v in result.left_out.items())
+            why = "no shot has both of its photos exported" + (f" (left out: {left}; see --include)" if left else "")
+        raise InputError(f"middlebury and kitti need stereo pairs, from a refine --bundle output with a rig: {why}", run)
     if plain:
         from rgbd_gt.export.formats import CONVENTION
 

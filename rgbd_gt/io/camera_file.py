@@ -14,7 +14,7 @@ import numpy as np
 import yaml
 
 from rgbd_gt.camera import Camera
-from rgbd_gt.errors import InputError, read_yaml, require_file
+from rgbd_gt.errors import InputError, read_yaml, require_file, yaml_number
 from rgbd_gt.io.atomic import atomic_output
 from rgbd_gt.io.checked import camera_from_values
 
@@ -218,6 +218,7 @@ def read_camera(path: str | os.PathLike,
     missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy") if k not in data]
     if missing:
         raise InputError(f"camera file lacks {', '.join(missing)}", path)
+    data = {**data, **{k: yaml_number(data[k]) for k in ("width", "height", "fx", "fy", "cx", "cy")}}
     bad = [k for k in ("fx", "fy", "cx", "cy") if isinstance(data[k], bool) or not isinstance(data[k], (int, float))]
     if bad:
         raise InputError(f"{bad[0]} must be a number, got {data[bad[0]]!r:.40}", path)
