@@ -1085,6 +1085,16 @@ def _end(code) -> None:
     os._exit(code or 0)
 
 
+def _refuse_empty(args: list[str]) -> None:
+    """InputError for an empty argument (an unset shell variable: `--before "$INIT"`): click
+    hands '' to a path option as Path(''), the current folder, so its error would name '.'."""
+    for i, a in enumerate(args):
+        if a == "" or (a.startswith("--") and a.endswith("=")):
+            where = a[:-1] if a else args[i - 1] if i and args[i - 1].startswith("-") else \
+                f"the argument after {args[i - 1]!r}" if i else "the first argument"
+            raise InputError(f"{where}: empty (an unset shell variable?)")
+
+
 def _command(args: list[str]) -> None:
     """The command line args run as `main` says, ending in SystemExit."""
     import warnings
@@ -1098,6 +1108,7 @@ def _command(args: list[str]) -> None:
     with warnings.catch_warnings(record=not debug) as held:
         warnings.simplefilter("default")
         try:
+            _refuse_empty(args)
             code = command.main(args=args, prog_name="rgbd-gt", standalone_mode=False)
             sys.exit(code if isinstance(code, int) else 0)
         except InputError as exc:

@@ -105,3 +105,15 @@ def test_ingest_never_overwrites_its_input(e57_dir, tmp_path):
 def test_debug_shows_traceback(tmp_path):
     proc = run_cli("--debug", "ingest", tmp_path / "nope.e57", "-o", tmp_path / "o.ply")
     assert proc.returncode != 0 and "Traceback" in proc.stderr
+
+
+def test_empty_arguments(tmp_path):
+    """An empty value (an unset shell variable) is named as empty; a path option took it as '.',
+    the current folder ("--before: is a folder, not a file")."""
+    ply = tmp_path / "s.ply"
+    for args, said in ((("qa-edges", "--before", ""), "error: --before: empty (an unset shell variable?)"),
+                       (("ingest", ply, "--output="), "error: --output: empty"),
+                       (("export", "", "-o", tmp_path / "x"), "error: the argument after 'export': empty")):
+        proc = run_cli(*args)
+        assert_one_line_error(proc, said)
+    assert not (tmp_path / "x").exists()

@@ -264,7 +264,7 @@ def test_export_errors(rig_run, tmp_path, synth_scene):
     assert_one_line_error(run_cli("export", bout, "-o", tmp_path / "x", "--format", "hdf5"), "--format", "hdf5")
     assert_one_line_error(run_cli("export", bout, "-o", tmp_path / "x", "-f", "plain", "--include", "maybe"), "--include", "got 'maybe'")
     assert_one_line_error(run_cli("export", bout, "-o", tmp_path / "x", "-f", "plain", "--include", "suspect", "--include", ""),
-                          "--include takes suspect or failed, got ''")
+                          "--include: empty")
     # a bundle without a rig has no stereo pairs
     norig = tmp_path / "norig"
     shutil.copytree(bout, norig)
