@@ -630,7 +630,7 @@ def export_depth(
     png16: Optional[Path] = typer.Option(None, "--png16", help="Also a 16-bit PNG in millimetres (0 = no depth)."),
     normals: Optional[Path] = typer.Option(None, "--normals", help="Also the camera-frame normals as an EXR (N.X, N.Y, N.Z)."),
     mask: Optional[Path] = typer.Option(None, "--mask", help="Also a validity mask PNG (255 where there is depth)."),
-    max_depth: Optional[float] = typer.Option(None, "--max-depth", help="Depths beyond this (metres) are left out (0)."),
+    max_depth: Optional[float] = typer.Option(None, "--max-depth", help="Depths beyond this (metres) are left out (0: no limit)."),
     points: Optional[bool] = typer.Option(None, "--points/--surfaces", help="Depth of the scan's points alone, each at its own pixel (sparse: nothing between them), or of the surfaces rendered from them. Default: points for LiDAR sweeps (no grid; a ring field, or points on rings of fixed elevation about the sensor), whose rings are too far apart for surfaces; surfaces otherwise (a dense scan without its grid included)."),
     cache: Optional[Path] = typer.Option(None, "--cache", help=CACHE_HELP),
 ) -> None:
@@ -736,7 +736,7 @@ def overlay(
     pose: Path = typer.Option(..., "--pose", help="The pose to show (T_cam_from_scan), e.g. from refine."),
     output: Path = typer.Option(..., "-o", "--output", help="Checkerboard PNG at the photo's resolution: squares alternate between the photo and the scan rendered at the pose (edges must run on across square borders). The 50% blend goes beside it as OVERLAY_blend.png, and (see --points) the visible scan points as dots as OVERLAY_points.png."),
     points: Optional[bool] = typer.Option(None, "--points/--no-points", help="Also draw the visible scan points as dots of their color or intensity over the dimmed photo (OVERLAY_points.png): the picture to read for a sparse LiDAR sweep, whose rendered surfaces are blobs between its rings. Default: for LiDAR sweeps (no grid; a ring field, or points on rings of fixed elevation about the sensor)."),
-    max_depth: Optional[float] = typer.Option(None, "--max-depth", help="Leave out scan surfaces farther than this (metres)."),
+    max_depth: Optional[float] = typer.Option(None, "--max-depth", help="Leave out scan surfaces farther than this (metres; 0: no limit)."),
     cache: Optional[Path] = typer.Option(None, "--cache", help=CACHE_HELP),
 ) -> None:
     """The scan rendered at the pose over the photo, as a checkerboard, as a 50% blend and (for
@@ -758,7 +758,7 @@ def overlay(
     staged = {k: outs.file(p, "-o" if k == "checker" else f"-o (its {k})", (".png",)) for k, p in paths.items()}
     outs.checked_folder(cache, "--cache")
     if max_depth is not None and max_depth < 0:
-        raise InputError(f"--max-depth must be positive, got {max_depth}")
+        raise InputError(f"--max-depth must be positive (0: no limit), got {max_depth}")
     photo = open_photo(image, camera)
     T, _ = read_pose(pose)
     the_scan = scan_in_view(scan, photo.camera, [T], cache)

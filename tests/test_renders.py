@@ -60,6 +60,10 @@ def test_a_camera_and_pose_render_once_with_what_any_step_asks(monkeypatch):
     near = renders.surfaces(CAMERA, T, max_depth=3.0)
     assert (near.z > 0).sum() < (both.z > 0).sum() and (near.z <= 3.0).all()
     assert renders.surfaces(CAMERA, T) is both
+    # 0 is no limit, as every command's --max-depth says (fuzz seed 27: export-depth and overlay
+    # with --max-depth 0 drew nothing and blamed the pose)
+    assert renders.surfaces(CAMERA, T, max_depth=0.0) is both
+    np.testing.assert_array_equal(render_depth(scan, CAMERA, T, max_depth=0.0).z, alone.z)
     # the other pose the scene was built for: no new scene; another camera: its own
     scenes = renders.mesh_seconds
     renders.surfaces(CAMERA, _pose(0.05))

@@ -86,7 +86,7 @@ def render_depth(scan: Scan, camera: Camera, T_cam_from_scan: np.ndarray, max_de
                  mesh: GridMesh | None = None, planes: bool = True) -> DepthMap:
     """Occlusion-correct depth: a structured scan is triangulated along its grid and ray-cast
     (Open3D); a scan without a grid is splatted with discs sized by its point spacing.
-    values: optional per-point (N, C) values (colors) rendered along, as DepthMap.colors (of the
+    max_depth: metres, depths beyond it left out (None or 0: no limit). values: optional per-point (N, C) values (colors) rendered along, as DepthMap.colors (of the
     values' dtype: uint8 colors stay uint8). normals: also the camera-frame normals (else
     DepthMap.normals is None, which saves 12 bytes a pixel). max_splat_px: splats wider than
     this are not drawn (z all 0; splat_radius says how wide they would be), for a check that
@@ -105,7 +105,7 @@ def render_depth(scan: Scan, camera: Camera, T_cam_from_scan: np.ndarray, max_de
         out = _splat(scan, camera, T_cam_from_scan, values, max_splat_px, planes)
         if not normals:
             out.normals = None
-    if max_depth is not None:
+    if max_depth:  # 0: no limit, as everywhere
         far = out.z > max_depth
         out.z[far] = 0
         if out.normals is not None:

@@ -104,7 +104,7 @@ def _cut(render: DepthMap, max_depth: float | None, max_splat_px: int | None) ->
                                    normals=None if render.normals is None else np.zeros_like(render.normals),
                                    colors=None if render.colors is None else np.zeros_like(render.colors),
                                    method=f"splats of radius {render.splat_radius} px (over {max_splat_px}: not drawn)")
-    if max_depth is None or not (render.z > max_depth).any():
+    if not max_depth or not (render.z > max_depth).any():  # 0: no limit
         return render
     far = render.z > max_depth
     out = dataclasses.replace(render, z=np.where(far, 0, render.z))
