@@ -1089,10 +1089,15 @@ def _refuse_empty(args: list[str]) -> None:
     """InputError for an empty argument (an unset shell variable: `--before "$INIT"`): click
     hands '' to a path option as Path(''), the current folder, so its error would name '.'."""
     for i, a in enumerate(args):
-        if a == "" or (a.startswith("--") and a.endswith("=")):
-            where = a[:-1] if a else args[i - 1] if i and args[i - 1].startswith("-") else \
-                f"the argument after {args[i - 1]!r}" if i else "the first argument"
-            raise InputError(f"{where}: empty (an unset shell variable?)")
+        if a.startswith("--") and a.endswith("="):
+            where = a[:-1]
+        elif a:
+            continue
+        elif i and args[i - 1].startswith("-"):
+            where = args[i - 1]
+        else:
+            where = f"the argument after {args[i - 1]!r}" if i else "the first argument"
+        raise InputError(f"{where}: empty (an unset shell variable?)")
 
 
 def _command(args: list[str]) -> None:
