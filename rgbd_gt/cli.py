@@ -73,7 +73,7 @@ def _parse_floats(text: str, n: int, what: str) -> list[float]:
 def _check_ransac_px(value: float) -> None:
     # beyond a photo's size a threshold rejects nothing: a typo, not a choice
     if not (np.isfinite(value) and 0 < value <= 1000):
-        raise InputError(f"--ransac-px must lie between 0 and 1000 pixels, got {value}")
+        raise InputError(f"--ransac-px must be over 0 and at most 1000 pixels, got {value:g}")
 
 
 def _progress(*extra_columns) -> Progress:

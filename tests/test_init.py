@@ -158,8 +158,10 @@ def test_labelled_picks_report_each_pair(scenes, tmp_path):
     proc = run_cli(*args, "-o", tmp_path / "b.yaml", "--ransac-px", "10")
     assert proc.returncode == 0, proc.stderr
     assert [p["inlier"] for p in read_pose(tmp_path / "b.yaml")[1]["pairs"]] == [False, False] + [True] * 10
-    for bad, what in ((["--ransac-px", "0"], "--ransac-px"), (["--camera-out", tmp_path / "c.yaml"], "--camera-out"),
-                      (["--ransac-px", "nan"], "--ransac-px"), (["--ransac-px", "1e20"], "between 0 and 1000")):
+    # fuzz seed 28: '-0' said "must lie between 0 and 1000 pixels, got -0.0", where 0 itself is refused
+    for bad, what in ((["--ransac-px", "-0"], "--ransac-px must be over 0 and at most 1000 pixels, got -0"),
+                      (["--camera-out", tmp_path / "c.yaml"], "--camera-out"),
+                      (["--ransac-px", "nan"], "--ransac-px"), (["--ransac-px", "1e20"], "got 1e+20")):
         assert_one_line_error(run_cli(*args, "-o", tmp_path / "c.yaml", *bad), what)
     (tmp_path / "bad.csv").write_text("u,v,x,y\n1,2,3,4\n")
     assert_one_line_error(run_cli(*args[:-1], tmp_path / "bad.csv", "-o", tmp_path / "c.yaml"), "bad.csv", "no column z")
