@@ -123,10 +123,15 @@ def stereo_products(prepared, left: Shot, right: Shot, images: dict, masks: dict
                           occluded(pl.z, z_right, disp), (left.name, right.name))
 
 
+def _is_rig(source: Source) -> bool:
+    """Whether the source was solved as a rig of two or more cameras (its rig.yaml)."""
+    return bool(source.rig) and len(source.rig.get("cameras", [])) >= 2
+
+
 def stereo_pairs(source: Source, chosen: list[Shot]) -> list[tuple[Shot, Shot, float]]:
     """(left, right, baseline 1-sigma m) of each rig shot whose photos by the rig's first two
     cameras are both chosen."""
-    if not source.rig or len(source.rig.get("cameras", [])) < 2:
+    if not _is_rig(source):
         return []
     first, second = source.rig["cameras"][:2]
     rel = source.rig["relative"][second]
@@ -180,7 +185,7 @@ def export_run(run: Path, out: Path, formats: list[str], include: tuple[str, ...
     if not result.photos:
         raise InputError(f"no photo of the run has a verdict in {', '.join(include)} (use --include suspect)", run)
     if set(STEREO) & set(formats) and not result.pairs:
-        if not any(len((s.rig or {}).get("cameras", [])) >= 2 for s in sources):
+        if not any(_is_rig(s) for s in sources):
             why = "this run has no solved rig"
         else:  # say which photos the verdicts kept out, the likely cause
             left = ", ".join(f"{k} ({v.split(':')[0]})" for k, v in result.left_out.items())

@@ -86,8 +86,9 @@ def render_depth(scan: Scan, camera: Camera, T_cam_from_scan: np.ndarray, max_de
                  mesh: GridMesh | None = None, planes: bool = True) -> DepthMap:
     """Occlusion-correct depth: a structured scan is triangulated along its grid and ray-cast
     (Open3D); a scan without a grid is splatted with discs sized by its point spacing.
-    max_depth: metres, depths beyond it left out (None or 0: no limit). values: optional per-point (N, C) values (colors) rendered along, as DepthMap.colors (of the
-    values' dtype: uint8 colors stay uint8). normals: also the camera-frame normals (else
+    max_depth: metres, depths beyond it left out (None or 0: no limit). values: optional
+    per-point (N, C) values (colors) rendered along, as DepthMap.colors (of the values' dtype:
+    uint8 colors stay uint8). normals: also the camera-frame normals (else
     DepthMap.normals is None, which saves 12 bytes a pixel). max_splat_px: splats wider than
     this are not drawn (z all 0; splat_radius says how wide they would be), for a check that
     cannot use them (a sweep's are tens of pixels and take seconds). mesh: a grid scan's

@@ -74,7 +74,7 @@ class Renders:
         depths of the points the camera sees, and how many face away; found once."""
         from rgbd_gt.render.points import seen_and_behind
 
-        key = (*_key(camera, T), max_depth)
+        key = (*_key(camera, T), max_depth or None)  # 0 is no limit too: one entry for both
         if key not in self._seen:
             self._seen[key] = seen_and_behind(self.scan, camera, T, max_depth)
         return self._seen[key]
