@@ -48,21 +48,40 @@ def checkerboard_dir() -> Path:
     return _need("checkerboard")
 
 
+def _made_once(tmp_path_factory, name: str, make) -> Path:
+    """A folder that `make(folder)` fills, made once for the whole suite: under pytest-xdist each
+    worker has a session of its own, and each made the same scenes and rig solves again (a
+    minute of the suite's time on 2 cores). The first worker to ask makes it under a file lock;
+    the others wait for it and read it. Nothing may change it afterwards."""
+    from filelock import FileLock
+
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # the run's folder, which all its workers share
+    folder = root / "made-once" / name
+    folder.parent.mkdir(exist_ok=True)
+    with FileLock(f"{folder}.lock"):
+        if not (folder / ".done").exists():  # a worker that died midway left no .done
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir()
+            make(folder)
+            (folder / ".done").touch()
+    return folder
+
+
 @pytest.fixture(scope="session")
 def synth_scene(tmp_path_factory):
     """synth_scene(dest, seed, photos=1, rig=None) -> dest: a copy of the small synthetic scene of
-    that seed (with rig 'stereo': `photos` shots of a stereo rig), made once per session (about 3 s
-    each), so that a test may change its files."""
-    made: dict[tuple, Path] = {}
+    that seed (with rig 'stereo': `photos` shots of a stereo rig), made once (about 3 s each), so
+    that a test may change its files."""
+
+    def make(folder: Path, seed: int, photos: int, rig: str | None) -> None:
+        proc = run_cli("synth", folder, "--size", "small", "--seed", seed, "--photos", photos, *(["--rig", rig] if rig else []))
+        assert proc.returncode == 0, proc.stderr
 
     def copy(dest: Path, seed: int, photos: int = 1, rig: str | None = None) -> Path:
-        key = (seed, photos, rig)
-        if key not in made:
-            src = tmp_path_factory.mktemp(f"synth{seed}x{photos}{rig or ''}") / "scene"
-            proc = run_cli("synth", src, "--size", "small", "--seed", seed, "--photos", photos, *(["--rig", rig] if rig else []))
-            assert proc.returncode == 0, proc.stderr
-            made[key] = src
-        shutil.copytree(made[key], dest, dirs_exist_ok=True)
+        src = _made_once(tmp_path_factory, f"synth{seed}x{photos}{rig or ''}", lambda f: make(f, seed, photos, rig))
+        shutil.copytree(src, dest, dirs_exist_ok=True, ignore=shutil.ignore_patterns(".done"))
         return dest
 
     return copy
@@ -71,12 +90,15 @@ def synth_scene(tmp_path_factory):
 @pytest.fixture(scope="session")
 def rig_run(synth_scene, tmp_path_factory):
     """A stereo rig's 2 shots (small synthetic scene, seed 0) solved together by `refine --bundle`:
-    (scene folder, output folder)."""
-    d = synth_scene(tmp_path_factory.mktemp("rig") / "scene", 0, photos=2, rig="stereo")
-    out = d.parent / "out"
-    proc = run_cli("refine", "--bundle", d / "bundle.yaml", "-o", out, "--device", "cpu", "--repeats", "1")
-    assert proc.returncode == 0, proc.stderr + proc.stdout
-    return d, out
+    (scene folder, output folder). Shared by every test that asks: read it, do not change it."""
+
+    def make(folder: Path) -> None:
+        d = synth_scene(folder / "scene", 0, photos=2, rig="stereo")
+        proc = run_cli("refine", "--bundle", d / "bundle.yaml", "-o", folder / "out", "--device", "cpu", "--repeats", "1")
+        assert proc.returncode == 0, proc.stderr + proc.stdout
+
+    folder = _made_once(tmp_path_factory, "rig", make)
+    return folder / "scene", folder / "out"
 
 
 _ZYGOTE: list = []  # the cli_fork server of this session, once started

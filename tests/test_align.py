@@ -269,13 +269,15 @@ def test_auto_levels_keep_the_coarsest_level_40_to_79_px_across():
 
 
 def test_a_1280x960_photo_refines_from_a_degree_off(tmp_path):
-    """The default-size stereo scene's (2 shots) right camera, 1 deg / 36 mm off at its init: with a fixed 5 levels
-    (coarsest 80x60) refine ended 126 mm / 1.35 deg off, `failed`; with the levels the photo's size
-    asks for (6: coarsest 40x30), at the truth."""
+    """The default-size stereo scene's right camera, 0.85 deg / 32 mm off at its init, refines to
+    the truth with the levels the photo's size asks for (6: coarsest 40x30). On this scene's 2-shot
+    form (1 deg / 36 mm off) a fixed 5 levels (coarsest 80x60) once ended 126 mm / 1.35 deg off,
+    `failed`; the aligner of 2026-12 reaches the truth with 5 as well. One shot: the scene's size
+    costs most of this test."""
     from rgbd_gt.config import load_config
     from rgbd_gt.synth.generate import SynthConfig, generate
 
-    generate(tmp_path, 0, "default", load_config(SynthConfig, None, "synth.yaml"), photos=2, rig="stereo")
+    generate(tmp_path, 0, "default", load_config(SynthConfig, None, "synth.yaml"), photos=1, rig="stereo")
     inputs = load_inputs(tmp_path / "scan.ply", tmp_path / "right.png", tmp_path / "camera_right.yaml",
                          tmp_path / "init_pose_right.yaml")
     T = run_refine(inputs, RefineConfig(), "cpu").T_cam_from_scan

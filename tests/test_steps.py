@@ -2,13 +2,14 @@
 files of one name that they write hold the same keys and values."""
 
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 import yaml
 
-from conftest import run_cli
+from conftest import _made_once, run_cli
 from rgbd_gt.io.depth_file import read_depth_exr
 
 TIMINGS = ("seconds", "verify_seconds")  # how long a step took: the one thing two runs may differ in
@@ -27,26 +28,29 @@ def without_timings(value):
 def run_and_commands(tmp_path_factory, synth_scene):
     """A `run` of one synthetic photo, and each command on the same inputs (run's init and its
     prepared scan) writing the files of the same names into cmd/."""
-    tmp = tmp_path_factory.mktemp("steps")
-    scene = synth_scene(tmp / "scene", 5)
-    config = {"scan": "scene/scan.e57", "camera": "scene/camera.yaml", "photos": ["scene/photo.png"],
-              "output": "out", "refine": {"max_points": 30000}}
-    (tmp / "run.yaml").write_text(yaml.safe_dump(config))
-    proc = run_cli("run", tmp / "run.yaml")
-    assert proc.returncode == 0, proc.stderr
-    ran, cmd, cache = tmp / "out" / "photo", tmp / "cmd", tmp / "out" / ".scan-cache"
-    common = ["--scan", scene / "scan.e57", "--cache", cache]
-    photo = ["--image", scene / "photo.png", "--camera", scene / "camera.yaml"]
-    for args in (["init-pose", *common, *photo, "-o", cmd / "init.yaml"],
-                 ["refine", *common, *photo, "--init", ran / "init.yaml", "--max-points", 30000, "-o", cmd / "pose.yaml"],
-                 ["export-depth", *common, "--camera", scene / "camera.yaml", "--pose", ran / "pose.yaml",
-                  "-o", cmd / "depth.exr", "--png16", cmd / "depth.png"],
-                 ["qa-edges", *common, *photo, "--pose", ran / "pose.yaml", "--before", ran / "init.yaml",
-                  "-o", cmd / "qa.png", "--json", cmd / "qa.json"],
-                 ["overlay", *common, *photo, "--pose", ran / "pose.yaml", "-o", cmd / "overlay.png"]):
-        proc = run_cli(*args)
-        assert proc.returncode == 0, (args[0], proc.stderr)
-    return ran, cmd
+
+    def make(tmp: Path) -> None:
+        scene = synth_scene(tmp / "scene", 5)
+        config = {"scan": "scene/scan.e57", "camera": "scene/camera.yaml", "photos": ["scene/photo.png"],
+                  "output": "out", "refine": {"max_points": 30000}}
+        (tmp / "run.yaml").write_text(yaml.safe_dump(config))
+        proc = run_cli("run", tmp / "run.yaml")
+        assert proc.returncode == 0, proc.stderr
+        ran, cmd, cache = tmp / "out" / "photo", tmp / "cmd", tmp / "out" / ".scan-cache"
+        common = ["--scan", scene / "scan.e57", "--cache", cache]
+        photo = ["--image", scene / "photo.png", "--camera", scene / "camera.yaml"]
+        for args in (["init-pose", *common, *photo, "-o", cmd / "init.yaml"],
+                     ["refine", *common, *photo, "--init", ran / "init.yaml", "--max-points", 30000, "-o", cmd / "pose.yaml"],
+                     ["export-depth", *common, "--camera", scene / "camera.yaml", "--pose", ran / "pose.yaml",
+                      "-o", cmd / "depth.exr", "--png16", cmd / "depth.png"],
+                     ["qa-edges", *common, *photo, "--pose", ran / "pose.yaml", "--before", ran / "init.yaml",
+                      "-o", cmd / "qa.png", "--json", cmd / "qa.json"],
+                     ["overlay", *common, *photo, "--pose", ran / "pose.yaml", "-o", cmd / "overlay.png"]):
+            proc = run_cli(*args)
+            assert proc.returncode == 0, (args[0], proc.stderr)
+
+    tmp = _made_once(tmp_path_factory, "steps", make)
+    return tmp / "out" / "photo", tmp / "cmd"
 
 
 def test_init_files_are_the_same(run_and_commands):
