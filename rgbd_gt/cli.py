@@ -704,7 +704,7 @@ def qa_edges(
     from rgbd_gt.io.outputs import Outputs
     from rgbd_gt.scan import scan_colors
     from rgbd_gt.prepared import view_and_around
-    from rgbd_gt.qa.edges import as_json
+    from rgbd_gt.io.json_text import json_text
     from rgbd_gt.qa.verticals import MAX_POINTS, REACH
     from rgbd_gt.render.renders import Renders
     from rgbd_gt.steps import open_photo, qa_step
@@ -724,7 +724,7 @@ def qa_edges(
     with outs:
         write_image(staged, result.image)
         if json_out:
-            staged_json.write_text(as_json(result.scores))
+            staged_json.write_text(json_text(result.scores))
     _summary("qa-edges", result.rows, output, None)
 
 

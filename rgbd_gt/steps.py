@@ -472,12 +472,11 @@ def write_bundled(folder: Path, spec, done: Bundled, bundle: Path, total_seconds
     bundle write them: PHOTO/pose.yaml per photo, cameras/NAME.yaml, rig.yaml for a rig, and
     last bundle.json (the bundle file, with its SHA-1, and each photo's verdict and cross-photo
     evidence), whose presence says the others are all there."""
-    import json
-
     import yaml
 
     from rgbd_gt.io import write_pose
     from rgbd_gt.io.atomic import atomic_output
+    from rgbd_gt.io.json_text import json_text
     from rgbd_gt.io.camera_file import write_camera
     from rgbd_gt.prepared import file_key
 
@@ -499,4 +498,4 @@ def write_bundled(folder: Path, spec, done: Bundled, bundle: Path, total_seconds
         for e, d in zip(spec.photos, done.photos)], "iterations": r.iterations, "levels": r.levels,
         "seconds": round(r.seconds, 3), "total_seconds": round(total_seconds, 3)}
     with atomic_output(folder / "bundle.json") as tmp:
-        tmp.write_text(json.dumps(summary, indent=1))
+        tmp.write_text(json_text(summary))

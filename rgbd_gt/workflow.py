@@ -16,6 +16,7 @@ import numpy as np
 
 from rgbd_gt.align.config import RefineConfig
 from rgbd_gt.errors import InputError, file_problem, read_yaml, require_listed
+from rgbd_gt.io.json_text import json_text
 
 # of the photo's extent: the points the refined pose sees within it must be in the view (a render
 # near the border needs the triangles and splats a little beyond it)
@@ -258,7 +259,6 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
     from rgbd_gt.scan import scan_colors
     from rgbd_gt.pose import camera_centre
     from rgbd_gt.qa import verticals
-    from rgbd_gt.qa.edges import as_json
     from rgbd_gt.render.depth import back_facing_fraction
     from rgbd_gt.render.renders import Renders
     from rgbd_gt.steps import depth_step, overlay_paths, overlay_step, qa_step, refine_step, write_depth
@@ -334,7 +334,7 @@ def run_photo(photo: Path, prepared, camera, job: ScanJob, cfg: RunConfig,
         checked = qa_step(renders, image, camera, T, around(T), T_init, files["refine"], files["init"])
         write_image(d / "qa.png", checked.image)
         with atomic_output(files["qa"]) as tmp:
-            tmp.write_text(as_json(checked.scores))
+            tmp.write_text(json_text(checked.scores))
         lap("qa")
     progress("overlay")
     if files["overlay"].exists():
@@ -603,11 +603,11 @@ def shared_camera(job: ScanJob, prepared, camera, cfg: RunConfig, progress: Call
     result = corrected(camera, q)
     write_camera(out / "camera.yaml", result)
     with atomic_output(out / "intrinsics.json") as tmp:
-        tmp.write_text(json.dumps({
+        tmp.write_text(json_text({
             "mode": cfg.refine.refine_intrinsics, "solve": "joint",
             "photos": [{"photo": n, **ev} for n, ev in zip(names, solved.evidence)],
-            "shared": q.tolist(), "shared_sigma": [None if not np.isfinite(v) else float(v) for v in sigma],
-            "camera": out.name + "/camera.yaml", "made_from": made}, indent=1))
+            "shared": q, "shared_sigma": sigma,
+            "camera": out.name + "/camera.yaml", "made_from": made}))
     return result
 
 
@@ -653,7 +653,7 @@ def write_run_record(path: Path, prepared: list, seconds: float, engine: str, wo
             entry["prepare_seconds"] = json.loads((p.folder / "meta.json").read_text()).get("seconds")
         scans.append(entry)
     with atomic_output(path) as tmp:
-        tmp.write_text(json.dumps({"engine": engine, "workers": workers, "seconds": round(seconds, 3), "scans": scans}, indent=1))
+        tmp.write_text(json_text({"engine": engine, "workers": workers, "seconds": round(seconds, 3), "scans": scans}))
 
 
 def verdict_counts(results: list[PhotoResult]) -> str:

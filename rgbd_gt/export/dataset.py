@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import json
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -17,6 +16,7 @@ from rgbd_gt.errors import InputError
 from rgbd_gt.export.source import Shot, Source
 from rgbd_gt.export.stereo import Warp
 from rgbd_gt.export.uncertainty import PixelSigma
+from rgbd_gt.io.json_text import json_text
 from rgbd_gt.render.depth import DepthMap
 
 FORMATS = ("plain", "colmap", "nerfstudio", "middlebury", "kitti")
@@ -194,16 +194,16 @@ def export_run(run: Path, out: Path, formats: list[str], include: tuple[str, ...
     if plain:
         from rgbd_gt.export.formats import CONVENTION
 
-        (out / "plain" / "cameras.json").write_text(json.dumps({"convention": CONVENTION, "photos": plain}, indent=1))
+        (out / "plain" / "cameras.json").write_text(json_text({"convention": CONVENTION, "photos": plain}))
     from rgbd_gt.export.formats import write_transforms
 
     for folder, frames_of_scan in frames.items():  # a scene per scan: each scan is its own world frame
         write_transforms(folder, frames_of_scan)
     result.seconds = time.perf_counter() - start
-    (out / "export.json").write_text(json.dumps({
+    (out / "export.json").write_text(json_text({
         "run": str(run), "formats": formats, "include": list(include), "photos": result.photos, "pairs": result.pairs,
         "left_out": result.left_out, "seconds": round(result.seconds, 3),
-        "prepare_seconds": round(result.prepare_seconds, 3)}, indent=1))
+        "prepare_seconds": round(result.prepare_seconds, 3)}))
     write_report(out / "report.html", sources, out, result)
     return result
 

@@ -3,7 +3,6 @@ T_cam_from_scan (x right, y down, z forward: OpenCV) unless a format says otherw
 
 from __future__ import annotations
 
-import json
 import shutil
 from pathlib import Path
 
@@ -14,6 +13,7 @@ from rgbd_gt.errors import InputError
 from rgbd_gt.io.camera_file import camera_to_dict
 from rgbd_gt.io.depth_file import write_depth_png16, write_exr, write_pfm, write_png16
 from rgbd_gt.io.image import write_image
+from rgbd_gt.io.json_text import json_text
 from rgbd_gt.pose import matrix_to_quat
 
 CONVENTION = ("T_cam_from_scan maps scan coordinates (metres) to the camera frame, x right, y down, z forward "
@@ -140,9 +140,9 @@ def write_transforms(folder: Path, frames: list[dict]) -> None:
     """nerfstudio's transforms.json of the frames (`nerfstudio_frame`): the first frame's camera
     at the top (each frame keeps its own), depth_unit_scale_factor 0.001 (millimetre PNGs)."""
     first = frames[0]
-    (folder / "transforms.json").write_text(json.dumps({
+    (folder / "transforms.json").write_text(json_text({
         "camera_model": "PINHOLE", **{k: first[k] for k in ("fl_x", "fl_y", "cx", "cy", "w", "h")},
-        "depth_unit_scale_factor": 0.001, "frames": frames}, indent=1))
+        "depth_unit_scale_factor": 0.001, "frames": frames}))
 
 
 def middlebury_calib(camera: Camera, baseline: float, ndisp: int) -> str:

@@ -72,14 +72,6 @@ def edge_score(photo_edges: np.ndarray, scan_edges: np.ndarray, pixel: float = 1
     return EdgeScore(float(np.median(d)), float(d.mean()), float(np.mean(d <= 1.0)), int(d.size))
 
 
-def as_json(scores: dict) -> str:
-    """Scores (`as_dict`s merged) as JSON text: JSON has no NaN, so a score that says nothing is null."""
-    import json
-
-    return json.dumps({k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in scores.items()},
-                      indent=1)
-
-
 def overlay(photo: np.ndarray, photo_edges: np.ndarray, scan_edges: np.ndarray) -> np.ndarray:
     """Darkened photo with red photo edges, blue scan edges, white where both (H, W, 3) uint8 RGB."""
     out = (photo.astype(np.float32) * 0.35).astype(np.uint8)
