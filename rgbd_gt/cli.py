@@ -66,7 +66,7 @@ def _parse_floats(text: str, n: int, what: str) -> list[float]:
     except ValueError:
         values = []
     if len(values) != n or not all(np.isfinite(values)):
-        raise InputError(f"{what} must be {n} comma-separated numbers, got '{text}'")
+        raise InputError(f"{what} must be {n} comma-separated numbers, got {text!r}")
     return values
 
 

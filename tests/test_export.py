@@ -294,6 +294,12 @@ def test_export_errors(rig_run, tmp_path, synth_scene):
                           "states a verdict but no uncertainty")
     pose.write_text(re.sub(r"(covariance:\n- \[)[^,]+", r"\1.nan", text))
     assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(pose), "covariance: not finite")
+    # fuzz seed 29: a row that is no row said numpy's "setting an array element with a sequence ..."
+    doc = yaml.safe_load(text)
+    doc["covariance"][1] = float("inf")
+    pose.write_text(yaml.safe_dump(doc))
+    assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(pose),
+                          "covariance: not a 6 x 6 matrix of numbers (row 2 is inf)")
     for bad, said in ((text.replace("\nverdict: ok\n", "\nverdict: <b>ok</b>\n", 1), "verdict"),
                       (re.sub(r"\nreasons: .*\n", "\nreasons: [.inf]\n", text, count=1), "reasons"),
                       (re.sub(r"\nevidence:\n", "\nevidence: [1, 2]\nwas_evidence:\n", text, count=1), "evidence")):

@@ -168,6 +168,10 @@ def test_labelled_picks_report_each_pair(scenes, tmp_path):
     (tmp_path / "one.csv").write_text("7\n1,2\n")  # fuzz seed 20: said "got 1 values per row"
     with pytest.raises(InputError, match=r"one.csv: expected u,v,x,y,z\[,label\] rows, got 1 value in the first$"):
         read_correspondences(tmp_path / "one.csv")
+    # fuzz seed 29: a control byte in a number read "got '1,2,6.35535,1,1'", the row looking right
+    (tmp_path / "ctl.csv").write_text("u,v,x,y,z\n1,2,6.35\x1f535,1,1\n")
+    with pytest.raises(InputError, match=r"ctl.csv: row 1: expected u,v,x,y,z numbers, got '1,2,6.35\\x1f535,1,1'$"):
+        read_correspondences(tmp_path / "ctl.csv")
     (tmp_path / "two.csv").write_text("1,2\n3,4\n")
     with pytest.raises(InputError, match=r"two.csv: expected x,y,z rows, got 2 values per row$"):
         read_board_corners(tmp_path / "two.csv")

@@ -139,6 +139,13 @@ def test_bad_size_and_config(tmp_path):
     # the fuzz's 1e12 deg margin asked for a grid no memory holds: exit 1 and "out of memory" before
     (tmp_path / "m.yaml").write_text("scan_margin_deg: 1000000000000.0\n")
     assert_one_line_error(run_cli("synth", tmp_path / "o", "--config", tmp_path / "m.yaml"), "m.yaml", "scan_margin_deg must be 0..90, got 1000000000000.0")
+    # fuzz seed 29: a scanner 1e20 m from the camera (outside any room) said only "no valid layout in 40 tries"
+    (tmp_path / "s.yaml").write_text("scanner_distance_m: [1.0, 99999999999999999999]\n")
+    assert_one_line_error(run_cli("synth", tmp_path / "o", "--config", tmp_path / "s.yaml"), "s.yaml",
+                          "scanner_distance_m must be within 0..5 m")
+    (tmp_path / "b.yaml").write_text("board_distance_m: [0.1, 0.2]\n")  # too near to see the whole board
+    assert_one_line_error(run_cli("synth", tmp_path / "o", "--size", "small", "--config", tmp_path / "b.yaml"),
+                          "no layout in 40 tries (max_layout_tries) where the camera sees the whole board", "board_distance_m")
     assert not (tmp_path / "o").exists()
 
 

@@ -261,7 +261,10 @@ def _shot(name: str, image: Path, camera: Camera, camera_name: str, pose_file: P
     try:
         cov = pose_covariance(keys)
     except (TypeError, ValueError) as exc:
-        raise InputError(f"covariance: not a 6 x 6 matrix of numbers ({exc})", pose_file) from None
+        # numpy's own words on a ragged list ("setting an array element with a sequence ...") do
+        # not say which row
+        why = _not_rows(keys["covariance"], 6) if "covariance" in keys else None
+        raise InputError(f"covariance: not a 6 x 6 matrix of numbers ({why or exc})", pose_file) from None
     if "covariance" in keys and not np.isfinite(cov).all():  # refine writes it only when determined
         raise InputError("covariance: not finite", pose_file)
     return Shot(name, image, camera, camera_name, T, cov, verdict, reasons, pose_file, sigma, evidence=evidence)
@@ -274,6 +277,18 @@ def stated_uncertainty(evidence: dict) -> dict:
     pose files of earlier releases), else the aligner's (`uncertainty`); {} when there are none."""
     return ((evidence.get("tiles") or {}).get("uncertainty") or (evidence.get("frames") or {}).get("uncertainty")
             or evidence.get("uncertainty") or {})
+
+
+def _not_rows(value, n: int) -> str | None:
+    """What keeps a YAML value from being n rows of n numbers, in words (None: nothing found)."""
+    if not isinstance(value, list):
+        return f"got {value!r:.60}"
+    if len(value) != n:
+        return None if len(value) == n * n else f"{len(value)} rows"
+    for k, row in enumerate(value, 1):
+        if not isinstance(row, list) or len(row) != n:
+            return f"row {k} is {row!r:.60}"
+    return None
 
 
 def pose_covariance(keys: dict) -> np.ndarray:

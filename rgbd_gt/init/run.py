@@ -198,7 +198,7 @@ def read_correspondences(path: Path, minimum: int = 6) -> Picks:
     values, labels = [], []
     for k, r in enumerate(rows, 1):
         if max(order[:5]) >= len(r) or not all(_is_number(r[j]) for j in order[:5]):
-            raise InputError(f"row {k}: expected u,v,x,y,z numbers, got '{','.join(r)}'", path)
+            raise InputError(f"row {k}: expected u,v,x,y,z numbers, got {','.join(r)!r}", path)  # !r: shows a control byte
         values.append([float(r[j]) for j in order[:5]])
         labels.append(r[order[5]] if 0 <= order[5] < len(r) and r[order[5]] else str(k))
     data = np.array(values, np.float64).reshape(-1, 5)

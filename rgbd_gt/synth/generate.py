@@ -79,6 +79,9 @@ class SynthConfig:
             lo_hi = getattr(self, name)
             require(len(lo_hi) == 2 and 0 <= lo_hi[0] <= lo_hi[1], name, "[low, high] with 0 <= low <= high", lo_hi)
         require(1 <= self.hfov_deg[0] and self.hfov_deg[1] < 170, "hfov_deg", "within 1..170", self.hfov_deg)
+        # the rooms are 5-7.5 m across: a scanner farther from the camera stood outside its walls
+        for name in ("board_distance_m", "scanner_distance_m"):
+            require(getattr(self, name)[1] <= 5, name, "within 0..5 m (the rooms are 5-7.5 m across)", getattr(self, name))
         # the board must fit in the photo from 1.8-2.6 m (the generator tries layouts until it does)
         require(2 <= self.board_cols <= 50, "board_cols", "2..50", self.board_cols)
         require(2 <= self.board_rows <= 50, "board_rows", "2..50", self.board_rows)
@@ -221,7 +224,8 @@ def laid_out(rng: np.random.Generator, preset: SizePreset, cfg: SynthConfig, see
         rc = build_raycaster(scene)
         if _board_visible(scene, rc, camera):
             return scene, rc, camera, attempt + 1
-    raise InputError(f"seed {seed}: no valid layout in {cfg.max_layout_tries} tries")
+    raise InputError(f"seed {seed}: no layout in {cfg.max_layout_tries} tries (max_layout_tries) where the camera sees the "
+                     "whole board: see board_distance_m, hfov_deg and the board's size")
 
 
 def textured(scene: Scene, rng: np.random.Generator, preset: SizePreset) -> None:
