@@ -171,6 +171,7 @@ def write_markdown(path: Path, report: dict) -> None:
 
     groups = list(report["groups"])
     head = ["method"] + [f"{g} {c}" for g in groups for c in ("median t (mm)", "median R (deg)", "success", "s/case")]
+    runs = f"median of {report['command_runs']} runs" if report["command_runs"] > 1 else "one run"
     lines = [
         "# Benchmark: the paper's Sec. 4.1 on ICL-NUIM livingroom1",
         "",
@@ -196,8 +197,7 @@ def write_markdown(path: Path, report: dict) -> None:
         "The whole `rgbd-gt refine` command on one 640x480 case (reading a PLY of the frame's cloud, the",
         f"photo, camera and pose files; refining; judging the result; writing the pose): {report['refine_command_s']:.2f} s wall,",
         f"of which {report['refine_aligner_s']:.2f} s aligner time and {report['refine_verify_s']:.2f} s for the verdict's evidence",
-        f"(docs/trust.md; {'median of %d runs' % report['command_runs'] if report['command_runs'] > 1 else 'one run'}). "
-        "The s/case columns above are the aligner alone.",
+        f"(docs/trust.md; {runs}). The s/case columns above are the aligner alone.",
         "",
         f"Machine: {report['machine']}.",
         "",

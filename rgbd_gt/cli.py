@@ -1085,18 +1085,26 @@ def _end(code) -> None:
     os._exit(code or 0)
 
 
-def _refuse_empty(args: list[str]) -> None:
+def _refuse_empty(args: list[str], command) -> None:
     """InputError for an empty argument (an unset shell variable: `--before "$INIT"`): click
-    hands '' to a path option as Path(''), the current folder, so its error would name '.'."""
+    hands '' to a path option as Path(''), the current folder, so its error would name '.'.
+    An option the command does not have is left to click to name; after a flag ('' is not its
+    value) the argument is named by its place."""
+    commands = getattr(command, "commands", {})
+    sub = next((commands[a] for a in args if a in commands), None)
+    takes_value = {o: not (p.is_flag or p.count) for p in (*command.params, *getattr(sub, "params", ()))
+                   if p.param_type_name == "option" for o in (*p.opts, *p.secondary_opts)}
     for i, a in enumerate(args):
         if a.startswith("--") and a.endswith("="):
             where = a[:-1]
         elif a:
             continue
-        elif i and args[i - 1].startswith("-"):
+        elif i and args[i - 1].startswith("-") and takes_value.get(args[i - 1], True):
             where = args[i - 1]
         else:
             where = f"the argument after {args[i - 1]!r}" if i else "the first argument"
+        if where.startswith("-") and where not in takes_value:
+            return  # click says "No such option"
         raise InputError(f"{where}: empty (an unset shell variable?)")
 
 
@@ -1113,7 +1121,7 @@ def _command(args: list[str]) -> None:
     with warnings.catch_warnings(record=not debug) as held:
         warnings.simplefilter("default")
         try:
-            _refuse_empty(args)
+            _refuse_empty(args, command)
             code = command.main(args=args, prog_name="rgbd-gt", standalone_mode=False)
             sys.exit(code if isinstance(code, int) else 0)
         except InputError as exc:

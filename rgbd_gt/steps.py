@@ -476,8 +476,8 @@ def write_bundled(folder: Path, spec, done: Bundled, bundle: Path, total_seconds
 
     from rgbd_gt.io import write_pose
     from rgbd_gt.io.atomic import atomic_output
-    from rgbd_gt.io.json_text import json_text
     from rgbd_gt.io.camera_file import write_camera
+    from rgbd_gt.io.json_text import json_text
     from rgbd_gt.prepared import file_key
 
     for entry, refined in zip(spec.photos, done.photos):

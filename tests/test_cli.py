@@ -113,7 +113,12 @@ def test_empty_arguments(tmp_path):
     ply = tmp_path / "s.ply"
     for args, said in ((("qa-edges", "--before", ""), "error: --before: empty (an unset shell variable?)"),
                        (("ingest", ply, "--output="), "error: --output: empty"),
-                       (("export", "", "-o", tmp_path / "x"), "error: the argument after 'export': empty")):
+                       (("export", "", "-o", tmp_path / "x"), "error: the argument after 'export': empty"),
+                       # '' after a flag is not the flag's value
+                       (("refine", "--strict", ""), "error: the argument after '--strict': empty")):
         proc = run_cli(*args)
         assert_one_line_error(proc, said)
+    # fuzz seed 30: an option the command does not have, given '', said "--port: empty"
+    proc = run_cli("ingest", ply, "--port", "")
+    assert proc.returncode == 2 and "No such option: --port" in proc.stderr and "empty" not in proc.stderr
     assert not (tmp_path / "x").exists()
