@@ -319,7 +319,11 @@ def test_an_opencv_value_that_is_not_utf8_is_named(tmp_path):
         ("width: [640\n", "invalid YAML"),
         # fuzz seed 22: said "fx, fy, cx, cy and distortion must be numbers", naming none
         ("width: 640\nheight: 480\nfx: 500\nfy: 500\ncx: 320\ncy: 240\ndistortion: [0.1, abc, 0, 0]\n",
-         r"distortion must be numbers, got \[0.1, 'abc', 0, 0\]$"),
+         r"distortion must be numbers, got 'abc' \(entry 2 of 4\)$"),
+        # fuzz seed 31: a bad fifth coefficient was cut off the 80 characters of the list shown
+        ("width: 640\nheight: 480\nfx: 500\nfy: 500\ncx: 320\ncy: 240\n"
+         "distortion: [-0.10887398992097819, 0.0009386634902923338, 0.00011448253299620886, -0.0002913, abc]\n",
+         r"distortion must be numbers, got 'abc' \(entry 5 of 5\)$"),
         ("width: 640\nheight: 480\nfx: 500\nfy: [500]\ncx: 320\ncy: 240\n", r"fy must be a number, got \[500\]$"),
         # a model that turns back 39 deg off the axis, short of the corners (45 deg): they would have no ray
         ("width: 640\nheight: 480\nfx: 400\nfy: 400\ncx: 320\ncy: 240\ndistortion: [-0.6, 0.1, 0, 0]\n",

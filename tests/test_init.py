@@ -172,6 +172,9 @@ def test_labelled_picks_report_each_pair(scenes, tmp_path):
     (tmp_path / "ctl.csv").write_text("u,v,x,y,z\n1,2,6.35\x1f535,1,1\n")
     with pytest.raises(InputError, match=r"ctl.csv: row 1: expected u,v,x,y,z numbers, got '1,2,6.35\\x1f535,1,1'$"):
         read_correspondences(tmp_path / "ctl.csv")
+    (tmp_path / "bytes.csv").write_bytes(b"x,y,z\n1,2,3\n4,\xf9,6\n")  # fuzz seed 31: said "'utf-8' codec can't decode ..."
+    with pytest.raises(InputError, match=r"bytes.csv: not a CSV of x,y,z rows: not UTF-8 text \(a byte 0xf9\)$"):
+        read_board_corners(tmp_path / "bytes.csv")
     (tmp_path / "two.csv").write_text("1,2\n3,4\n")
     with pytest.raises(InputError, match=r"two.csv: expected x,y,z rows, got 2 values per row$"):
         read_board_corners(tmp_path / "two.csv")

@@ -136,6 +136,8 @@ def read_csv_rows(path: Path, fields: str) -> np.ndarray:
     header = not all(_is_number(c) for c in first.split(","))  # "1e-01" has letters and is no header
     try:
         data = np.loadtxt(path, delimiter=",", ndmin=2, skiprows=int(header))
+    except UnicodeDecodeError as exc:  # its position counts within numpy's chunk, not the file
+        raise InputError(f"not a CSV of {fields} rows: not UTF-8 text (a byte 0x{exc.object[exc.start]:02x})", path) from None
     except ValueError as exc:
         raise InputError(f"not a CSV of {fields} rows ({exc})", path) from None
     if data.size == 0:  # loadtxt gives an empty file one column

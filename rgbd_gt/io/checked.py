@@ -13,17 +13,29 @@ from rgbd_gt.errors import InputError
 VALID_DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
 
 
+def _not_a_number(values) -> str:
+    """The entry of a list that is not a number, with its place, for a message (the whole list,
+    cut to 80 characters, hid a bad last coefficient); anything else as it is."""
+    if isinstance(values, (list, tuple)):
+        for k, v in enumerate(values, 1):
+            try:
+                float(v)
+            except (TypeError, ValueError):
+                return f"{v!r:.40} (entry {k} of {len(values)})"
+    return f"{values!r:.80}"
+
+
 def camera_from_values(path: Path, width, height, K: np.ndarray, dist) -> Camera:
     """A Camera from a file's values, each checked: whole positive sizes, finite numbers, a focal
     length between 1 px and 1000 x the image size, the principal point near the image."""
     try:
         K = np.asarray(K, float)
     except (TypeError, ValueError):
-        raise InputError(f"fx, fy, cx and cy must be numbers, got {K!r:.80}", path) from None
+        raise InputError(f"fx, fy, cx and cy must be numbers, got {_not_a_number(K)}", path) from None
     try:
         dist = tuple(float(d) for d in np.asarray(dist if dist is not None else [], float).ravel())
     except (TypeError, ValueError):
-        raise InputError(f"distortion must be numbers, got {dist!r:.80}", path) from None
+        raise InputError(f"distortion must be numbers, got {_not_a_number(dist)}", path) from None
     if len(dist) not in VALID_DISTORTION_LENGTHS:
         raise InputError(f"distortion must have 4, 5, 8, 12 or 14 coefficients, got {len(dist)}", path)
     if not (np.isfinite(dist).all() and np.isfinite(K).all()):
