@@ -14,9 +14,9 @@ VALID_DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
 
 
 def _not_a_number(values) -> str:
-    """The entry of a list that is not a number, with its place, for a message (the whole list,
-    cut to 80 characters, hid a bad last coefficient); anything else as it is."""
-    if isinstance(values, (list, tuple)):
+    """The entry of a flat list that is not a number, with its place, for a message (the whole
+    list, cut to 80 characters, hid a bad last coefficient); anything else (rows too) as it is."""
+    if isinstance(values, (list, tuple)) and not any(isinstance(v, (list, tuple)) for v in values):
         for k, v in enumerate(values, 1):
             try:
                 float(v)
