@@ -21,6 +21,7 @@ import numpy as np
 from rgbd_gt.camera import Camera
 from rgbd_gt.errors import InputError
 from rgbd_gt.init.pick import ClickView, solve, write_pairs
+from rgbd_gt.io.json_text import json_text
 from rgbd_gt.scan import Scan
 
 PAGE_FILES = {"/": ("index.html", "text/html"), "/pick.js": ("pick.js", "text/javascript"),
@@ -113,7 +114,8 @@ def _handler(session: PickSession, stop: threading.Event):
             self.wfile.write(body)
 
         def _json(self, data, code: int = 200) -> None:
-            self._send(json.dumps(data).encode(), "application/json", code)
+            # the page's JSON.parse refuses json.dumps' bare NaN: a figure that is not finite is null
+            self._send(json_text(data, indent=None).encode(), "application/json", code)
 
         def do_GET(self) -> None:
             url = urlparse(self.path)
