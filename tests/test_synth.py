@@ -149,6 +149,21 @@ def test_bad_size_and_config(tmp_path):
     assert not (tmp_path / "o").exists()
 
 
+def test_a_far_scanner_stands_in_the_room():
+    """scanner_distance_m up to 5 m is allowed, but from most camera spots 5 m sideways leaves the
+    room: the layout is drawn again instead of putting the scanner outside, behind the walls (seed
+    26 of these did)."""
+    from rgbd_gt.synth.generate import SynthConfig, laid_out
+
+    cfg = SynthConfig(scanner_distance_m=[3.5, 5.0])
+    preset = cfg.sizes["small"]
+    for seed in range(24, 30):
+        scene, _, _, _ = laid_out(np.random.default_rng(seed), preset, cfg, seed)
+        xy = scene.scanner_pose[:2, 3]
+        assert np.all(xy > 0.4) and np.all(xy < scene.room[:2] - 0.4), (seed, xy, scene.room)
+        assert 3.5 <= np.linalg.norm(xy - scene.camera_pose[:2, 3]) <= 5.0
+
+
 def test_wide_synthetic_cameras_keep_a_lens_that_covers_the_photo():
     """A wide field (hfov_deg up to 170 in the config) with the drawn barrel distortion would turn
     back inside the photo, which a camera file may not do; the radial terms are weakened until the

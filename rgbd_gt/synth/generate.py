@@ -213,10 +213,11 @@ def laid_out(rng: np.random.Generator, preset: SizePreset, cfg: SynthConfig, see
     scene's camera pose, its raycaster, that camera (pinhole: without the lens's distortion) and
     how many layouts were drawn until one did."""
     for attempt in range(cfg.max_layout_tries):
-        surfaces, board, room, cam_pose, scan_pose, light = make_layout(
-            rng, (cfg.board_cols, cfg.board_rows), cfg.square_m, cfg.board_distance_m, cfg.scanner_distance_m,
-            float(np.mean(cfg.hfov_deg)),
-        )
+        layout = make_layout(rng, (cfg.board_cols, cfg.board_rows), cfg.square_m, cfg.board_distance_m,
+                             cfg.scanner_distance_m, float(np.mean(cfg.hfov_deg)))
+        if layout is None:
+            continue
+        surfaces, board, room, cam_pose, scan_pose, light = layout
         camera = random_camera(rng, preset, cfg.hfov_deg)
         if pinhole:
             camera = dataclasses.replace(camera, distortion=())
@@ -225,7 +226,8 @@ def laid_out(rng: np.random.Generator, preset: SizePreset, cfg: SynthConfig, see
         if _board_visible(scene, rc, camera):
             return scene, rc, camera, attempt + 1
     raise InputError(f"seed {seed}: no layout in {cfg.max_layout_tries} tries (max_layout_tries) where the camera sees the "
-                     "whole board: see board_distance_m, hfov_deg and the board's size")
+                     "whole board and the scanner stands in the room: see board_distance_m, scanner_distance_m, "
+                     "hfov_deg and the board's size")
 
 
 def textured(scene: Scene, rng: np.random.Generator, preset: SizePreset) -> None:

@@ -112,10 +112,11 @@ def _floor_box(name, xy, yaw, size, z0, tex, rng) -> Surface:
 
 def make_layout(rng: np.random.Generator, board_shape: tuple[int, int], square: float,
                 board_distance: tuple[float, float], scanner_distance: tuple[float, float],
-                hfov_deg: float) -> tuple[list[Surface], Board, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                hfov_deg: float) -> tuple[list[Surface], Board, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """Random room, objects, board, camera and scanner poses (no textures yet).
 
-    Returns (surfaces, board, room size, camera pose, scanner pose, light position).
+    Returns (surfaces, board, room size, camera pose, scanner pose, light position), or None when
+    the drawn scanner distances found no spot inside the room (far ones, in a narrow room).
     Texture indices in the surfaces count up from 0 in order.
     """
     W, D, H = rng.uniform(5.0, 7.0), rng.uniform(6.0, 7.5), rng.uniform(2.6, 3.2)
@@ -166,6 +167,8 @@ def make_layout(rng: np.random.Generator, board_shape: tuple[int, int], square: 
         s_xy = cam[:2] + ds * unit(heading + side * np.deg2rad(rng.uniform(60, 150)))
         if np.all(s_xy > 0.4) and np.all(s_xy < [W - 0.4, D - 0.4]):
             break
+    else:
+        return None  # outside the room the scanner would see only the walls' backs
     scanner = np.array([s_xy[0], s_xy[1], rng.uniform(1.3, 1.8)])
     Rs = rot_z(rng.uniform(-np.pi, np.pi)) @ rot_x(np.deg2rad(rng.uniform(-3, 3))) @ rot_y(np.deg2rad(rng.uniform(-3, 3)))
     scanner_pose = rigid(Rs, scanner)
