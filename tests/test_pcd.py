@@ -89,6 +89,13 @@ def test_broken_pcd_files(tmp_path):
         (tmp_path / f"i_{value}.pcd").write_text(with_i + f"1 2 3 40\n4 5 6 {value}\n")
         with pytest.raises(InputError, match=f"point 1 has an invalid intensity \\(\\[?{value}"):
             load_scan(tmp_path / f"i_{value}.pcd")
+    # fuzz seed 32: a VIEWPOINT 1e30 m up was read, and export-depth called 7.6% of a sweep's view
+    # seen from behind, every surface turned to face it
+    (tmp_path / "view.pcd").write_text(ascii_header.replace("POINTS", "VIEWPOINT 0 0 1e30 1 0 0 0\nPOINTS") + "1 2 3\n4 5 6\n")
+    with pytest.raises(InputError, match=r"scanner position 0 is \[0.0, 0.0, 1e\+30\], beyond 1e\+07 m"):
+        load_scan(tmp_path / "view.pcd")
+    (tmp_path / "view.pcd").write_text(ascii_header.replace("POINTS", "VIEWPOINT 0 0 1e6 1 0 0 0\nPOINTS") + "1 2 3\n4 5 6\n")
+    assert load_scan(tmp_path / "view.pcd").origins.tolist() == [[0, 0, 1e6]]
     assert_one_line_error(run_cli("ingest", tmp_path / "short.pcd", "-o", tmp_path / "out.ply"), "short.pcd")
     assert not (tmp_path / "out.ply").exists()
 

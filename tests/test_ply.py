@@ -123,6 +123,16 @@ def test_bad_values_are_named_by_point(tmp_path, field, value, needle):
     assert np.array_equal(getattr(load_scan(tmp_path / "b.ply"), field), values)
 
 
+def test_a_scanner_position_beyond_reach_is_named(tmp_path):
+    """fuzz seed 32: an origin comment 1e30 m up was read, and overlay drew the scan with every
+    surface turned to face it."""
+    s = _scan()
+    s.origins[1, 2] = 1e30
+    write_ply(tmp_path / "a.ply", s)
+    with pytest.raises(InputError, match=r"a.ply: scanner position 1 is \[0.0, -1.0, 1e\+30\], beyond 1e\+07 m"):
+        load_scan(tmp_path / "a.ply")
+
+
 def test_non_finite_normals_are_named():
     s = _scan()
     s.normals = np.tile(np.float32([0, 0, 1]), (len(s), 1))

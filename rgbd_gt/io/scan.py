@@ -55,7 +55,7 @@ MAX_COORDINATE_M = 1e7  # georeferenced scans reach ~1e7 m (UTM northings); beyo
 
 def check_values(scan: Scan, path: object) -> None:
     """InputError naming the first bad point: a non-finite or absurd coordinate, intensity or
-    normal, or grid indices that are negative. (Readers drop the points a format marks as
+    normal, or grid indices that are negative; or an absurd scanner position. (Readers drop the points a format marks as
     missing, like a PCD's NaN returns, before this.)"""
     fields = [("coordinate", scan.xyz), ("intensity", scan.intensity), ("normal", scan.normals)]
     for name, values in fields:
@@ -70,6 +70,10 @@ def check_values(scan: Scan, path: object) -> None:
         if bad.any():
             k = int(np.flatnonzero(bad.reshape(len(values), -1).any(axis=1))[0])
             raise InputError(f"point {k} has an invalid {name} ({np.asarray(values[k]).tolist()})", path)
+    far = np.flatnonzero(~(np.abs(scan.origins) <= MAX_COORDINATE_M).all(axis=1))
+    if far.size:  # the origin turns the surfaces to face it: from there every one would face one way
+        raise InputError(f"scanner position {int(far[0])} is {scan.origins[far[0]].tolist()}, beyond "
+                         f"{MAX_COORDINATE_M:g} m", path)
     if scan.row is not None and scan.col is not None and len(scan):
         if min(scan.row.min(), scan.col.min()) < 0:
             raise InputError("the scan's row and col indices must be 0 or more", path)
