@@ -149,6 +149,23 @@ def test_stereo_pairs_against_the_truth(exported):
         assert abs(-P3[0, 3] / P3[0, 0] - float(calib["baseline"]) / 1e3) < 1e-9
 
 
+def test_a_pair_that_rectifies_to_nothing_is_named():
+    """fuzz seed 33: a left camera's principal point moved to x = 0 (a broken camera file of the
+    run) rectified to a focal length of 1.1 million px that saw nothing, and export blamed the
+    left photo's pose; it now names the pair. The same rig with its own camera rectifies."""
+    from rgbd_gt.errors import InputError
+    from rgbd_gt.export.stereo import rectify
+
+    right = Camera(640, 480, 524.26, 524.68, 326.22, 244.99, (-0.1288, 0.0098, -0.0006, 0.0007, 0.0))
+    left = Camera(640, 480, 459.79, 459.23, 319.0, 231.80, (-0.0792, 0.0056, -0.0005, 0.0003, 0.0))
+    T_right = np.eye(4)
+    T_right[:3, 3] = [-0.12, 0.0, 0.0]
+    pair = rectify(left, np.eye(4), right, T_right)
+    assert 459 < pair.left.camera.fx < 600 and abs(pair.baseline - 0.12) < 1e-9
+    with pytest.raises(InputError, match=r"rectified, the two photos share almost no view \(a focal length of \d+ px"):
+        rectify(Camera(640, 480, 459.79, 459.23, 0.0, 231.80, left.distortion), np.eye(4), right, T_right)
+
+
 def test_pfm_round_trip_and_byte_order(tmp_path):
     a = np.random.default_rng(0).normal(size=(7, 5)).astype(np.float32)
     a[2, 3] = np.inf

@@ -111,7 +111,10 @@ def stereo_products(prepared, left: Shot, right: Shot, images: dict, masks: dict
     (the depth's, and the baseline's 1-sigma `baseline_sigma` metres), and occlusion."""
     from rgbd_gt.export.stereo import disparity, occluded, rectify
 
-    pair = rectify(left.camera, left.T, right.camera, right.T)
+    try:
+        pair = rectify(left.camera, left.T, right.camera, right.T)
+    except InputError as exc:
+        raise InputError(f"stereo pair {left.name} | {right.name} (cameras {left.camera_name}, {right.camera_name}): {exc}") from None
     if pair.swapped:
         left, right = right, left
     pl = products(prepared, left, images[left.name], pair.left, masks.get(left.name), points)

@@ -98,6 +98,10 @@ def rectify(cam0: Camera, T0: np.ndarray, cam1: Camera, T1: np.ndarray) -> Pair:
     if P1[0, 3] > 0:  # the second camera lies to the left of the first
         pair = rectify(cam1, T1, cam0, T0)
         return Pair(pair.left, pair.right, pair.baseline, True)
+    f = max(cam0.fx, cam0.fy, cam1.fx, cam1.fy)
+    if not P0[0, 0] <= 10 * f:  # alpha 0 zooms in on the pixels valid in both: far in, almost none are
+        raise InputError(f"rectified, the two photos share almost no view (a focal length of {P0[0, 0]:.0f} px, "
+                         f"{f:.0f} px before): check the cameras' principal points and distortion")
     return Pair(_warp(cam0, R0, P0), _warp(cam1, R1, P1), float(-P1[0, 3] / P1[0, 0]), False)
 
 
