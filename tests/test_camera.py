@@ -324,6 +324,9 @@ def test_an_opencv_value_that_is_not_utf8_is_named(tmp_path):
         ("width: 640\nheight: 480\nfx: 500\nfy: 500\ncx: 320\ncy: 240\n"
          "distortion: [-0.10887398992097819, 0.0009386634902923338, 0.00011448253299620886, -0.0002913, abc]\n",
          r"distortion must be numbers, got 'abc' \(entry 5 of 5\)$"),
+        # fuzz seed 32: a single number in place of the list said only "got 1"
+        ("width: 640\nheight: 480\nfx: 500\nfy: 500\ncx: 320\ncy: 240\ndistortion: .nan\n",
+         r"distortion must have 4, 5, 8, 12 or 14 coefficients, got 1 \(nan\)$"),
         ("width: 640\nheight: 480\nfx: 500\nfy: [500]\ncx: 320\ncy: 240\n", r"fy must be a number, got \[500\]$"),
         # a model that turns back 39 deg off the axis, short of the corners (45 deg): they would have no ray
         ("width: 640\nheight: 480\nfx: 400\nfy: 400\ncx: 320\ncy: 240\ndistortion: [-0.6, 0.1, 0, 0]\n",

@@ -37,7 +37,8 @@ def camera_from_values(path: Path, width, height, K: np.ndarray, dist) -> Camera
     except (TypeError, ValueError):
         raise InputError(f"distortion must be numbers, got {_not_a_number(dist)}", path) from None
     if len(dist) not in VALID_DISTORTION_LENGTHS:
-        raise InputError(f"distortion must have 4, 5, 8, 12 or 14 coefficients, got {len(dist)}", path)
+        raise InputError(f"distortion must have 4, 5, 8, 12 or 14 coefficients, got {len(dist)}"
+                         + (f" ({dist[0]:g})" if len(dist) == 1 else ""), path)
     if not (np.isfinite(dist).all() and np.isfinite(K).all()):
         raise InputError("camera values must be finite numbers", path)
     if K.shape != (3, 3) or np.abs(K[2] - [0, 0, 1]).max() > 1e-9 or K[1, 0] != 0 or abs(K[0, 1]) > 1e-6 * abs(K[0, 0]):
