@@ -330,7 +330,12 @@ def test_an_opencv_value_that_is_not_utf8_is_named(tmp_path):
         ("width: 640\nheight: 480\nfx: 500\nfy: [500]\ncx: 320\ncy: 240\n", r"fy must be a number, got \[500\]$"),
         # a model that turns back 39 deg off the axis, short of the corners (45 deg): they would have no ray
         ("width: 640\nheight: 480\nfx: 400\nfy: 400\ncx: 320\ncy: 240\ndistortion: [-0.6, 0.1, 0, 0]\n",
-         r"the lens model turns back inside the 640x480 image .*corners lie at 1\.00"),
+         r"the lens model turns back inside the 640x480 image .*corners lie at 1\.002\), so its outer pixels have no ray: "
+         "coefficients fitted"),
+        # fuzz seed 34: a cx of -1 was blamed on the distortion alone
+        ("width: 640\nheight: 480\nfx: 530.4\nfy: 530.4\ncx: -1\ncy: 246.07\n"
+         "distortion: [-0.10887, 0.00094, 0.00011, -0.00029, 0.0]\n",
+         r"no ray: the principal point \(-1, 246.07\) off the image, coefficients fitted"),
         ("- 1\n- 2\n", "mapping"),
         ("%YAML:1.0\ncamera_matrix: !!opencv-matrix\n  rows: 3\n  cols: 3\n  dt: d\n  data: [1, 2, 3]\n",
          r"OpenCV calibration file \(a matrix's data does not hold rows x cols values\)$"),

@@ -61,10 +61,11 @@ def camera_from_values(path: Path, width, height, K: np.ndarray, dist) -> Camera
         raise InputError(f"the principal point ({cam.cx}, {cam.cy}) is far outside the {w}x{h} image", path)
     reach, corner = lens_reach(cam)
     if reach < corner:
+        off = "" if 0 <= cam.cx <= w and 0 <= cam.cy <= h else f"the principal point ({cam.cx:g}, {cam.cy:g}) off the image, "
         raise InputError(f"the lens model turns back inside the {w}x{h} image (its distortion reaches a radius of "
                          f"{reach:.3f} in x/z, y/z; the corners lie at {corner:.3f}), so its outer pixels have no ray: "
-                         "coefficients fitted for another image size, or a fisheye lens, which this model does not describe",
-                         path)
+                         f"{off}coefficients fitted for another image size, or a fisheye lens, which this model does not "
+                         "describe", path)
     return cam
 
 

@@ -55,8 +55,8 @@ MAX_COORDINATE_M = 1e7  # georeferenced scans reach ~1e7 m (UTM northings); beyo
 
 def check_values(scan: Scan, path: object) -> None:
     """InputError naming the first bad point: a non-finite or absurd coordinate, intensity or
-    normal, or grid indices that are negative; or an absurd scanner position. (Readers drop the points a format marks as
-    missing, like a PCD's NaN returns, before this.)"""
+    normal, or grid indices that are negative; or an absurd scanner position. (Readers drop the
+    points a format marks as missing, like a PCD's NaN returns, before this.)"""
     fields = [("coordinate", scan.xyz), ("intensity", scan.intensity), ("normal", scan.normals)]
     for name, values in fields:
         if values is None or values.size == 0:
