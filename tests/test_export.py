@@ -342,6 +342,11 @@ def test_export_errors(rig_run, tmp_path, synth_scene):
     keys = yaml.safe_load(camera.read_text())
     camera.write_text(yaml.safe_dump({**keys, "sigma": {"focal_px": "many"}}))
     assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(camera), "sigma")
+    # fuzz seed 35: a camera for another photo size was taken, and plain's image.png resampled to it
+    camera.write_text(yaml.safe_dump({**keys, "height": 123}))
+    for fmt in ("plain", "kitti"):
+        assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", fmt), str(camera), "is for 640x123")
+    camera.write_text(yaml.safe_dump(keys))
     record = (broken / "bundle.json").read_text()
     # a damaged SHA-1 is the record's fault, not a changed scan's (fuzz seed 9: "the scan then had SHA-1 ):")
     (broken / "bundle.json").write_text(json.dumps({**json.loads(record), "scan_sha1": ""}))

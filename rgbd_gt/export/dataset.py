@@ -104,6 +104,14 @@ def render(prepared, shot: Shot, warp: Warp, points: bool | None = None, normals
     return depth_step(view, cam, T, normals=normals, points=points, pose_path=shot.pose_file)
 
 
+def _photo(shot: Shot):
+    """The shot's photo and mask (`steps.open_photo`: checked against its camera, as every step
+    checks them)."""
+    from rgbd_gt.steps import open_photo
+
+    return open_photo(shot.image, shot.camera, shot.mask, camera_path=shot.camera_file)
+
+
 def stereo_products(prepared, left: Shot, right: Shot, images: dict, masks: dict, points: bool | None = None,
                     baseline_sigma: float = 0.0) -> StereoProducts:
     """The rectified pair of two photos of one rig shot (`export.stereo.rectify` from their
@@ -217,7 +225,6 @@ def _photos(prepared, source: Source, chosen: list[Shot], prefix: str, out: Path
     (one photo in flight) while the next renders."""
     from rgbd_gt.export.formats import nerfstudio_folder
     from rgbd_gt.export.stereo import pinhole
-    from rgbd_gt.io.image import read_image, read_mask
 
     writing = None
     nerf = nerfstudio_folder(out, source.name if prefix else None)
@@ -233,9 +240,8 @@ def _photos(prepared, source: Source, chosen: list[Shot], prefix: str, out: Path
         name = prefix + s.name
         progress(name, k, len(chosen))
         t0 = time.perf_counter()
-        photo = read_image(s.image)
-        ignore = read_mask(s.mask, photo.shape[:2]) if s.mask is not None else None
-        p = products(prepared, s, photo, pinhole(s.camera), ignore, points)
+        photo = _photo(s)
+        p = products(prepared, s, photo.image, pinhole(s.camera), photo.ignore, points)
         result.photos[name] |= _figures(p) | {"seconds": round(time.perf_counter() - t0, 3)}
         if writing is not None:
             collect(writing)  # one photo's files in flight at a time: memory stays one photo's
@@ -270,14 +276,14 @@ def _pairs(prepared, source: Source, chosen: list[Shot], out: Path, formats: lis
            progress) -> None:
     """middlebury and kitti: each rig shot's rectified pair."""
     from rgbd_gt.export import formats as fm
-    from rgbd_gt.io.image import read_image, read_mask
 
     pairs = stereo_pairs(source, chosen)
     for k, (left, right, sigma_b) in enumerate(pairs):
         progress(f"pair {left.name} | {right.name}", k, len(pairs))
         t0 = time.perf_counter()
-        images = {s.name: read_image(s.image) for s in (left, right)}
-        masks = {s.name: read_mask(s.mask, images[s.name].shape[:2]) for s in (left, right) if s.mask is not None}
+        photos = {s.name: _photo(s) for s in (left, right)}
+        images = {name: p.image for name, p in photos.items()}
+        masks = {name: p.ignore for name, p in photos.items() if p.ignore is not None}
         sp = stereo_products(prepared, left, right, images, masks, points, sigma_b)
         index = len(result.pairs)
         key = f"{left.shot:06d}" if left.shot is not None else f"{index:06d}"

@@ -23,6 +23,7 @@ class Shot:
     image: Path
     camera: Camera  # as the run solved it (a shared or bundle camera) or as its file said
     camera_name: str
+    camera_file: Path  # what the camera was read from, for the messages
     T: np.ndarray  # (4, 4) T_cam_from_scan
     covariance: np.ndarray  # (6, 6) of the pose update (`align.aligner.RefineResult.covariance`)
     verdict: str
@@ -116,7 +117,7 @@ def _run_sources(folder: Path, record: dict, stale_missing: bool, file_keys: dic
             if pose.is_file() and stale is None:
                 if camera is None:  # a calibration text or JSON file has no size: the photos' (as run's job_camera)
                     camera = read_camera(camera_file, lambda: read_image(image).shape[1::-1], image)
-                photos.append(_shot(image.stem, image, camera, "camera", pose, sigma))
+                photos.append(_shot(image.stem, image, camera, "camera", camera_file, pose, sigma))
             else:
                 missing[image.stem] = errors.get(image.name) or entry.get("error") or str(stale or "no refined pose")
         sources.append(Source(entry.get("name", "scan"), Path(entry["scan"]), out, photos, missing=missing,
@@ -186,7 +187,8 @@ def _bundle_source(folder: Path, bundle: Path, name: str = "bundle", errors: dic
             missing[entry.image.stem] = (errors or {}).get(entry.image.name) or str(stale or "no refined pose")
             continue
         cam_file = folder / "cameras" / f"{entry.camera}.yaml"
-        shot = _shot(entry.image.stem, entry.image, read_camera(cam_file), entry.camera, pose, _camera_sigma(cam_file))
+        shot = _shot(entry.image.stem, entry.image, read_camera(cam_file), entry.camera, cam_file, pose,
+                     _camera_sigma(cam_file))
         shot.shot, shot.mask = entry.shot, entry.mask
         photos.append(shot)
     # an earlier solve's rig.yaml may lie beside a solve without a rig: read only the bundle's own
@@ -237,7 +239,8 @@ def _nonnegative(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) and v >= 0
 
 
-def _shot(name: str, image: Path, camera: Camera, camera_name: str, pose_file: Path, sigma: dict) -> Shot:
+def _shot(name: str, image: Path, camera: Camera, camera_name: str, camera_file: Path, pose_file: Path,
+          sigma: dict) -> Shot:
     from rgbd_gt.io import read_pose
 
     T, keys = read_pose(pose_file)
@@ -267,7 +270,8 @@ def _shot(name: str, image: Path, camera: Camera, camera_name: str, pose_file: P
         raise InputError(f"covariance: not a 6 x 6 matrix of numbers ({why or exc})", pose_file) from None
     if "covariance" in keys and not np.isfinite(cov).all():  # refine writes it only when determined
         raise InputError("covariance: not finite", pose_file)
-    return Shot(name, image, camera, camera_name, T, cov, verdict, reasons, pose_file, sigma, evidence=evidence)
+    return Shot(name, image, camera, camera_name, camera_file, T, cov, verdict, reasons, pose_file, sigma,
+                evidence=evidence)
 
 
 def stated_uncertainty(evidence: dict) -> dict:
