@@ -106,6 +106,9 @@ class RunConfig:
         for k, s in enumerate(self.scans):
             if s.board is not None:
                 s.board.check()
+            for key in ("camera", "init"):
+                if getattr(s, key) is not None and not getattr(s, key).strip():  # else the config's own is taken
+                    raise ValueError(f"scans[{k}].{key}: an empty path; give a file, or leave it out for the config's own")
             if s.name is not None and (not s.name or s.name in (".", "..") or "/" in s.name or s.name.startswith(".")):
                 raise ValueError(f"scans[{k}].name must be a plain folder name, got {s.name!r}")
         try:

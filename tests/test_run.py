@@ -133,6 +133,11 @@ def test_run_bad_config(tmp_path):
     (tmp_path / "a.png").write_bytes(b"")
     (tmp_path / "emptyinit.yaml").write_text("scan: x.ply\ncamera: c.yaml\nphotos: [a.png]\ninit: ''\n")  # fuzz seed 9
     assert_one_line_error(run_cli("run", tmp_path / "emptyinit.yaml"), "emptyinit.yaml", "init: an empty path; give a pose file")
+    # fuzz seed 36: a scan's empty camera (or init) took the config's own, without a word
+    for key in ("camera", "init"):
+        (tmp_path / "emptyown.yaml").write_text(f"camera: c.yaml\nscans:\n  - {{scan: x.ply, photos: [a.png], {key}: ''}}\n")
+        assert_one_line_error(run_cli("run", tmp_path / "emptyown.yaml"), "emptyown.yaml",
+                              f"scans[0].{key}: an empty path; give a file, or leave it out for the config's own")
     (tmp_path / "noinit.yaml").write_text("scan: x.ply\ncamera: c.yaml\nphotos: [a.png]\ninit: rig.yaml\n")
     assert_one_line_error(run_cli("run", tmp_path / "noinit.yaml"), "noinit.yaml", f"init: {tmp_path / 'rig.yaml'}: pose file not found")
     (tmp_path / "nocorners.yaml").write_text("scan: x.ply\ncamera: c.yaml\nphotos: [a.png]\nboard:\n  points: corners.csv\n")
