@@ -571,6 +571,8 @@ def make_trial(k: int, tpls: list[dict], seeds: dict[str, Path], root: Path, rng
                                           POSE_KEYS if target.name == "pose.yaml" else None)
             original.unlink()
             invalid = invalid and ".scan-cache" not in target.parts  # a broken cache may be made again
+            # a run's camera of another size no longer fits its photos (fuzz seed 35: export took it)
+            invalid = invalid or (target.parent.name == "cameras" and change.startswith(("width: ", "height: ")))
             change = f"{target.relative_to(dst)}: {change}"
         else:
             keys = None
