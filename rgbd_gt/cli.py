@@ -440,6 +440,7 @@ def refine(
     from rgbd_gt.init.run import check_picks, read_correspondences
     from rgbd_gt.io import write_pose
     from rgbd_gt.io.outputs import Outputs
+    from rgbd_gt.prepared import prepare_scan
     from rgbd_gt.steps import load_inputs, refine_config, refine_step
 
     start = time.perf_counter()
@@ -478,13 +479,14 @@ def refine(
                         objective=objective, max_depth=max_depth, search_starts=search_starts,
                         refine_intrinsics=refine_intrinsics)
     everything = ([dict(scan=scan, image=image, camera=camera)] if scan is not None else []) + listed
-    inputs = [load_inputs(p["scan"], p["image"], p["camera"], init, mask if k == 0 else None, cache)
-              for k, p in enumerate(everything)]
+    # the check's picks may lie anywhere in the first scan, not only in the photo's view of the init
+    first = prepare_scan(Path(everything[0]["scan"]), cache) if check is not None else None
+    inputs = [load_inputs(p["scan"], p["image"], p["camera"], init, mask if k == 0 else None, cache,
+                          first if k == 0 else None) for k, p in enumerate(everything)]
     held_out = None
     if check is not None:
         picks = read_correspondences(check, minimum=1)
-        check_picks(picks, inputs[0].camera, inputs[0].points, check,
-                    inputs[0].scan.origins if inputs[0].scan is not None else None)
+        check_picks(picks, inputs[0].camera, first.bounds(), check, first.origins)
         held_out = (picks.img, picks.obj)
     with _progress(TextColumn("{task.fields[info]}")) as bar:
         task = bar.add_task("refine", total=None, info="")

@@ -106,6 +106,11 @@ class PreparedScan:
         T_local[:3, 3] += T_local[:3, :3] @ self.centre  # the pose of the local (float32) frame
         return idx[points_in_view(np.asarray(self.arrays["xyz"][idx]), camera, T_local, margin, far)]
 
+    def bounds(self) -> np.ndarray:
+        """(2, 3) the lowest and highest corner of the box around every point, metres in the scan's
+        frame (from its blocks: no point is read)."""
+        return np.stack([self.blocks.lo.min(axis=0), self.blocks.hi.max(axis=0)])
+
     def whole(self) -> Scan:
         """Every point, as a `Scan` (block-ordered)."""
         return self.subset(slice(None))

@@ -118,6 +118,21 @@ def test_check_pairs_enter_the_evidence(scene, tmp_path):
     chk = yaml.safe_load((tmp_path / "pose.yaml").read_text())["evidence"]["check"]
     assert chk["pairs"] == int(ok.sum()) and chk["rms_px"] < 0.5 < chk["rms_init_px"]
     assert "repeatability" not in yaml.safe_load((tmp_path / "pose.yaml").read_text())["evidence"]
+    # fuzz seed 38: the pairs were held to the box of the scan's points in view of the init (there,
+    # of a camera file gone wrong), and one outside it was "outside the scan ([...] .. [...]):
+    # picked on another scan?". A camera zoomed in 4 times sees a corner of the room
+    from rgbd_gt.prepared import prepare_scan
+
+    keys = yaml.safe_load((scene / "camera.yaml").read_text())
+    (tmp_path / "narrow.yaml").write_text(yaml.safe_dump({**keys, "fx": keys["fx"] * 4, "fy": keys["fy"] * 4}))
+    view = prepare_scan(scene / "scan.ply").views(read_camera(tmp_path / "narrow.yaml"), [read_pose(scene / "init_pose.yaml")[0]])
+    assert ((rows[:, 2:] < view.xyz.min(0) - 0.1) | (rows[:, 2:] > view.xyz.max(0) + 0.1)).any(), "no pair outside its box"
+    proc = run_cli("refine", "--scan", scene / "scan.ply", "--image", scene / "photo.png", "--camera", tmp_path / "narrow.yaml",
+                   "--init", scene / "init_pose.yaml", "-o", tmp_path / "off.yaml", "--check", tmp_path / "check.csv",
+                   "--repeats", "0")
+    assert proc.returncode == 0, proc.stderr
+    off = yaml.safe_load((tmp_path / "off.yaml").read_text())
+    assert off["evidence"]["check"]["pairs"] == int(ok.sum()) and off["verdict"] == "failed"
 
 
 def test_structural_score_is_one_at_chance_and_high_on_matching_edges():
