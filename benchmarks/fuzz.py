@@ -846,7 +846,8 @@ def write_report(path: Path, results: list[Result], seed: int, seconds: float) -
               "for which the camera file is not), an odd argument (NaN, inf, negative, huge, "
               "not a number, an unknown or a missing option, an unknown command) or an odd output path (an existing "
               "folder, under a file, in a folder that does not exist, another suffix, an input, another output). "
-              "'Certainly invalid' trials must end with exit 2; the others may end either way but never crash, "
+              "'Certainly invalid' trials (a run's camera file given another width or height among them) must end "
+              "with exit 2; the others may end either way but never crash, "
               "hang, leave a partial output or change an input.", "",
               "Decided here: `-o` in a folder that does not exist is created, at the end and only when the command "
               "succeeds, by every command (README, Outputs). A run's damaged scan cache is prepared again (it is a cache, "

@@ -112,25 +112,27 @@ def _photo(shot: Shot):
     return open_photo(shot.image, shot.camera, shot.mask, camera_path=shot.camera_file)
 
 
-def stereo_products(prepared, left: Shot, right: Shot, images: dict, masks: dict, points: bool | None = None,
+def stereo_products(prepared, left: Shot, right: Shot, photos: dict, points: bool | None = None,
                     baseline_sigma: float = 0.0) -> StereoProducts:
     """The rectified pair of two photos of one rig shot (`export.stereo.rectify` from their
     poses, which a rig solve ties by its relative pose) with the left's disparity, its 1-sigma
-    (the depth's, and the baseline's 1-sigma `baseline_sigma` metres), and occlusion."""
+    (the depth's, and the baseline's 1-sigma `baseline_sigma` metres), and occlusion. photos:
+    each shot's name to its `steps.Photo` (`_photo`)."""
     from rgbd_gt.export.stereo import disparity, occluded, rectify
 
     try:
         pair = rectify(left.camera, left.T, right.camera, right.T)
     except InputError as exc:
-        raise InputError(f"stereo pair {left.name} | {right.name} (cameras {left.camera_name}, {right.camera_name}): {exc}") from None
+        raise InputError(f"stereo pair {left.name} | {right.name} (cameras {left.camera_name}, "
+                         f"{right.camera_name}): {exc}") from None
     if pair.swapped:
         left, right = right, left
-    pl = products(prepared, left, images[left.name], pair.left, masks.get(left.name), points)
+    pl = products(prepared, left, photos[left.name].image, pair.left, photos[left.name].ignore, points)
     z_right = render(prepared, right, pair.right, points, normals=False).z  # for what the right camera sees
     disp = disparity(pl.z, pl.camera.fx, pair.baseline)
     with np.errstate(divide="ignore", invalid="ignore"):
         rel = np.where(pl.z > 0, np.hypot(pl.sigma.depth / np.where(pl.z > 0, pl.z, 1), baseline_sigma / pair.baseline), 0)
-    return StereoProducts(pl, pair.right.image(images[right.name]), pair.baseline, disp, (disp * rel).astype(np.float32),
+    return StereoProducts(pl, pair.right.image(photos[right.name].image), pair.baseline, disp, (disp * rel).astype(np.float32),
                           occluded(pl.z, z_right, disp), (left.name, right.name))
 
 
@@ -282,9 +284,7 @@ def _pairs(prepared, source: Source, chosen: list[Shot], out: Path, formats: lis
         progress(f"pair {left.name} | {right.name}", k, len(pairs))
         t0 = time.perf_counter()
         photos = {s.name: _photo(s) for s in (left, right)}
-        images = {name: p.image for name, p in photos.items()}
-        masks = {name: p.ignore for name, p in photos.items() if p.ignore is not None}
-        sp = stereo_products(prepared, left, right, images, masks, points, sigma_b)
+        sp = stereo_products(prepared, left, right, photos, points, sigma_b)
         index = len(result.pairs)
         key = f"{left.shot:06d}" if left.shot is not None else f"{index:06d}"
         if "middlebury" in formats:
