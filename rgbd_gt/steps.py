@@ -124,12 +124,11 @@ def init_step(prepared, photo: Photo, image_path: PathLike, spec=None, corners: 
     from rgbd_gt.qa.verticals import verticals_qa
 
     picks = read_correspondences(Path(correspondences))
-    whole = prepared.whole()
-    check_picks(picks, photo.camera, whole.xyz, correspondences, whole.origins)
+    check_picks(picks, photo.camera, prepared.bounds(), correspondences, prepared.origins)
     check_spread(picks.obj, picks.img, str(correspondences), 6)  # named after the file
     result = init_from_correspondences(picks, photo.camera, estimate_focal, ransac_px)
     # a check the picks do not take part in: a few pairs hardly check each other
-    return result, verticals_qa(whole.xyz, photo.image, result.camera, [result.T_cam_from_scan])[0]
+    return result, verticals_qa(prepared.whole().xyz, photo.image, result.camera, [result.T_cam_from_scan])[0]
 
 
 def made_from(scan: PathLike, scan_sha1: str | None, files: dict[str, PathLike],

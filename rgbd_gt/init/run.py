@@ -216,7 +216,8 @@ def check_picks(picks: Picks, camera: Camera, points: np.ndarray, path: object,
     """InputError when a pick's pixel lies a photo's size or more outside the photo (a pick just
     off it is a mis-click for RANSAC to drop), or its scan point outside the bounding box of the
     scan and its scanner positions, with a 10 cm margin (pairs picked on another scan, or a corrupt
-    file; the scanner itself, seen in a photo, is a fair pick). points, origins: (N, 3), (S, 3) metres."""
+    file; the scanner itself, seen in a photo, is a fair pick). points: (N, 3) the scan's points,
+    or the two corners of their box (`prepared.PreparedScan.bounds`); origins: (S, 3); metres."""
     size = np.array(camera.size, float)
     far = np.flatnonzero(((picks.img < -size) | (picks.img > 2 * size)).any(axis=1))
     if len(far):
