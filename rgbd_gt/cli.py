@@ -275,6 +275,8 @@ def init_pose(
     cols, rows = _board_shape(board)
     if not 0 < square <= MAX_SQUARE_M:
         raise InputError(f"--square must lie between 0 and {MAX_SQUARE_M:g} m, got {square}")
+    if marker is not None and not 0 < marker < square:  # OpenCV's board raises a SystemError on it
+        raise InputError(f"--marker must lie between 0 and --square ({square:g} m), got {marker:g}")
     if charuco is not None:
         import cv2
 

@@ -159,6 +159,10 @@ def test_bundle_file_errors(synth_scene, tmp_path):
          "camera must name one of a"),
         ("scan: scan.ply\ncameras: {a: camera.yaml, b: camera.yaml}\nrig: {cameras: [a, b], prior: [b]}\n"
          "photos: [{image: photo.png, camera: a, shot: 0, init: init_pose.yaml}]", "rig.prior must map"),
+        # was read as "no prior": a blank where a mapping belongs is a mistake, not an absence
+        ("scan: scan.ply\ncameras: {a: camera.yaml, b: camera.yaml}\nrig: {cameras: [a, b], prior: ''}\n"
+         "photos: [{image: photo.png, camera: a, shot: 0, init: init_pose.yaml}, "
+         "{image: photo_1.png, camera: b, shot: 0, init: init_pose.yaml}]", "sigma_translation_mm}, got ''"),
     ]
     for text, message in cases:
         (d / "b.yaml").write_text(text)

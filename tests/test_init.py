@@ -203,4 +203,9 @@ def test_no_board_in_photo_or_scan(scenes, tmp_path):
     assert line == f"noboard: failed: {tmp_path / 'noboard.ply'}: no 9x6 board found in the scan's virtual views", line
     assert_one_line_error(run_cli("init-pose", "--scan", d / "scan.ply", "--image", d / "photo.png", "--camera",
                                   d / "camera.yaml", "-o", tmp_path / "o.yaml", "--board", "9by6"), "--board")
+    # fuzz seed 40: OpenCV's ChArUco board raised a SystemError (a traceback) on such a marker
+    for marker in ("-1", "0.06"):
+        assert_one_line_error(run_cli("init-pose", "--scan", d / "scan.ply", "--image", d / "photo.png", "--camera",
+                                      d / "camera.yaml", "-o", tmp_path / "o.yaml", "--charuco", "DICT_5X5_100",
+                                      "--marker", marker), f"--marker must lie between 0 and --square (0.05 m), got {marker}")
     assert not (tmp_path / "o.yaml").exists()

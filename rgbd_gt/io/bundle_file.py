@@ -114,10 +114,11 @@ def read_bundle(path: str | os.PathLike) -> BundleSpec:
         if unknown or len(set(rig)) != len(rig):
             detail = f"{', '.join(map(repr, unknown))} not among them" if unknown else "a repeat"
             raise InputError(f"rig.cameras must name distinct cameras of `cameras:` ({detail})", path)
-        if not isinstance(r.get("prior") or {}, dict):
+        prior = {} if r.get("prior") is None else r["prior"]  # '' or [] is a mistake, not "no prior"
+        if not isinstance(prior, dict):
             raise InputError("rig.prior must map rig cameras after the first to {pose, sigma_rotation_deg, "
-                             "sigma_translation_mm}", path)
-        for name, p in (r.get("prior") or {}).items():
+                             f"sigma_translation_mm}}, got {prior!r}", path)
+        for name, p in prior.items():
             if name not in rig[1:] or not isinstance(p, dict):
                 raise InputError(f"rig.prior.{name}: a prior is given per rig camera after the first, as "
                                  "{pose, sigma_rotation_deg, sigma_translation_mm}", path)
