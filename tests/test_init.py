@@ -178,6 +178,9 @@ def test_labelled_picks_report_each_pair(scenes, tmp_path):
     (tmp_path / "two.csv").write_text("1,2\n3,4\n")
     with pytest.raises(InputError, match=r"two.csv: expected x,y,z rows, got 2 values per row$"):
         read_board_corners(tmp_path / "two.csv")
+    (tmp_path / "short.csv").write_text("1,2,3\n4,5,6\n7\n")  # fuzz seed 41: ended "; use `usecols` to select ..."
+    with pytest.raises(InputError, match=r"short.csv: not a CSV of x,y,z rows \(the number of columns changed from 3 to 1 at row 3\)$"):
+        read_board_corners(tmp_path / "short.csv")
     (tmp_path / "same.csv").write_text("u,v,x,y,z\n" + "100,200,1.0,2.0,1.0\n" * 7)  # one pair pasted seven times
     assert_one_line_error(run_cli(*args[:-1], tmp_path / "same.csv", "-o", tmp_path / "c.yaml"), "same.csv", "distinct")
     assert not (tmp_path / "c.yaml").exists()

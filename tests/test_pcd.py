@@ -96,6 +96,9 @@ def test_broken_pcd_files(tmp_path):
         load_scan(tmp_path / "view.pcd")
     (tmp_path / "view.pcd").write_text(ascii_header.replace("POINTS", "VIEWPOINT 0 0 1e6 1 0 0 0\nPOINTS") + "1 2 3\n4 5 6\n")
     assert load_scan(tmp_path / "view.pcd").origins.tolist() == [[0, 0, 1e6]]
+    (tmp_path / "view.pcd").write_text(ascii_header.replace("POINTS", "VIEWPOINT 0 0 0 1 0 inf 0\nPOINTS") + "1 2 3\n4 5 6\n")
+    with pytest.raises(InputError, match=r"VIEWPOINT must be 7 finite numbers \(tx ty tz qw qx qy qz\), got '0 0 0 1 0 inf 0'"):
+        load_scan(tmp_path / "view.pcd")
     assert_one_line_error(run_cli("ingest", tmp_path / "short.pcd", "-o", tmp_path / "out.ply"), "short.pcd")
     assert not (tmp_path / "out.ply").exists()
 

@@ -139,7 +139,8 @@ def read_csv_rows(path: Path, fields: str) -> np.ndarray:
     except UnicodeDecodeError as exc:  # its position counts within numpy's chunk, not the file
         raise InputError(f"not a CSV of {fields} rows: not UTF-8 text (a byte 0x{exc.object[exc.start]:02x})", path) from None
     except ValueError as exc:
-        raise InputError(f"not a CSV of {fields} rows ({exc})", path) from None
+        advice = str(exc).split("; use `usecols`")[0]  # numpy's hint is about its own arguments
+        raise InputError(f"not a CSV of {fields} rows ({advice})", path) from None
     if data.size == 0:  # loadtxt gives an empty file one column
         raise InputError(f"holds no {fields} rows", path)
     if data.shape[1] != len(fields.split(",")):

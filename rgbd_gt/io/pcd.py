@@ -56,7 +56,7 @@ def read_header(path: Path) -> dict[str, list[str]]:
     except ValueError:
         view = []
     if len(view) != 7 or not np.isfinite(view).all():
-        raise InputError(f"PCD VIEWPOINT must be 7 numbers (tx ty tz qw qx qy qz), got {' '.join(header['VIEWPOINT'])!r}", path)
+        raise InputError(f"PCD VIEWPOINT must be 7 finite numbers (tx ty tz qw qx qy qz), got {' '.join(header['VIEWPOINT'])!r}", path)
     return header
 
 
