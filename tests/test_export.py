@@ -333,7 +333,10 @@ def test_export_errors(rig_run, tmp_path, synth_scene):
         (broken / "rig.yaml").write_bytes(bad)
         assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(broken / "rig.yaml"), said)
     for bad, said in (("relative: null", "relative: not a mapping of cameras (None)"),
-                      ("relative: {right: [1, 2]}", "relative.right: not a relative pose with its sigma ([1, 2])")):
+                      ("relative: {right: [1, 2]}", "relative.right: not a relative pose with its sigma ([1, 2])"),
+                      # fuzz seed 43: a rig.yaml cut after `sigma:` was read as sigma 0, and stereo_pairs raised
+                      ("relative: {right: {baseline_m: 0.12, sigma: null}}", "relative.right: not a relative pose with its sigma"),
+                      ("relative: {right: {sigma: {rotation_deg: [0, 0, 0]}}}", "no 'translation_mm'")):
         (broken / "rig.yaml").write_text(f"cameras: [left, right]\n{bad}\n")
         assert_one_line_error(run_cli("export", broken, "-o", tmp_path / "x", "-f", "plain"), str(broken / "rig.yaml"),
                               "not a rig record rgbd-gt wrote", said)

@@ -148,7 +148,7 @@ def stereo_pairs(source: Source, chosen: list[Shot]) -> list[tuple[Shot, Shot, f
         return []
     first, second = source.rig["cameras"][:2]
     rel = source.rig["relative"][second]
-    sigma_b = float(np.linalg.norm(rel.get("sigma", {}).get("translation_mm", [0, 0, 0]))) / 1e3
+    sigma_b = float(np.linalg.norm(rel["sigma"]["translation_mm"])) / 1e3  # `source._rig` checked them
     by_shot: dict = {}
     for s in chosen:
         if s.shot is not None:

@@ -223,11 +223,11 @@ def _rig(path: Path) -> dict:
         if not isinstance(relative, dict):
             raise TypeError(f"relative: not a mapping of cameras ({relative!r:.40})")
         for c in cameras[1:]:
-            entry = relative[c] or {}
-            sigma = (entry.get("sigma") or {}) if isinstance(entry, dict) else None
-            if not isinstance(sigma, dict):
+            entry = relative[c]
+            sigma = entry.get("sigma") if isinstance(entry, dict) else None
+            if not isinstance(sigma, dict):  # a sigma left out is unknown, not zero
                 raise TypeError(f"relative.{c}: not a relative pose with its sigma ({entry!r:.40})")
-            mm = sigma.get("translation_mm", [0, 0, 0])
+            mm = sigma["translation_mm"]
             if not (isinstance(mm, list) and len(mm) == 3 and all(_nonnegative(v) for v in mm)):
                 raise TypeError(f"relative.{c}.sigma.translation_mm: not 3 numbers ({mm!r})")
     except (KeyError, TypeError, AttributeError) as exc:
