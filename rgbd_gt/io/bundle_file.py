@@ -117,7 +117,7 @@ def read_bundle(path: str | os.PathLike) -> BundleSpec:
         prior = {} if r.get("prior") is None else r["prior"]  # '' or [] is a mistake, not "no prior"
         if not isinstance(prior, dict):
             raise InputError("rig.prior must map rig cameras after the first to {pose, sigma_rotation_deg, "
-                             f"sigma_translation_mm}}, got {prior!r}", path)
+                             f"sigma_translation_mm}}, got {prior!r:.40}", path)
         for name, p in prior.items():
             if name not in rig[1:] or not isinstance(p, dict):
                 raise InputError(f"rig.prior.{name}: a prior is given per rig camera after the first, as "
