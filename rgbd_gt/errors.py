@@ -70,3 +70,9 @@ def yaml_number(value: object) -> object:
     a string), else unchanged: read where a file's key must hold a number, never for the whole
     file (a SHA-1 of digits and one e would become a float)."""
     return float(value) if isinstance(value, str) and _NUMBER_TEXT.fullmatch(value) else value
+
+
+def numpy_text_problem(exc: Exception) -> str:
+    """What numpy's text reader (`np.loadtxt`) says is wrong, without its advice to a programmer
+    ("; use `usecols` to select a subset ..."), which names its own arguments, not the file."""
+    return str(exc).split("; use `usecols`")[0]

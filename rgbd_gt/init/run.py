@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from rgbd_gt.camera import Camera, project
-from rgbd_gt.errors import InputError, require_file
+from rgbd_gt.errors import InputError, numpy_text_problem, require_file
 from rgbd_gt.init.detect import BoardSpec, detect_corners
 from rgbd_gt.init.pnp import board_pose, check_spread, estimate_focal, on_one_line, pnp_ransac, pose_uncertainty, reprojection_rms
 from rgbd_gt.init.scan_board import ScanBoard, find_board_in_scan, in_convex_polygon, scan_step
@@ -139,8 +139,7 @@ def read_csv_rows(path: Path, fields: str) -> np.ndarray:
     except UnicodeDecodeError as exc:  # its position counts within numpy's chunk, not the file
         raise InputError(f"not a CSV of {fields} rows: not UTF-8 text (a byte 0x{exc.object[exc.start]:02x})", path) from None
     except ValueError as exc:
-        advice = str(exc).split("; use `usecols`")[0]  # numpy's hint is about its own arguments
-        raise InputError(f"not a CSV of {fields} rows ({advice})", path) from None
+        raise InputError(f"not a CSV of {fields} rows ({numpy_text_problem(exc)})", path) from None
     if data.size == 0:  # loadtxt gives an empty file one column
         raise InputError(f"holds no {fields} rows", path)
     if data.shape[1] != len(fields.split(",")):

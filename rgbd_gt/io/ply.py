@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbd_gt.errors import InputError
+from rgbd_gt.errors import InputError, numpy_text_problem
 from rgbd_gt.io.atomic import atomic_output
 from rgbd_gt.scan import Scan, ring_ids
 
@@ -119,8 +119,7 @@ def _vertex_table(path: Path) -> tuple[np.ndarray, list[str]]:
     except InputError:
         raise
     except (OSError, ValueError, UnicodeDecodeError) as exc:
-        why = str(exc).split("; use `usecols`")[0]  # numpy's advice is to a programmer
-        raise InputError(f"cannot read PLY: {why}", path) from None
+        raise InputError(f"cannot read PLY: {numpy_text_problem(exc)}", path) from None
 
 
 def _colors(table: np.ndarray) -> np.ndarray | None:
